@@ -1,0 +1,81 @@
+#!/usr/bin/env python3
+"""One entry point that sets itself up: `python3 dev.py demo` and `python3 dev.py test`.
+
+Creates `.venv` beside this file on first use (and again whenever pyproject.toml changes),
+installs the project into it, then runs the command. Needs only python3 >= 3.11; no root.
+
+    python3 dev.py demo            the loopback demo (README's main command)
+    python3 dev.py test [ARGS]     ruff, then the whole test suite (extra ARGS go to pytest)
+    python3 dev.py bench           the benchmarks in benchmarks/ (results: docs/performance.md)
+    python3 dev.py hil ARGS        any `hil` command inside the environment
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent
+VENV = ROOT / ".venv"
+BIN = VENV / ("Scripts" if os.name == "nt" else "bin")
+PY = BIN / "python"
+STAMP = VENV / ".hil-installed"
+
+
+def say(msg: str) -> None:
+    print(f"[dev.py] {msg}", flush=True)
+
+
+def run(cmd: list[str | Path], **kw) -> int:
+    return subprocess.call([str(c) for c in cmd], cwd=ROOT, **kw)
+
+
+def ensure_env() -> None:
+    if sys.version_info < (3, 11):  # noqa: UP036  (this file must run on an old python3 to say so)
+        sys.exit(f"[dev.py] Python >= 3.11 is needed; this is {sys.version.split()[0]}. Use python3.11 or newer.")
+    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    if PY.exists() and STAMP.exists() and STAMP.read_text().strip() == want:
+        return
+    if not PY.exists():
+        say(f"creating virtual environment in {VENV}")
+        if run([sys.executable, "-m", "venv", VENV]) != 0:
+            sys.exit("[dev.py] `python3 -m venv` failed. On Debian/Ubuntu: apt-get install python3-venv")
+    say("installing the project and its test tools into .venv (first run only, about a minute)")
+    pip = [PY, "-m", "pip", "install", "--quiet", "--disable-pip-version-check"]
+    if run([*pip, "--upgrade", "pip"]) != 0 or run([*pip, "-e", ".[test]"]) != 0:
+        sys.exit("[dev.py] pip install failed (see above); fix it and run the same command again")
+    STAMP.write_text(want + "\n")
+
+
+def main(argv: list[str]) -> int:
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(__doc__)
+        return 0 if argv else 2
+    cmd, rest = argv[0], argv[1:]
+    if cmd not in ("demo", "test", "bench", "hil"):
+        print(__doc__)
+        print(f"[dev.py] unknown command {cmd!r}")
+        return 2
+    ensure_env()
+    if cmd == "demo":
+        return run([BIN / "hil", "selftest", *rest])
+    if cmd == "hil":
+        return run([BIN / "hil", *rest])
+    if cmd == "bench":
+        rc = 0
+        for script in sorted((ROOT / "benchmarks").glob("bench_*.py")):
+            say(f"running {script.relative_to(ROOT)}")
+            rc |= run([PY, script, *rest])
+        return rc
+    say("ruff check")
+    if run([PY, "-m", "ruff", "check", "."]) != 0:
+        say("ruff found problems (above); `.venv/bin/ruff check --fix .` fixes most")
+        return 1
+    return run([PY, "-m", "pytest", *rest])
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

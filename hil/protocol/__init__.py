@@ -1,0 +1,41 @@
+"""The framed binary protocol the bench and its boards speak (docs/protocol.md).
+
+Import messages and the codec from here::
+
+    from hil.protocol import Decoder, Encoder, GyroSample, Board
+"""
+
+from hil.protocol import messages
+from hil.protocol.framing import (
+    CRC_INIT,
+    HEADER_SIZE,
+    MAX_FRAME,
+    MAX_PAYLOAD,
+    SYNC,
+    Decoder,
+    Encoder,
+    Frame,
+    LinkCounters,
+    crc16,
+    encode_frame,
+)
+from hil.protocol.messages import *  # noqa: F403  (the catalogue is the public vocabulary)
+from hil.protocol.wire import Catalogue, EncodeError, MessageSpec
+
+__all__ = [  # noqa: PLE0604
+    *messages.__all__,
+    "CRC_INIT",
+    "HEADER_SIZE",
+    "MAX_FRAME",
+    "MAX_PAYLOAD",
+    "SYNC",
+    "Catalogue",
+    "Decoder",
+    "EncodeError",
+    "Encoder",
+    "Frame",
+    "LinkCounters",
+    "MessageSpec",
+    "crc16",
+    "encode_frame",
+]
