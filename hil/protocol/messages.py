@@ -38,7 +38,7 @@ class BoardState(IntEnum):
 
 
 class ErrorCode(IntEnum):
-    """NACK reasons. ``axis``/``value``/``limit`` in the NACK say which axis and limit."""
+    """NACK reasons. The NACK's `axis`, `value` and `limit` say which axis and which limit."""
 
     UNKNOWN_MESSAGE = 1  # the board does not implement this message id
     BAD_VALUE = 2  # a field is outside what the board accepts (value, limit given)
