@@ -212,6 +212,16 @@ def render_layout(cat: Catalogue) -> str:
     return "```\n" + cat.layout_text() + "\n```"
 
 
+def render_limits(cat: Catalogue) -> str:
+    longest = max(cat, key=lambda s: s.payload_size)
+    frame = HEADER_SIZE + longest.payload_size + CRC_SIZE
+    return (
+        f"`MAX_PAYLOAD` = {MAX_PAYLOAD} bytes (a frame of at most {HEADER_SIZE + MAX_PAYLOAD + CRC_SIZE} bytes). "
+        f"The longest message of this catalogue is {longest.name}: a **{frame}-byte frame**, "
+        f"{frame * 10 / 921_600 * 1e6:.0f} us at 921 600 baud."
+    )
+
+
 _RATE = re.compile(r"(\d+(?:\.\d+)?) (k?Hz)")
 BAUDS = (921_600, 2_000_000)
 
@@ -240,7 +250,7 @@ def render_link_budget(cat: Catalogue) -> str:
 
 def render_blocks(cat: Catalogue = m.CATALOGUE) -> dict[str, str]:
     return {
-        "limits": f"`MAX_PAYLOAD` = {MAX_PAYLOAD} bytes; longest frame {HEADER_SIZE + MAX_PAYLOAD + CRC_SIZE} bytes.",
+        "limits": render_limits(cat),
         "budget": render_link_budget(cat),
         "catalogue": render_catalogue(cat),
         "enums": render_enums(),

@@ -50,6 +50,9 @@ class Frame(NamedTuple):
 def encode_frame(message: Any, *, src: int, dst: int, seq: int, catalogue: Catalogue = CATALOGUE) -> bytes:
     """Encode one message as a complete frame. Raises EncodeError naming the field on bad values."""
     spec = catalogue.spec(message)
+    for name, node in (("src", src), ("dst", dst)):
+        if not (isinstance(node, int) and 0 <= node <= 0xFF):
+            raise EncodeError(f"{spec.name} frame {name} = {node!r}: a node id is a byte, 0..255")
     raw = spec.raw_values(message)
     header = SYNC + _HEADER.pack(catalogue.protocol_version, src, dst, spec.msg_id, seq & 0xFFFF, spec.payload_size)
     body = header + spec.payload_struct.pack(*raw)
@@ -78,8 +81,8 @@ class LinkCounters:
     frames_ok: int = 0
     bytes_in_frames: int = 0
     crc_errors: int = 0
-    bad_lengths: int = 0  # claimed length > MAX_PAYLOAD, or not the catalogue's length for a known id
-    unknown_ids: int = 0  # frames with a good CRC and an id this catalogue does not define (skipped)
+    bad_lengths: int = 0  # claimed length > MAX_PAYLOAD, or not the catalogue's length for the id
+    unknown_ids: int = 0  # headers with an id this catalogue does not define (rejected at the header)
     resyncs: int = 0  # times the decoder lost frame alignment and had to hunt for a sync word
     bytes_discarded: int = 0
     seq_gaps: dict[int, int] = field(default_factory=dict)  # per source id: gaps seen
@@ -109,11 +112,12 @@ class Decoder:
     Receiver rules (docs/protocol.md, "Receiving"):
     - hunt for the sync word; bytes before it are discarded;
     - reject a header at once (without waiting for its payload) when the version is wrong, the
-      claimed length exceeds MAX_PAYLOAD, or a known id claims a length other than its own;
+      id is not in the catalogue, or the claimed length is not that message's length (so a
+      claimed length beyond MAX_PAYLOAD is always dropped at once);
     - on a bad header or CRC, discard only the first sync byte and rescan from the next byte,
-      so a false sync never swallows a real frame that starts inside its claimed span;
-    - a frame with a good CRC but an unknown id is counted and skipped whole.
-    Memory is bounded: between calls at most MAX_FRAME - 1 bytes are kept.
+      so a false sync never swallows a real frame that starts inside its claimed span.
+    A false sync therefore holds back the next real frame by at most ``max_frame`` bytes (the
+    catalogue's longest frame), and that is also the most memory kept between calls.
     """
 
     def __init__(self, catalogue: Catalogue = CATALOGUE) -> None:
@@ -122,6 +126,17 @@ class Decoder:
         self._buf = bytearray()
         self._last_seq: list[int] = [-1] * 256
         self._aligned = True
+        # per-id tables for the hot loop: payload size (-1 = unknown id) and payload decoder
+        self._size_of = [-1] * 256
+        self._decoder_of: list[Any] = [None] * 256
+        for spec in catalogue:
+            self._size_of[spec.msg_id] = spec.payload_size
+            self._decoder_of[spec.msg_id] = spec.payload_decoder
+
+    @property
+    def max_frame(self) -> int:
+        """Longest frame of the catalogue: the most a false sync can make the decoder wait for."""
+        return HEADER_SIZE + max(self._size_of) + CRC_SIZE
 
     @property
     def pending(self) -> int:
@@ -142,17 +157,21 @@ class Decoder:
                 self._aligned = False
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
+        """Append ``data`` and return every frame it completed, in order."""
         buf = self._buf
         buf += data
         c = self.counters
         c.bytes += len(data)
-        by_id = self.catalogue.by_id
+        size_of = self._size_of
+        decoder_of = self._decoder_of
         version = self.catalogue.protocol_version
         last_seq = self._last_seq
         unpack_header = _HEADER.unpack_from
+        new_frame = tuple.__new__
         out: list[Frame] = []
         n = len(buf)
         pos = 0
+        frames_ok = bytes_ok = 0  # kept local in the hot loop, added to the counters at the end
         while True:
             start = buf.find(SYNC, pos)
             if start < 0:
@@ -167,10 +186,13 @@ class Decoder:
             if n - pos < HEADER_SIZE:
                 break
             ver, src, dst, msg_id, seq, length = unpack_header(buf, pos + 2)
-            spec = by_id.get(msg_id)
-            if ver != version or length > MAX_PAYLOAD or (spec is not None and length != spec.payload_size):
+            size = size_of[msg_id]  # -1 for an id this catalogue does not define
+            if length != size or ver != version:
                 if ver == version:
-                    c.bad_lengths += 1
+                    if size < 0 and length <= MAX_PAYLOAD:
+                        c.unknown_ids += 1
+                    else:
+                        c.bad_lengths += 1
                 self._discard(1)
                 pos += 1
                 continue
@@ -188,14 +210,12 @@ class Decoder:
                 c.seq_gaps[src] = c.seq_gaps.get(src, 0) + 1
                 c.frames_lost[src] = c.frames_lost.get(src, 0) + ((seq - last - 1) & 0xFFFF)
             last_seq[src] = seq
-            if spec is None:
-                c.unknown_ids += 1
-                c.bytes_discarded += end - pos
-            else:
-                out.append(Frame(src, dst, seq, spec.decode_payload(buf, pos + HEADER_SIZE)))
-                c.frames_ok += 1
-                c.bytes_in_frames += end - pos
+            out.append(new_frame(Frame, (src, dst, seq, decoder_of[msg_id](buf, pos + HEADER_SIZE))))
+            frames_ok += 1
+            bytes_ok += end - pos
             pos = end
+        c.frames_ok += frames_ok
+        c.bytes_in_frames += bytes_ok
         del buf[:pos]
         return out
 
