@@ -7,8 +7,9 @@ reassembling a frame from two fragments) is discarded with ``assume``; those tes
 derandomized, so a CRC coincidence can never make them flaky.
 
 Streams that end in garbage are followed by ``FLUSH``: MAX_FRAME bytes that hold no sync byte.
-A false sync with a plausible header makes the decoder wait for the bytes it claims (up to
-MAX_FRAME); on a live link more bytes always come, and the flush stands in for them.
+A false sync whose header passes the checks (a known id with its own length) makes the decoder
+wait for the bytes it claims (at most ``Decoder.max_frame``); on a live link more bytes always
+come, and the flush (more than enough) stands in for them.
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def check_counters(decoder: Decoder, fed: int) -> None:
     c = decoder.counters
     assert c.bytes == fed
     assert c.bytes == c.bytes_in_frames + c.bytes_discarded + decoder.pending
-    assert 0 <= decoder.pending < MAX_FRAME
+    assert 0 <= decoder.pending < decoder.max_frame
 
 
 def feed_in_chunks(
@@ -574,20 +575,24 @@ def test_frame_of_an_unknown_id_shows_as_a_sequence_gap() -> None:
 # --- memory and sequence gaps ----------------------------------------------------------------------------
 
 
+def feed_randomly(decoder: Decoder, stream: bytes, rng: random.Random, *, max_chunk: int) -> int:
+    """Feed ``stream`` in random chunks, checking the counters after each; return the most ever pending."""
+    pos = worst = 0
+    while pos < len(stream):
+        n = rng.randint(1, max_chunk)
+        decoder.feed(stream[pos : pos + n])
+        pos += n
+        worst = max(worst, decoder.pending)
+        check_counters(decoder, min(pos, len(stream)))
+    return worst
+
+
 def test_memory_stays_bounded_on_a_megabyte_of_garbage() -> None:
     rng = random.Random(20240601)
     stream = rng.randbytes(1 << 20)
     decoder = Decoder()
-    pos = 0
-    worst = 0
-    while pos < len(stream):
-        n = rng.randint(1, 4096)
-        decoder.feed(stream[pos : pos + n])
-        pos += n
-        worst = max(worst, decoder.pending)
-        assert decoder.pending < MAX_FRAME
-        check_counters(decoder, min(pos, len(stream)))
-    assert worst < MAX_FRAME
+    worst = feed_randomly(decoder, stream, rng, max_chunk=4096)
+    assert worst < decoder.max_frame
     c = decoder.counters
     assert c.bytes == 1 << 20 and c.frames_ok == 0
     # the link still works afterwards
@@ -600,14 +605,7 @@ def test_memory_stays_bounded_on_sync_rich_garbage() -> None:
     rng = random.Random(7)
     stream = bytes(rng.choice(b"\xeb\x90\x01\x7f\xf0\x00") for _ in range(200_000))
     decoder = Decoder()
-    pos = 0
-    worst = 0
-    while pos < len(stream):
-        n = rng.randint(1, 512)
-        decoder.feed(stream[pos : pos + n])
-        pos += n
-        worst = max(worst, decoder.pending)
-        check_counters(decoder, min(pos, len(stream)))
+    worst = feed_randomly(decoder, stream, rng, max_chunk=512)
     # unknown ids (7F, F0, 90, EB, 00) are refused at the header; only IDENT_REQ (id 01, length 0) is known
     assert worst < decoder.max_frame == 43
     assert decoder.counters.unknown_ids > 500  # ~200000 / 6**3 headers with version 1, nearly all unknown

@@ -23,17 +23,7 @@ from hil.protocol import (
     encode_frame,
 )
 from hil.protocol.docgen import DOC_PATH
-
-
-def crc16_bitwise(data: bytes) -> int:
-    """The C reference loop of docs/protocol.md, transcribed: independent of binascii."""
-    crc = 0xFFFF
-    for byte in data:
-        crc ^= byte << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) & 0xFFFF if crc & 0x8000 else (crc << 1) & 0xFFFF
-    return crc
-
+from tests.protocol.reference import crc16_bitwise
 
 GOLDEN = [
     (

@@ -38,6 +38,7 @@ from hil.protocol import (
     encode_frame,
 )
 from hil.protocol.wire import FieldSpec, MessageSpec, Wire
+from tests.protocol.reference import crc16_bitwise
 
 SPECS: list[MessageSpec] = list(CATALOGUE)
 BY_NAME = {spec.name: spec for spec in SPECS}
@@ -48,21 +49,11 @@ nodes = st.one_of(st.sampled_from([0x00, 0x01, 0x90, 0xEB, 0xFF]), st.integers(0
 seqs = st.one_of(st.sampled_from([0, 1, 0x90EB, 0xFFFE, 0xFFFF]), st.integers(0, 0xFFFF))
 
 
-def crc_ccitt_false(data: bytes) -> int:
-    """Bitwise CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF): independent of binascii."""
-    crc = 0xFFFF
-    for byte in data:
-        crc ^= byte << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) & 0xFFFF if crc & 0x8000 else (crc << 1) & 0xFFFF
-    return crc
-
-
 def expected_frame(spec: MessageSpec, payload: bytes, src: int, dst: int, seq: int) -> bytes:
     """The frame as docs/protocol.md section 3 lays it out, built by hand."""
     body = bytes([PROTOCOL_VERSION, src, dst, spec.msg_id]) + seq.to_bytes(2, "little") + bytes([len(payload)])
     body += payload
-    return SYNC + body + crc_ccitt_false(body).to_bytes(2, "little")
+    return SYNC + body + crc16_bitwise(body).to_bytes(2, "little")
 
 
 def assert_field_types(spec: MessageSpec, msg: Any) -> None:
@@ -87,7 +78,7 @@ def assert_field_types(spec: MessageSpec, msg: Any) -> None:
 
 
 def test_reference_crc_matches_the_documented_check_value() -> None:
-    assert crc_ccitt_false(b"123456789") == 0x29B1
+    assert crc16_bitwise(b"123456789") == 0x29B1
     assert crc16(b"123456789") == 0x29B1
 
 
