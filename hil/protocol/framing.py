@@ -16,6 +16,7 @@ Frame layout, all multi-byte fields little-endian::
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from binascii import crc_hqx
 from dataclasses import dataclass, field
@@ -93,17 +94,7 @@ class LinkCounters:
         return self.crc_errors + self.bad_lengths + self.unknown_ids + sum(self.seq_gaps.values())
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "bytes": self.bytes,
-            "frames_ok": self.frames_ok,
-            "crc_errors": self.crc_errors,
-            "bad_lengths": self.bad_lengths,
-            "unknown_ids": self.unknown_ids,
-            "resyncs": self.resyncs,
-            "bytes_discarded": self.bytes_discarded,
-            "seq_gaps": dict(self.seq_gaps),
-            "frames_lost": dict(self.frames_lost),
-        }
+        return dataclasses.asdict(self)
 
 
 class Decoder:
