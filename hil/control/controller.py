@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import Protocol
 
 from hil.control.loops import RateLoop
+from hil.control.ukf_imbalance import ImbalanceFeedForward, ImbalanceUKF, Vec3
 
 
 class RateEstimator(Protocol):
@@ -42,6 +43,27 @@ class FilteredFeedback:
         return rate_meas_dps if self.filter is None else self.filter.step(rate_meas_dps)
 
 
+class ImbalanceCompensation:
+    """Mass-imbalance feed-forward for one axis (seed 001 Fig. 2): UKF identification plus torque feed-forward.
+
+    ``identify`` runs the UKF (about 200 us a step, so call it decimated, every ``ukf.dt_s``, with the
+    window-averaged measurements ImbalanceUKF.step documents); ``drive_counts`` evaluates the
+    feed-forward every 1 ms tick from the latest eccentricity and the current carrier acceleration.
+    """
+
+    def __init__(self, *, ukf: ImbalanceUKF, feedforward: ImbalanceFeedForward) -> None:
+        self.ukf = ukf
+        self.feedforward = feedforward
+
+    def identify(self, **measurements: float | Vec3) -> tuple[float, float]:
+        rho = self.ukf.step(**measurements)  # type: ignore[arg-type]
+        self.feedforward.set_eccentricity(*rho)
+        return rho
+
+    def drive_counts(self, accel_body_m_s2: Vec3, az_rad: float, el_rad: float) -> float:
+        return self.feedforward.drive(accel_body_m_s2, az_rad, el_rad)
+
+
 class RateController:
     """Estimator + rate loop for one axis; ``step`` is the whole 1 kHz computation on plain floats.
 
@@ -49,9 +71,12 @@ class RateController:
     (the observer's estimate) and ``u_counts`` (the applied drive) hold the values to log.
     """
 
-    def __init__(self, *, estimator: RateEstimator, loop: RateLoop) -> None:
+    def __init__(
+        self, *, estimator: RateEstimator, loop: RateLoop, imbalance: ImbalanceCompensation | None = None
+    ) -> None:
         self.estimator = estimator
         self.loop = loop
+        self.imbalance = imbalance  # the session feeds it and passes drive_counts(...) as feedforward_counts
         self.u_counts = 0
         self.rate_fb_dps = 0.0
         self.disturbance_counts = 0.0

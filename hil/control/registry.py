@@ -13,11 +13,12 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from hil.control.controller import FilteredFeedback, RateController, RateEstimator
+from hil.control.controller import FilteredFeedback, ImbalanceCompensation, RateController, RateEstimator
 from hil.control.eso import LinearESO, NonlinearESO
 from hil.control.filters import LowPass1, LowPass2
 from hil.control.kalman import EsoKalman
 from hil.control.loops import DAC_MAX_COUNTS, RateLoop
+from hil.control.ukf_imbalance import ImbalanceFeedForward, ImbalanceUKF
 
 K_M_DEFAULT = 0.023  # deg/s^2 per DAC count, seed 000 eq 38
 GYRO_NOISE_VAR_DPS2 = 0.034**2  # seed 000 Fig. 12a: +-0.102 deg/s peak ~ 3 sigma
@@ -84,6 +85,18 @@ class EsoKfHighGainParams(EsoKfParams):
     omega_o_rad_s: float = Field(1000.0, gt=0)
 
 
+class EsoKfUkfFfParams(EsoKfParams):
+    """ESO + KF with UKF-identified mass-imbalance feed-forward (seed 001)."""
+
+    mass_kg: float = Field(10.0, gt=0, description="mass of the imbalanced (inner) frame")
+    inertia_kg_m2: float = Field(0.05, gt=0, description="its inertia about the axis")
+    counts_per_n_m: float = Field(
+        49830.0, gt=0, description="DAC counts per N*m: 1 / (J k_m), k_m in rad/s^2 per count (0.023 deg/s^2)"
+    )
+    ukf_dt_s: float = Field(0.01, gt=0, description="UKF step (seed 001: 0.01 s); the session decimates to it")
+    ff_limit_counts: float = Field(8000.0, gt=0, description="clamp of the feed-forward drive")
+
+
 def _eso_kf(p: EsoKfParams) -> RateEstimator:
     return EsoKalman(
         omega_o_rad_s=p.omega_o_rad_s,
@@ -127,6 +140,7 @@ REGISTRY: dict[str, ControllerKind] = {
     ),
     "eso_kf": ControllerKind(EsoKfParams, _eso_kf, "ESO + Kalman filter"),
     "eso_kf_high_gain": ControllerKind(EsoKfHighGainParams, _eso_kf, "ESO + Kalman filter, high-gain observer"),
+    "eso_kf_ukf_ff": ControllerKind(EsoKfUkfFfParams, _eso_kf, "ESO + Kalman filter + UKF imbalance feed-forward"),
 }
 
 
@@ -150,9 +164,19 @@ def controller_params(name: str, params: dict[str, Any] | None = None) -> RateLo
         raise ControllerConfigError(_describe(exc, name)) from None
 
 
+def _imbalance(p: EsoKfUkfFfParams) -> ImbalanceCompensation:
+    return ImbalanceCompensation(
+        ukf=ImbalanceUKF(mass_kg=p.mass_kg, inertia_kg_m2=p.inertia_kg_m2, dt_s=p.ukf_dt_s),
+        feedforward=ImbalanceFeedForward(
+            mass_kg=p.mass_kg, drive_per_n_m=p.counts_per_n_m, drive_limit=p.ff_limit_counts
+        ),
+    )
+
+
 def build_controller(name: str, params: dict[str, Any] | RateLoopParams | None = None) -> RateController:
     """A fresh controller for one axis. Build one per axis: they hold state."""
     if isinstance(params, RateLoopParams):
         params = params.model_dump(exclude_unset=True)
     p = controller_params(name, params)
-    return RateController(estimator=REGISTRY[name].estimator(p), loop=p.loop())
+    imbalance = _imbalance(p) if isinstance(p, EsoKfUkfFfParams) else None
+    return RateController(estimator=REGISTRY[name].estimator(p), loop=p.loop(), imbalance=imbalance)

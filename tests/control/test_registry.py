@@ -41,7 +41,7 @@ def swing(amplitude_counts: float):
 
 
 def test_the_names_the_issue_asks_for_are_registered():
-    assert {"eso", "eso_nonlinear", "eso_kf", "eso_kf_high_gain", "pi_lpf"} <= set(REGISTRY)
+    assert {"eso", "eso_nonlinear", "eso_kf", "eso_kf_high_gain", "pi_lpf", "eso_kf_ukf_ff"} <= set(REGISTRY)
 
 
 def test_unknown_controller_lists_the_ones_that_exist():
@@ -103,3 +103,23 @@ def test_controller_feeds_the_applied_drive_back_and_reports_its_estimates():
     c.step(0.0, -10.0)
     assert c.rate_fb_dps == c.estimator.rate_dps  # eso feeds back its z1, the standard LADRC form
     assert c.disturbance_counts == c.estimator.disturbance_counts != 0.0
+
+
+def test_imbalance_feedforward_controller_identifies_and_feeds_forward_in_counts():
+    """Noise-free measurements from a known eccentricity: the identified feed-forward matches the true torque."""
+    from hil.control.ukf_imbalance import imbalance_torque
+
+    c = build_controller("eso_kf_ukf_ff", {"ff_limit_counts": 1e6})
+    assert c.imbalance is not None and build_controller("eso_kf").imbalance is None
+    rho_true = (0.004, -0.002)  # m
+    mass, inertia = 10.0, 0.05
+    for k in range(200):  # 2 s of 100 Hz identification, 0.5 g at 2.5 Hz on two body axes
+        t = k * 0.01
+        accel = (4.9 * math.sin(2 * math.pi * 2.5 * t), 0.0, 4.9 * math.sin(2 * math.pi * 2.5 * t + 1.0))
+        torque_imb = imbalance_torque(rho_true, mass, accel, 0.0, 0.0)
+        c.imbalance.identify(angular_accel_rad_s2=-torque_imb / inertia, accel_body_m_s2=accel, az_rad=0.0, el_rad=0.0)
+    rho = c.imbalance.ukf.eccentricity_m
+    assert rho[0] == pytest.approx(rho_true[0], abs=2e-4) and rho[1] == pytest.approx(rho_true[1], abs=2e-4)
+    accel = (3.0, 0.0, -2.0)
+    expected = 49830.0 * imbalance_torque(rho_true, mass, accel, 0.0, 0.0)
+    assert c.imbalance.drive_counts(accel, 0.0, 0.0) == pytest.approx(expected, rel=0.05)
