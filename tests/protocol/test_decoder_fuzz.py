@@ -139,6 +139,19 @@ def garbage(draw: Any, any_frame: st.SearchStrategy[tuple[bytes, Frame]]) -> byt
 # --- garbage and corruption -----------------------------------------------------------------------
 
 
+def assert_exactly_the_placed_frames_come_out(
+    stream: bytes, spans: list[tuple[int, int]], expected: list[Frame], sizes: Sequence[int]
+) -> None:
+    """Fed in ``sizes`` chunks, the decoder returns exactly ``expected`` and accounts for every byte."""
+    decoder = Decoder()
+    assert feed_in_chunks(decoder, stream, sizes, expected) == expected
+    c = decoder.counters
+    assert c.frames_ok == len(expected)
+    assert c.bytes_in_frames == sum(end - start for start, end in spans)
+    assert c.bytes_discarded == len(stream) - c.bytes_in_frames
+    assert decoder.pending == 0
+
+
 @settings(FUZZ, max_examples=300)
 @given(data=st.data())
 def test_frames_survive_interleaved_garbage_and_any_chunking(any_frame: Any, data: Any) -> None:
@@ -156,15 +169,7 @@ def test_frames_survive_interleaved_garbage_and_any_chunking(any_frame: Any, dat
     stream += b"".join(tail) + FLUSH
     event("stray frame in the garbage" if stray_frames(stream, spans) else "no stray frame")
     assume(not stray_frames(stream, spans))
-    sizes = data.draw(chunk_sizes, label="chunk sizes")
-    decoder = Decoder()
-    out = feed_in_chunks(decoder, stream, sizes, expected)
-    assert out == expected
-    c = decoder.counters
-    assert c.frames_ok == len(expected)
-    assert c.bytes_in_frames == sum(end - start for start, end in spans)
-    assert c.bytes_discarded == len(stream) - c.bytes_in_frames
-    assert decoder.pending == 0
+    assert_exactly_the_placed_frames_come_out(stream, spans, expected, data.draw(chunk_sizes, label="chunk sizes"))
 
 
 @settings(FUZZ, max_examples=300)
@@ -200,14 +205,7 @@ def test_corrupted_frames_cost_only_themselves(any_frame: Any, data: Any) -> Non
     stream = bytes(stream) + FLUSH
     event("stray frame" if stray_frames(stream, spans) else "no stray frame")
     assume(not stray_frames(stream, spans))
-    decoder = Decoder()
-    out = feed_in_chunks(decoder, stream, data.draw(chunk_sizes, label="chunk sizes"), expected)
-    assert out == expected
-    c = decoder.counters
-    assert c.frames_ok == len(expected)
-    assert c.bytes_in_frames == sum(end - start for start, end in spans)
-    assert c.bytes_discarded == len(stream) - c.bytes_in_frames
-    assert decoder.pending == 0
+    assert_exactly_the_placed_frames_come_out(stream, spans, expected, data.draw(chunk_sizes, label="chunk sizes"))
 
 
 # --- chunk boundaries -------------------------------------------------------------------------------
