@@ -31,7 +31,7 @@ from filterpy.kalman import KalmanFilter
 from hil.control.ehgo import HighGainObserver
 from hil.control.eso import LinearESO, NonlinearESO
 from hil.control.filters import LowPass1, LowPass2
-from hil.control.kalman import EsoKalman
+from hil.control.kalman import EsoKalman, RandomWalkKalman
 from hil.control.leso_filter import LesoFilter
 from hil.control.pos_kinematics import azel_los_inertial_rate
 from hil.control.registry import REGISTRY, build_controller
@@ -80,20 +80,6 @@ def filterpy_kf_1state() -> Callable[[float], Any]:
     return step
 
 
-class FloatKalman:
-    """Scalar random-walk KF in plain floats (the reference for seed 002's comparison)."""
-
-    def __init__(self, q: float, r: float) -> None:
-        self.q, self.r, self.x, self.p = q, r, 0.0, 1.0
-
-    def step(self, z: float) -> float:
-        p = self.p + self.q
-        k = p / (p + self.r)
-        self.x += k * (z - self.x)
-        self.p = (1.0 - k) * p
-        return self.x
-
-
 def cases() -> dict[str, Callable[[float], Any]]:
     eso = LinearESO(omega_o_rad_s=300.0, b0_dps2_per_count=K_M, dt_s=H)
     nleso = NonlinearESO(omega_o_rad_s=300.0, b0_dps2_per_count=K_M, dt_s=H)
@@ -112,7 +98,7 @@ def cases() -> dict[str, Callable[[float], Any]]:
         "LowPass2 150 Hz": LowPass2(dt_s=H).step,
         "LesoFilter": LesoFilter().step,
         "HighGainObserver": HighGainObserver(dt_s=H, epsilon_s=0.005).step,
-        "plain-float scalar KF": FloatKalman(1e-4, 0.034**2).step,
+        "plain-float scalar KF": RandomWalkKalman(q=1e-4, r=0.034**2).step,
         "filterpy KalmanFilter predict+update (1 state)": filterpy_kf_1state(),
         "azel_los_inertial_rate (kinematics)": lambda x: azel_los_inertial_rate((x, 0.1, 0.2), 0.3, 0.4, 0.5, 0.6),
     }
@@ -143,7 +129,7 @@ def seed002_compute_time(repeats: int = 20) -> dict[str, float]:
     result = {}
     for label, make in (
         ("LesoFilter (tau 0.5, omega_o 0.1)", lambda: LesoFilter(tau_s=0.5, omega_o_rad_s=0.1).step),
-        ("plain-float KF (R 0.1, Q 0.001)", lambda: FloatKalman(1e-3, 0.1).step),
+        ("plain-float KF (R 0.1, Q 0.001)", lambda: RandomWalkKalman(q=1e-3, r=0.1).step),
         ("filterpy KalmanFilter", filterpy_kf_1state),
     ):
         best = math.inf

@@ -37,7 +37,7 @@ import math
 
 from hil.control.eso import LinearESO
 
-__all__ = ["EsoKalman", "steady_state_kalman"]
+__all__ = ["EsoKalman", "RandomWalkKalman", "steady_state_kalman"]
 
 
 def steady_state_kalman(*, w_dps2: float, r_dps2: float) -> tuple[float, float, float]:
@@ -48,6 +48,28 @@ def steady_state_kalman(*, w_dps2: float, r_dps2: float) -> tuple[float, float, 
     m = 0.5 * (w_dps2 + math.sqrt(w_dps2 * w_dps2 + 4.0 * w_dps2 * r_dps2))
     k = m / (m + r_dps2)
     return k, m, (1.0 - k) * m
+
+
+class RandomWalkKalman:
+    """Scalar Kalman filter on plain floats: x_k = x_{k-1} + w (var q), y_k = x_k + v (var r) (seed 000, n = 1).
+
+    The plain baseline filter: seed 002 compares its LESO filter against this KF (R = 0.1, Q = 0.001).
+    """
+
+    def __init__(self, *, q: float, r: float, p0: float = 1.0, x0: float = 0.0) -> None:
+        if q < 0 or r <= 0 or p0 < 0:
+            raise ValueError("need q >= 0, r > 0, p0 >= 0")
+        self.q = q
+        self.r = r
+        self.p = p0
+        self.x = x0
+
+    def step(self, y: float) -> float:
+        p = self.p + self.q
+        k = p / (p + self.r)
+        self.x += k * (y - self.x)
+        self.p = (1.0 - k) * p
+        return self.x
 
 
 class EsoKalman:

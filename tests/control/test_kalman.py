@@ -211,3 +211,27 @@ def test_lag_on_unmodelled_motion_depends_on_eso_bandwidth(omega_o: float, kf_la
     if kf_lags_less:  # and it still filters more than the LPF
         noise = np.random.default_rng(13).normal(0.0, GYRO_SIGMA_DPS, 20_000)
         assert np.std(run(make(omega_o), noise, None)[1000:]) < np.std(lpf(noise)[1000:])
+
+
+def test_random_walk_kalman_matches_filterpy_step_by_step() -> None:
+    import random
+
+    from filterpy.kalman import KalmanFilter
+
+    from hil.control.kalman import RandomWalkKalman
+
+    ours = RandomWalkKalman(q=1e-3, r=0.1, p0=1.0)
+    ref = KalmanFilter(dim_x=1, dim_z=1)
+    ref.x[:] = 0.0
+    ref.P[:] = 1.0
+    ref.F[:] = 1.0
+    ref.H[:] = 1.0
+    ref.Q[:] = 1e-3
+    ref.R[:] = 0.1
+    rng = random.Random(4)
+    for k in range(500):
+        y = math.sin(0.05 * k) + rng.gauss(0.0, 0.3)
+        ref.predict()
+        ref.update(y)
+        assert ours.step(y) == pytest.approx(float(ref.x[0, 0]), abs=1e-12)
+    assert ours.p == pytest.approx(float(ref.P[0, 0]), rel=1e-9)

@@ -38,6 +38,7 @@ from filterpy.kalman import KalmanFilter
 from hypothesis import given
 from hypothesis import strategies as st
 
+from hil.control.kalman import RandomWalkKalman
 from hil.control.leso_filter import LesoFilter
 
 TS_S = 0.01  # 100 Hz
@@ -57,21 +58,9 @@ PAPER_TABLE_1 = {  # column: (compute time s, MAE, error variance)
 }
 
 
-class ScalarKF:
-    """Random-walk Kalman filter x(k+1) = x(k) + w, y = x + v on plain floats (paper eqs 32-37 with n = 1)."""
-
-    def __init__(self, *, r: float = KF_R, q: float = KF_Q, p0: float = 1.0) -> None:
-        self.r = r
-        self.q = q
-        self.p = p0
-        self.x = 0.0
-
-    def step(self, y: float) -> float:
-        p = self.p + self.q
-        k = p / (p + self.r)
-        self.x += k * (y - self.x)
-        self.p = (1.0 - k) * p
-        return self.x
+def ScalarKF() -> RandomWalkKalman:
+    """The paper's KF column: R = 0.1, Q = 0.001, P0 = 1, x0 = 0."""
+    return RandomWalkKalman(q=KF_Q, r=KF_R)
 
 
 def filterpy_kf() -> KalmanFilter:
@@ -112,12 +101,12 @@ def measured(kind: str, seed: int) -> np.ndarray:
     return plant_output(kind) + np.random.default_rng(seed).normal(0.0, NOISE_STD, N_SAMPLES)
 
 
-def run(filt: LesoFilter | ScalarKF, y: np.ndarray) -> np.ndarray:
+def run(filt: LesoFilter | RandomWalkKalman, y: np.ndarray) -> np.ndarray:
     step = filt.step
     return np.array([step(v) for v in y.tolist()])
 
 
-def make(column: str) -> LesoFilter | ScalarKF:
+def make(column: str) -> LesoFilter | RandomWalkKalman:
     if column == "kf":
         return ScalarKF()
     return LesoFilter(tau_s=TAU_S, omega_o_rad_s=float(column.split()[1]))
