@@ -14,6 +14,7 @@ is derived from that declaration, so there is exactly one source of truth.
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 import typing
@@ -203,6 +204,27 @@ def _field_encoder(msg_name: str, f: FieldSpec) -> Callable[[Any], Any]:
 
     lo, hi = w.eng_range
     out_of_range = f"outside [{_fmt_num(lo)}, {_fmt_num(hi)}]{unit} ({w.kind}, scale {_fmt_num(w.scale)})"
+    # hot path (every frame a board or the bench sends): constants as closure locals, no property calls
+    raw_lo, raw_hi, scale, divisor = p.lo, p.hi, w.scale, w.divisor
+    lo_ok, hi_ok = lo - abs(scale), hi + abs(scale)
+
+    if w.enum is None and not p.is_float and scale != 1:
+
+        def enc_scaled(value: Any) -> int:
+            if value.__class__ is float:  # the common case, checked cheaply first
+                if not lo_ok <= value <= hi_ok:  # NaN fails this too
+                    raise fail(value, out_of_range if math.isfinite(value) else "expected a finite number")
+            elif isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise fail(value, "expected a finite number")
+            elif not lo_ok <= value <= hi_ok:  # before rounding: 1e303 must not overflow
+                raise fail(value, out_of_range)
+            raw = round(value * divisor) if divisor else round(value / scale)
+            if not raw_lo <= raw <= raw_hi:
+                raise fail(value, out_of_range)
+            return raw
+
+        if w.count == 1:
+            return enc_scaled
 
     def enc_scalar(value: Any) -> int | float:
         if w.enum is not None:
@@ -218,17 +240,13 @@ def _field_encoder(msg_name: str, f: FieldSpec) -> Callable[[Any], Any]:
             if not math.isfinite(value) or not (lo <= value <= hi):
                 raise fail(value, f"outside the {w.kind} range (finite, |x| <= {_fmt_num(hi)})")
             return float(value)
-        if w.scale == 1:
-            if isinstance(value, bool) or not isinstance(value, int):
+        if scale == 1:
+            if value.__class__ is not int and (isinstance(value, bool) or not isinstance(value, int)):
                 raise fail(value, f"expected an integer ({w.kind})")
             raw = value
         else:
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise fail(value, "expected a finite number")
-            if not (lo - abs(w.scale) <= value <= hi + abs(w.scale)):  # before rounding: 1e303 must not overflow
-                raise fail(value, out_of_range)
-            raw = round(value * w.divisor) if w.divisor else round(value / w.scale)
-        if not (p.lo <= raw <= p.hi):
+            return enc_scaled(value)
+        if not raw_lo <= raw <= raw_hi:
             raise fail(value, out_of_range)
         return raw
 
@@ -295,6 +313,10 @@ class MessageSpec:
 
     def raw_values(self, msg: Any) -> list[Any]:
         """Range-check ``msg`` and return the flat list of raw values for ``struct.pack``."""
+        if len(msg) != len(self._encoders):
+            raise EncodeError(f"{self.name}: expected {len(self._encoders)} fields, got {len(msg)}")
+        if self._all_scalar:
+            return [enc(value) for enc, value in zip(self._encoders, msg)]  # noqa: B905 (lengths checked)
         out: list[Any] = []
         for enc, value, f in zip(self._encoders, msg, self.fields, strict=True):
             raw = enc(value)
@@ -303,6 +325,10 @@ class MessageSpec:
             else:
                 out.append(raw)
         return out
+
+    @functools.cached_property
+    def _all_scalar(self) -> bool:
+        return all(f.wire.count == 1 or f.wire.kind == "char" for f in self.fields)
 
     @property
     def payload_decoder(self) -> Callable[[Any, int], Any]:

@@ -1,0 +1,191 @@
+"""What a PROFILE_LOAD profile means: the hexapod pose as a function of time, and its envelope check.
+
+This is part of the protocol's definition (docs/protocol.md, PROFILE_LOAD): the hexapod controller
+(or its emulator) moves along it and the bench checks a profile with it before uploading, so both
+sides agree on every pose, rate and acceleration. Units per axis (HexAxis order): mm for X, Y, Z;
+deg for ROLL, PITCH, YAW; rates per s, accelerations per s^2.
+
+One segment on one axis::
+
+    p(t) = A r(t) sin(phi(t)),  phi(t) = 2 pi f (t - start) + phase,  start <= t < start + duration
+
+where the ramp r(t) rises linearly 0 -> 1 over ``ramp_s`` after the start and falls 1 -> 0 over
+``ramp_s`` before the end (r = 1 throughout when ``ramp_s`` = 0). The pose is the sum of the segments
+on each axis. Its derivatives are analytic (r is piecewise linear, so r'' = 0 between its corners):
+p' = A (r' sin + r w cos), p'' = A (2 r' w cos - r w^2 sin), w = 2 pi f.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from hil.protocol.messages import ErrorCode, HexAxis, ProfileLoad
+
+N_AXES = 6
+AXIS_UNITS = ("mm", "mm", "mm", "deg", "deg", "deg")
+Vec6 = tuple[float, float, float, float, float, float]
+ZERO6: Vec6 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+class Segment(NamedTuple):
+    """One sinusoid on one axis (the payload of PROFILE_LOAD without its index/count)."""
+
+    axis: HexAxis
+    start_s: float
+    duration_s: float
+    amplitude: float
+    frequency_hz: float
+    phase_deg: float = 0.0
+    ramp_s: float = 0.0
+
+    @property
+    def end_s(self) -> float:
+        return self.start_s + self.duration_s
+
+    def to_messages(self, index: int, count: int) -> ProfileLoad:
+        return ProfileLoad(index, count, self.axis, *self[1:])
+
+
+def segments_to_messages(segments: Sequence[Segment]) -> list[ProfileLoad]:
+    return [seg.to_messages(i, len(segments)) for i, seg in enumerate(segments)]
+
+
+def segment_from_message(msg: ProfileLoad) -> Segment:
+    return Segment(HexAxis(msg.axis), msg.start_s, msg.duration_s, msg.amplitude, msg.frequency_hz, msg.phase_deg,
+                   msg.ramp_s)
+
+
+def profile_end_s(segments: Iterable[Segment]) -> float:
+    return max((seg.end_s for seg in segments), default=0.0)
+
+
+def _ramp(seg: Segment, t_s: float) -> tuple[float, float]:
+    """(r, dr/dt) of a segment at t_s (inside the segment)."""
+    ramp = min(seg.ramp_s, seg.duration_s / 2)
+    if ramp <= 0:
+        return 1.0, 0.0
+    since, until = t_s - seg.start_s, seg.end_s - t_s
+    if since < ramp:
+        return since / ramp, 1.0 / ramp
+    if until < ramp:
+        return until / ramp, -1.0 / ramp
+    return 1.0, 0.0
+
+
+def evaluate(segments: Iterable[Segment], t_s: float) -> tuple[Vec6, Vec6, Vec6]:
+    """Pose, rate and acceleration of the profile at t_s (profile clock), per HexAxis."""
+    pos = [0.0] * N_AXES
+    vel = [0.0] * N_AXES
+    acc = [0.0] * N_AXES
+    for seg in segments:
+        if not seg.start_s <= t_s < seg.end_s:
+            continue
+        r, dr = _ramp(seg, t_s)
+        w = 2 * math.pi * seg.frequency_hz
+        phi = w * (t_s - seg.start_s) + math.radians(seg.phase_deg)
+        s, c = math.sin(phi), math.cos(phi)
+        a = seg.amplitude
+        pos[seg.axis] += a * r * s
+        vel[seg.axis] += a * (dr * s + r * w * c)
+        acc[seg.axis] += a * (2 * dr * w * c - r * w * w * s)
+    return tuple(pos), tuple(vel), tuple(acc)  # type: ignore[return-value]
+
+
+def evaluate_batch(segments: Iterable[Segment], t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`evaluate` on an array of times: three arrays of shape (6, len(t_s))."""
+    t = np.asarray(t_s, dtype=float)
+    pos, vel, acc = (np.zeros((N_AXES, t.size)) for _ in range(3))
+    for seg in segments:
+        inside = (t >= seg.start_s) & (t < seg.end_s)
+        if not inside.any():
+            continue
+        ramp = min(seg.ramp_s, seg.duration_s / 2)
+        since, until = t - seg.start_s, seg.end_s - t
+        if ramp > 0:
+            r = np.clip(np.minimum(since, until) / ramp, 0.0, 1.0)
+            dr = np.where(since < ramp, 1.0 / ramp, np.where(until < ramp, -1.0 / ramp, 0.0))
+        else:
+            r, dr = np.ones_like(t), np.zeros_like(t)
+        w = 2 * math.pi * seg.frequency_hz
+        phi = w * since + math.radians(seg.phase_deg)
+        s, c = np.sin(phi), np.cos(phi)
+        a = seg.amplitude * inside
+        pos[seg.axis] += a * r * s
+        vel[seg.axis] += a * (dr * s + r * w * c)
+        acc[seg.axis] += a * (2 * dr * w * c - r * w * w * s)
+    return pos, vel, acc
+
+
+class Envelope(NamedTuple):
+    """Per-axis limits of a hexapod (HexAxis order): |pose|, |rate| and |acceleration|."""
+
+    position: Vec6
+    rate: Vec6
+    accel: Vec6
+
+
+class EnvelopeViolation(NamedTuple):
+    """The first limit a profile breaks: the NACK's error, axis, value and limit."""
+
+    error: ErrorCode
+    axis: HexAxis
+    value: float
+    limit: float
+    t_s: float
+
+    def describe(self) -> str:
+        kind = {ErrorCode.ENVELOPE_POSITION: "position", ErrorCode.ENVELOPE_RATE: "rate",
+                ErrorCode.ENVELOPE_ACCEL: "acceleration"}[self.error]
+        unit = AXIS_UNITS[self.axis] + {"position": "", "rate": "/s", "acceleration": "/s^2"}[kind]
+        return (f"{HexAxis(self.axis).name.lower()} {kind} reaches {self.value:.4g} {unit} at t = {self.t_s:.3f} s, "
+                f"beyond the hexapod's limit of {self.limit:.4g} {unit}")
+
+
+CHECK_STEP_S = 1e-3  # envelope sampling step: a 50 Hz sine's peak is under-read by < 0.5 %
+
+
+def check_envelope(segments: Sequence[Segment], envelope: Envelope, step_s: float = CHECK_STEP_S
+                   ) -> EnvelopeViolation | None:
+    """The worst violation of the envelope over the whole profile (position first, then rate, then
+    acceleration), or None. The profile is sampled every ``step_s`` and at every segment boundary
+    and ramp corner, where the ramp's rate and acceleration terms peak."""
+    if not segments:
+        return None
+    end = profile_end_s(segments)
+    corners = []
+    for seg in segments:
+        ramp = min(seg.ramp_s, seg.duration_s / 2)
+        corners += [seg.start_s, seg.start_s + ramp, seg.end_s - ramp, seg.end_s - 1e-9]
+    t = np.unique(np.concatenate([np.arange(0.0, end + step_s, step_s), np.array(corners)]))
+    values = evaluate_batch(segments, t)
+    checks = zip((ErrorCode.ENVELOPE_POSITION, ErrorCode.ENVELOPE_RATE, ErrorCode.ENVELOPE_ACCEL), values,
+                 (envelope.position, envelope.rate, envelope.accel), strict=True)
+    for error, series, limits in checks:
+        excess = np.abs(series) / np.asarray(limits, dtype=float)[:, None]
+        axis, at = np.unravel_index(int(np.argmax(excess)), excess.shape)
+        if excess[axis, at] > 1.0:
+            return EnvelopeViolation(error, HexAxis(int(axis)), float(series[axis, at]), float(limits[axis]),
+                                     float(t[at]))
+    return None
+
+
+__all__ = [
+    "AXIS_UNITS",
+    "CHECK_STEP_S",
+    "N_AXES",
+    "ZERO6",
+    "Envelope",
+    "EnvelopeViolation",
+    "Segment",
+    "Vec6",
+    "check_envelope",
+    "evaluate",
+    "evaluate_batch",
+    "profile_end_s",
+    "segment_from_message",
+    "segments_to_messages",
+]
