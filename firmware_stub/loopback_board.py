@@ -120,7 +120,7 @@ class LoopbackBoard:
             now = time.perf_counter()
             if now > give_up:
                 return False
-            wait_until(min(now + 0.05, give_up), self.port.master_fd, self.on_readable)
+            wait_until(min(now + 0.05, give_up), {self.port.master_fd: self.on_readable})
         return True
 
     def stream(self) -> None:
@@ -128,7 +128,7 @@ class LoopbackBoard:
         pacing_late: list[float] = []
         for k in range(self.ticks):
             deadline = t0 + k * TICK_S
-            pacing_late.append(wait_until(deadline, self.port.master_fd, self.on_readable) * 1e6)
+            pacing_late.append(wait_until(deadline, {self.port.master_fd: self.on_readable}) * 1e6)
             t = deadline - t0
             sample = GyroSample(
                 t_us=int(t * 1e6),
@@ -151,7 +151,7 @@ class LoopbackBoard:
             self.port.write(bytes(frame))
             self.written_at[k] = time.perf_counter()
         self.summary.ticks_sent = self.ticks
-        wait_until(time.perf_counter() + 0.05, self.port.master_fd, self.on_readable)  # trailing commands
+        wait_until(time.perf_counter() + 0.05, {self.port.master_fd: self.on_readable})  # trailing commands
         self.summary.pacing_late_us = percentiles(pacing_late)
 
     def finish(self) -> BoardSummary:

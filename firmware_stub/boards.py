@@ -1,0 +1,562 @@
+"""The four boards of the lab (seed 000, Fig. 7), each speaking the protocol on its own link.
+
+Every board answers IDENT_REQ with IDENT (firmware version, catalogue fingerprint), sends IDENT when
+it boots, a HEARTBEAT every second, ACK/NACK to commands, and its periodic messages on the world's
+1 ms tick. The boards read and drive one shared :class:`~firmware_stub.plant.Plant` through the
+:class:`World` they live in (the emulator).
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+from collections import deque
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Protocol
+
+from firmware_stub.config import EmulatorConfig
+from firmware_stub.link import BoardLink, FaultRecorder
+from hil.protocol import (
+    CATALOGUE,
+    NO_AXIS,
+    NO_LATENCY_US,
+    Ack,
+    AxisMask,
+    Board,
+    BoardState,
+    DriveCmd,
+    DriveDisable,
+    DriveEnable,
+    DriveFault,
+    DriveStatus,
+    ErrorCode,
+    Frame,
+    GyroSample,
+    Heartbeat,
+    HexapodStart,
+    HexapodState,
+    HexapodStatus,
+    HexapodStop,
+    Ident,
+    IdentRequest,
+    LoopTiming,
+    MissDistance,
+    Nack,
+    Pose,
+    ProfileLoad,
+    ServoConfig,
+    ServoMode,
+    StreamMode,
+    TrackCmd,
+    TrackMode,
+)
+from hil.protocol.swing import ZERO6, Envelope, Segment, check_envelope, evaluate, profile_end_s, segment_from_message
+
+if TYPE_CHECKING:
+    from firmware_stub.plant import Plant
+
+FIRMWARE_VERSION = "emu-1.0.0"
+TICKS_PER_S = 1000
+U32 = 0xFFFFFFFF
+
+
+class World(Protocol):
+    """What the boards see of the emulator that hosts them."""
+
+    tick: int  # simulated ms since start; the plant is at t = tick ms
+    deadline: float | None  # realtime: perf_counter() time the current tick's sample is due
+    plant: Plant
+    config: EmulatorConfig
+    recorder: FaultRecorder
+    servo: ServoBoard
+    driver: DriverBoard
+
+
+class EmulatedBoard:
+    """Common behaviour; a board adds ``handlers`` for its commands and overrides ``power_on``/``on_tick``."""
+
+    board_id: Board
+    state: BoardState = BoardState.BOOT
+
+    def __init__(self, world: World, link: BoardLink, fingerprint: int = CATALOGUE.fingerprint) -> None:
+        self.world = world
+        self.link = link
+        self.fingerprint = fingerprint
+        self.serial_number = world.config.boards.serial_base + int(self.board_id)
+        self.boot_tick = 0
+        self.handlers: dict[type, Callable[[Frame, float], None]] = {IdentRequest: self._on_ident_request}
+        self.power_on()
+
+    # --- life cycle ----------------------------------------------------------------------------------
+
+    def power_on(self) -> None:
+        """State at power-on (and after a reset)."""
+        self.state = BoardState.READY
+
+    def reboot(self) -> None:
+        self.link.reset_codec()
+        self.boot_tick = self.world.tick
+        self.power_on()
+        self.world.recorder.record(self.link.name, "reset")
+        self.send(self.ident())
+
+    def ident(self) -> Ident:
+        return Ident(self.board_id, CATALOGUE.protocol_version, FIRMWARE_VERSION, self.fingerprint, self.serial_number)
+
+    # --- traffic -------------------------------------------------------------------------------------
+
+    def send(self, message: Any) -> bool:
+        return self.link.send(message, Board.HOST, self.world.tick)
+
+    def ack(self, frame: Frame) -> None:
+        self.send(Ack(CATALOGUE.spec(frame.message).msg_id, frame.seq))
+
+    def nack(self, frame: Frame, error: ErrorCode, axis: int = NO_AXIS, value: float = 0.0, limit: float = 0.0) -> None:
+        self.send(Nack(CATALOGUE.spec(frame.message).msg_id, frame.seq, error, axis, value, limit))
+
+    def handle(self, frame: Frame, t_rx: float) -> None:
+        handler = self.handlers.get(type(frame.message))
+        if handler is None:
+            self.nack(frame, ErrorCode.UNKNOWN_MESSAGE)
+        else:
+            handler(frame, t_rx)
+
+    def _on_ident_request(self, frame: Frame, t_rx: float) -> None:
+        self.send(self.ident())
+
+    def on_tick(self, tick: int) -> None:
+        """Periodic output after the plant has advanced to ``tick``."""
+        if (tick - self.boot_tick) % TICKS_PER_S == 0:
+            c = self.link.decoder.counters
+            self.send(Heartbeat((tick - self.boot_tick) & U32, self.state, c.frames_ok, c.crc_errors,
+                                c.bad_lengths + c.unknown_ids, 0, self.link.stats.tx_overflow_bytes))
+
+
+def percentiles_us(values: array | list[float]) -> dict[str, float]:
+    """p50/p99/p99.9/max of values already in microseconds."""
+    if not len(values):
+        return {}
+    s = sorted(values)
+
+    def pick(q: float) -> float:
+        return round(s[min(len(s) - 1, int(q * len(s)))], 1)
+
+    return {"p50": pick(0.5), "p99": pick(0.99), "p99.9": pick(0.999), "max": round(s[-1], 1)}
+
+
+class ServoBoard(EmulatedBoard):
+    """The clock master: GYRO_SAMPLE every tick while streaming, LOOP_TIMING every 10 ticks.
+
+    Loop timing is the ground truth for the bench's 1 kHz claims: for each sample k, the time from
+    the board writing GYRO_SAMPLE k to the driver receiving DRIVE_CMD k (one clock: both boards
+    live in this process). LOOP_TIMING for ticks k-20..k-11 goes out at tick k, so a command up to
+    10 ms late is still measured; a tick with no command by then counts as missing.
+    """
+
+    board_id = Board.SERVO
+    WINDOW = 64  # ticks of write times kept (>= 20 needed)
+
+    def __init__(self, world: World, link: BoardLink, fingerprint: int = CATALOGUE.fingerprint) -> None:
+        super().__init__(world, link, fingerprint)
+        self.handlers.update({ServoMode: self._on_mode, ServoConfig: self._on_config})
+        self.latencies_us = array("d")  # every measured latency since the emulator started (for summaries)
+        self.pacing_late_us = array("d")  # realtime: how late each sample write was against its deadline
+
+    def power_on(self) -> None:
+        super().power_on()
+        self.streaming = False
+        self.stream_tick = 0  # tick number of the next sample
+        self.late_threshold_us = 1000
+        self.gyro_filter_hz = 0
+        self._filter_state: list[float] | None = None
+        self._reset_timing()
+
+    def _reset_timing(self) -> None:
+        self.written_at = [0.0] * self.WINDOW
+        self.latency_s: list[float | None] = [None] * self.WINDOW
+        self.late_total = 0
+        self.missing_total = 0
+        self.samples_sent = 0
+        self.last_delivered: int | None = None  # tick of the last sample that went out intact
+        self._unwritten: int | None = None  # slot of a sample computed but not yet written
+
+    def _on_mode(self, frame: Frame, t_rx: float) -> None:
+        msg: ServoMode = frame.message
+        self.streaming = msg.mode == StreamMode.STREAM
+        if self.streaming:
+            self.stream_tick = 0
+            self._reset_timing()
+        self.state = BoardState.RUNNING if self.streaming else BoardState.READY
+        self.ack(frame)
+
+    def _on_config(self, frame: Frame, t_rx: float) -> None:
+        msg: ServoConfig = frame.message
+        if msg.sample_rate_hz != TICKS_PER_S:
+            self.nack(frame, ErrorCode.BAD_VALUE, NO_AXIS, msg.sample_rate_hz, TICKS_PER_S)
+            return
+        if msg.gyro_filter_hz and not 1 <= msg.gyro_filter_hz <= 450:
+            self.nack(frame, ErrorCode.BAD_VALUE, NO_AXIS, msg.gyro_filter_hz, 450)
+            return
+        self.gyro_filter_hz = msg.gyro_filter_hz
+        self._filter_state = None
+        self.late_threshold_us = msg.late_threshold_us
+        self.ack(frame)
+
+    def note_command(self, tick: int, t_rx: float) -> None:
+        """The driver received DRIVE_CMD(tick) at perf time t_rx."""
+        if 0 <= self.stream_tick - 1 - tick < self.WINDOW - 1:
+            slot = tick % self.WINDOW
+            if self.latency_s[slot] is None and self.written_at[slot]:
+                self.latency_s[slot] = t_rx - self.written_at[slot]
+
+    def _gyro(self) -> tuple[float, float, float]:
+        rates = self.world.plant.gyro_dps()
+        if not self.gyro_filter_hz:
+            return rates
+        a = math.exp(-2 * math.pi * self.gyro_filter_hz / TICKS_PER_S)
+        if self._filter_state is None:
+            self._filter_state = list(rates)
+        st = self._filter_state
+        for i in range(3):
+            st[i] = a * st[i] + (1 - a) * rates[i]
+        return st[0], st[1], st[2]
+
+    def on_tick(self, tick: int) -> None:
+        super().on_tick(tick)
+        if not self.streaming:
+            return
+        k = self.stream_tick
+        if k >= 20 and k % 10 == 0:
+            self._report_timing(k - 20)
+        rx, ry, rz = self._gyro()
+        az, el = self.world.plant.encoders_deg()
+        slot = k % self.WINDOW
+        self.latency_s[slot] = None
+        self.written_at[slot] = 0.0
+        sample = GyroSample((tick * 1000) & U32, k & U32, rx, ry, rz, az, el)
+        delivered = self.send(sample)
+        self._unwritten = slot
+        self.last_delivered = k if delivered else None
+        self.samples_sent += 1
+        self.stream_tick = k + 1
+
+    def on_written(self, t_perf: float) -> None:
+        """The tick's output has been written to the pty (realtime: at the deadline)."""
+        if self._unwritten is not None:
+            self.written_at[self._unwritten] = t_perf
+            self._unwritten = None
+            if self.world.deadline is not None:
+                self.pacing_late_us.append((t_perf - self.world.deadline) * 1e6)
+
+    def _report_timing(self, first: int) -> None:
+        values = []
+        for k in range(first, first + 10):
+            lat = self.latency_s[k % self.WINDOW]
+            if lat is None:
+                self.missing_total += 1
+                values.append(NO_LATENCY_US)
+                continue
+            us = lat * 1e6
+            self.latencies_us.append(us)
+            if self.world.deadline is None:  # lockstep: the world waited for it, so no simulated latency
+                values.append(0)
+                continue
+            if us > self.late_threshold_us:
+                self.late_total += 1
+            values.append(min(int(us), NO_LATENCY_US - 1))
+        self.send(LoopTiming(first & U32, tuple(values), self.late_total, self.missing_total))
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "samples_sent": self.samples_sent,
+            "late_commands": self.late_total,
+            "missing_commands": self.missing_total,
+            "latency_us": percentiles_us(self.latencies_us),
+            "pacing_late_us": percentiles_us(self.pacing_late_us),
+        }
+
+
+AXES = ((AxisMask.AZ, DriveFault.OVERCURRENT_AZ, "az"), (AxisMask.EL, DriveFault.OVERCURRENT_EL, "el"))
+
+
+class DriverBoard(EmulatedBoard):
+    """Motor driver: zero-order hold of DRIVE_CMD, enable/disable, stale-command timeout, current limit.
+
+    Output per axis = the last command if the axis is enabled, has no latched fault and the last
+    command is younger than ``stale_timeout_ms``; otherwise 0. A current above ``current_limit_a``
+    for ``overcurrent_trip_ms`` latches OVERCURRENT on that axis and disables it until
+    DRIVE_ENABLE(clear_faults=1). DRIVE_CMD while nothing is enabled is ignored (NACK NOT_ENABLED at
+    most every 100 ms, so a 1 kHz stream does not flood the link).
+    """
+
+    board_id = Board.DRIVER
+
+    def __init__(self, world: World, link: BoardLink, fingerprint: int = CATALOGUE.fingerprint) -> None:
+        super().__init__(world, link, fingerprint)
+        self.handlers.update({DriveCmd: self._on_cmd, DriveEnable: self._on_enable, DriveDisable: self._on_disable})
+        cfg = world.config.boards.driver
+        self.stale_ticks = max(1, round(cfg.stale_timeout_ms))
+        self.trip_ticks = round(cfg.overcurrent_trip_ms)
+        self.current_limit_a = cfg.current_limit_a
+        self.bus_voltage_v = cfg.bus_voltage_v
+        self.stale_commands = 0
+
+    def power_on(self) -> None:
+        super().power_on()
+        self.enabled = AxisMask(0)
+        self.faults = DriveFault(0)
+        self.cmd = [0, 0]
+        self.last_cmd_at = -1  # world tick of the last DRIVE_CMD
+        self.last_cmd_tick: int | None = None  # its tick field
+        self.stale = False
+        self.over_ticks = [0, 0]
+        self._last_nack_tick = -(10**9)
+
+    def _on_cmd(self, frame: Frame, t_rx: float) -> None:
+        msg: DriveCmd = frame.message
+        self.world.servo.note_command(msg.tick, t_rx)
+        self.last_cmd_tick = msg.tick
+        if not self.enabled:
+            if self.world.tick - self._last_nack_tick >= 100:
+                self._last_nack_tick = self.world.tick
+                self.nack(frame, ErrorCode.NOT_ENABLED)
+            return
+        self.last_cmd_at = self.world.tick
+        if self.stale:
+            self.stale = False
+            self.faults &= ~DriveFault.STALE_COMMAND
+            self.world.recorder.record(self.link.name, "drive_fresh", tick_field=msg.tick)
+        if self.enabled & AxisMask.AZ:
+            self.cmd[0] = msg.az_counts
+        if self.enabled & AxisMask.EL:
+            self.cmd[1] = msg.el_counts
+
+    def _on_enable(self, frame: Frame, t_rx: float) -> None:
+        msg: DriveEnable = frame.message
+        latched = [ax for mask, fault, ax in AXES if msg.axes & mask and self.faults & fault]
+        if latched and not msg.clear_faults:
+            self.nack(frame, ErrorCode.FAULT_LATCHED, 0 if latched[0] == "az" else 1)
+            return
+        if msg.clear_faults:
+            self.faults = DriveFault(0)
+            self.over_ticks = [0, 0]
+        for i, (mask, _, _) in enumerate(AXES):
+            if msg.axes & mask and not self.enabled & mask:
+                self.cmd[i] = 0  # output starts at zero
+        self.enabled |= msg.axes
+        self.last_cmd_at = self.world.tick  # the stale timer starts now
+        self.state = BoardState.RUNNING
+        self.world.recorder.record(self.link.name, "drive_enable", axes=int(msg.axes), clear=bool(msg.clear_faults))
+        self.ack(frame)
+
+    def _on_disable(self, frame: Frame, t_rx: float) -> None:
+        msg: DriveDisable = frame.message
+        self._disable(AxisMask(msg.axes), "host")
+        self.ack(frame)
+
+    def _disable(self, axes: AxisMask, cause: str) -> None:
+        for i, (mask, _, _) in enumerate(AXES):
+            if axes & mask:
+                self.cmd[i] = 0
+        self.enabled &= ~axes
+        if not self.enabled:
+            self.state = BoardState.FAULT if self.faults & ~DriveFault.STALE_COMMAND else BoardState.READY
+        self.world.recorder.record(self.link.name, "drive_disable", axes=int(axes), cause=cause)
+
+    def output_counts(self) -> tuple[int, int]:
+        """What the power stage applies over the coming tick."""
+        if not self.enabled:
+            return 0, 0
+        if self.world.tick - self.last_cmd_at > self.stale_ticks:
+            if not self.stale:
+                self.stale = True
+                self.stale_commands += 1
+                self.faults |= DriveFault.STALE_COMMAND
+                self.world.recorder.record(self.link.name, "drive_stale", last_tick_field=self.last_cmd_tick)
+            return 0, 0
+        az = self.cmd[0] if self.enabled & AxisMask.AZ else 0
+        el = self.cmd[1] if self.enabled & AxisMask.EL else 0
+        return az, el
+
+    def on_tick(self, tick: int) -> None:
+        super().on_tick(tick)
+        currents = self.world.plant.currents_a()
+        if self.trip_ticks >= 0:
+            for i, (mask, fault, ax) in enumerate(AXES):
+                if abs(currents[i]) > self.current_limit_a:
+                    self.over_ticks[i] += 1
+                    if self.over_ticks[i] > self.trip_ticks and self.enabled & mask:
+                        self.faults |= fault
+                        self.world.recorder.record(self.link.name, "drive_overcurrent", axis=ax,
+                                                   current_a=round(currents[i], 3), limit_a=self.current_limit_a)
+                        self._disable(mask, "overcurrent")
+                else:
+                    self.over_ticks[i] = 0
+        if tick % 10 == 0:
+            self.send(DriveStatus((self.last_cmd_tick or 0) & U32, self.enabled, self.faults,
+                                  _clamp(currents[0], 32.767), _clamp(currents[1], 32.767), self.bus_voltage_v,
+                                  self.stale_commands))
+
+
+def _clamp(x: float, lim: float) -> float:
+    return max(-lim, min(lim, x))
+
+
+class ImageBoard(EmulatedBoard):
+    """Image processing: MISS_DISTANCE of every camera frame, ``latency_frames`` frames after its exposure.
+
+    Tracking is off at power-on (track_valid = 0, miss = 0) until TRACK_CMD(TRACK). With tracking on,
+    track_valid is 1 while the target is in the field of view and, if ``gate_px`` > 0, inside the gate.
+    """
+
+    board_id = Board.IMAGE
+
+    def __init__(self, world: World, link: BoardLink, fingerprint: int = CATALOGUE.fingerprint) -> None:
+        cam = world.plant.config.camera
+        self.period_ticks = round(TICKS_PER_S / cam.frame_rate_hz)
+        self.latency_frames = cam.latency_frames
+        super().__init__(world, link, fingerprint)
+        self.handlers[TrackCmd] = self._on_track
+
+    def power_on(self) -> None:
+        super().power_on()
+        self.tracking = False
+        self.gate_px = 0
+        self.frame = 0
+        self.pipeline: deque[MissDistance] = deque()
+
+    def _on_track(self, frame: Frame, t_rx: float) -> None:
+        msg: TrackCmd = frame.message
+        self.tracking = msg.mode == TrackMode.TRACK
+        self.gate_px = msg.gate_px
+        self.state = BoardState.RUNNING if self.tracking else BoardState.READY
+        self.ack(frame)
+
+    def on_tick(self, tick: int) -> None:
+        super().on_tick(tick)
+        if tick % self.period_ticks:
+            return
+        x, y, in_view = self.world.plant.miss_px()
+        valid = self.tracking and in_view and (not self.gate_px or (abs(x) <= self.gate_px and abs(y) <= self.gate_px))
+        if not valid:
+            x = y = 0.0
+        self.pipeline.append(MissDistance(self.frame & U32, (tick * 1000) & U32, _clamp(x, 2e6), _clamp(y, 2e6), valid))
+        self.frame += 1
+        if len(self.pipeline) > self.latency_frames:
+            self.send(self.pipeline.popleft())
+
+
+class HexapodBoard(EmulatedBoard):
+    """Hexapod controller: profile upload with an envelope check, START/STOP, POSE at 100 Hz.
+
+    The profile clock starts at the tick after START. STOP (or the end of the profile) ramps the
+    motion to zero over ``stop_ramp_s`` (the end of the profile is already ramped by its segments),
+    then the platform rests at home with the profile still loaded, ready for another START.
+    """
+
+    board_id = Board.HEXAPOD
+
+    def __init__(self, world: World, link: BoardLink, envelope: Envelope,
+                 fingerprint: int = CATALOGUE.fingerprint) -> None:
+        self.envelope = envelope
+        cfg = world.config.boards.hexapod
+        self.max_segments = cfg.max_segments
+        self.stop_ramp_ticks = max(1, round(cfg.stop_ramp_s * TICKS_PER_S))
+        super().__init__(world, link, fingerprint)
+        self.handlers.update({ProfileLoad: self._on_load, HexapodStart: self._on_start, HexapodStop: self._on_stop})
+
+    def power_on(self) -> None:
+        super().power_on()
+        self.segments: list[Segment] = []
+        self.expected = 0
+        self.hex_state = HexapodState.IDLE
+        self.start_tick = 0
+        self.stop_tick = 0
+        self.end_ticks = 0
+        self.fault = 0
+        self.pose = ZERO6
+
+    def _set_state(self, state: HexapodState) -> None:
+        if state != self.hex_state:
+            self.hex_state = state
+            self.world.recorder.record(self.link.name, "hexapod_state", state=state.name)
+            self._status()
+
+    def _status(self) -> None:
+        t = max(0, self.world.tick - self.start_tick) if self.hex_state in (HexapodState.RUNNING,
+                                                                             HexapodState.STOPPING) else 0
+        self.send(HexapodStatus(self.hex_state, len(self.segments), t & U32, self.fault))
+
+    def _on_load(self, frame: Frame, t_rx: float) -> None:
+        msg: ProfileLoad = frame.message
+        if self.hex_state in (HexapodState.RUNNING, HexapodState.STOPPING):
+            self.nack(frame, ErrorCode.BAD_STATE)
+            return
+        if msg.count > self.max_segments:
+            self.nack(frame, ErrorCode.PROFILE_TOO_LONG, NO_AXIS, msg.count, self.max_segments)
+            return
+        if msg.index == 0:
+            self.segments, self.expected = [], msg.count
+            self._set_state(HexapodState.IDLE)
+        if msg.index != len(self.segments) or msg.count != self.expected:
+            self.nack(frame, ErrorCode.BAD_VALUE, NO_AXIS, msg.index, len(self.segments))
+            return
+        if msg.duration_s <= 0 or msg.start_s < 0 or msg.frequency_hz < 0 or msg.ramp_s < 0:
+            self.nack(frame, ErrorCode.BAD_VALUE, msg.axis, msg.duration_s, 0.0)
+            return
+        self.segments.append(segment_from_message(msg))
+        if len(self.segments) == self.expected:
+            violation = check_envelope(self.segments, self.envelope)
+            if violation:
+                self.world.recorder.record(self.link.name, "envelope_reject", reason=violation.describe())
+                self.segments, self.expected = [], 0
+                self.fault = violation.error
+                self.nack(frame, violation.error, violation.axis, violation.value, violation.limit)
+                self._set_state(HexapodState.IDLE)
+                return
+            self.end_ticks = math.ceil(profile_end_s(self.segments) * TICKS_PER_S)
+            self.fault = 0
+            self._set_state(HexapodState.LOADED)
+        self.ack(frame)
+
+    def _on_start(self, frame: Frame, t_rx: float) -> None:
+        if self.hex_state != HexapodState.LOADED:
+            error = ErrorCode.PROFILE_INCOMPLETE if self.hex_state == HexapodState.IDLE else ErrorCode.BAD_STATE
+            self.nack(frame, error, NO_AXIS, len(self.segments), self.expected)
+            return
+        self.start_tick = self.world.tick
+        self._set_state(HexapodState.RUNNING)
+        self.ack(frame)
+
+    def _on_stop(self, frame: Frame, t_rx: float) -> None:
+        if self.hex_state == HexapodState.RUNNING:
+            self.stop_tick = self.world.tick
+            self._set_state(HexapodState.STOPPING)
+        self.ack(frame)
+
+    def motion(self, tick: int) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+        """Pose, rate, acceleration at the middle of the tick that starts at ``tick`` (before stepping)."""
+        if self.hex_state not in (HexapodState.RUNNING, HexapodState.STOPPING):
+            return ZERO6, ZERO6, ZERO6
+        t_s = (tick - self.start_tick + 0.5) / TICKS_PER_S
+        pos, vel, acc = evaluate(self.segments, t_s)
+        if self.hex_state == HexapodState.STOPPING:
+            # scale by s(t) falling 1 -> 0 over the stop ramp: p_s = s p, v_s = s v + s' p, a_s = s a + 2 s' v
+            s_dot = -TICKS_PER_S / self.stop_ramp_ticks
+            s = max(0.0, 1.0 + s_dot * (tick - self.stop_tick + 0.5) / TICKS_PER_S)
+            pos, vel, acc = (tuple(s * p for p in pos), tuple(s * v + s_dot * p for v, p in zip(vel, pos, strict=True)),
+                             tuple(s * a + 2 * s_dot * v for a, v in zip(acc, vel, strict=True)))
+        return pos, vel, acc
+
+    def on_tick(self, tick: int) -> None:
+        super().on_tick(tick)
+        finished = (self.hex_state == HexapodState.RUNNING and tick - self.start_tick >= self.end_ticks) or (
+            self.hex_state == HexapodState.STOPPING and tick - self.stop_tick >= self.stop_ramp_ticks)
+        if finished:
+            self._set_state(HexapodState.LOADED)
+        if tick % 10 == 0:
+            t_ms = max(0, tick - self.start_tick) if self.hex_state in (HexapodState.RUNNING,
+                                                                        HexapodState.STOPPING) else 0
+            self.send(Pose(t_ms & U32, *self.pose))
+        if tick % 100 == 0:
+            self._status()

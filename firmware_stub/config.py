@@ -1,0 +1,144 @@
+"""The emulator's configuration: clock mode, board behaviour and fault injection (YAML -> pydantic).
+
+profiles/emulator/default.yaml documents every field; the plant's physics live in their own file
+(profiles/plant/default.yaml, :mod:`firmware_stub.plant`), referenced from here.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated, Literal, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_EMULATOR_CONFIG = REPO / "profiles" / "emulator" / "default.yaml"
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class ConfigError(ValueError):
+    """A config file that cannot be used; the message is one line naming the file and the field."""
+
+
+class LinkName(StrEnum):
+    SERVO = "servo"
+    DRIVER = "driver"
+    IMAGE = "image"
+    HEXAPOD = "hexapod"
+
+
+class ClockMode(StrEnum):
+    REALTIME = "realtime"  # the servo board is paced at 1 kHz by a precise clock
+    LOCKSTEP = "lockstep"  # the world advances one tick when the host's DRIVE_CMD for it arrives
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+Probability = Annotated[float, Field(ge=0.0, le=1.0)]
+
+
+class LinkFaults(Strict):
+    """Continuous faults on what a board sends (board -> host), drawn from the link's own seeded RNG."""
+
+    bit_error_rate: Probability = Field(0.0, description="chance that each transmitted bit is flipped")
+    drop_byte_rate: Probability = Field(0.0, description="chance that each transmitted byte is lost")
+    garbage_rate: Probability = Field(0.0, description="chance of a burst of random bytes before each frame")
+    garbage_max_bytes: int = Field(32, ge=1, le=4096, description="longest garbage burst, bytes")
+
+
+FaultKind = Literal["stall", "latency_spike", "reset", "disconnect", "garbage"]
+
+
+class ScheduledFault(Strict):
+    """A one-off fault at a simulated time (the same tick in every run, in either clock mode).
+
+    stall: the board sends nothing for duration_ms (what it would have sent is lost);
+    latency_spike: the board's output is held for duration_ms, then sent at once;
+    reset: the board reboots (sequence numbers restart, state back to power-on: the driver disabled,
+    the servo stream stopped, the hexapod idle), and announces itself with IDENT;
+    disconnect: the pty is closed (the host sees a hang-up) and a new one appears behind the same
+    path after duration_ms;
+    garbage: n_bytes random bytes (with a false sync word) on the link.
+    """
+
+    at_s: float = Field(ge=0.0, description="simulated time of the fault, s")
+    link: LinkName
+    kind: FaultKind
+    duration_ms: float = Field(0.0, ge=0.0, description="stall / latency_spike / disconnect length, ms")
+    n_bytes: int = Field(64, ge=1, le=65536, description="garbage length, bytes")
+
+
+class DriverBoardConfig(Strict):
+    stale_timeout_ms: float = Field(20.0, gt=0, description="no DRIVE_CMD for this long -> output forced to zero")
+    current_limit_a: float = Field(4.0, gt=0, description="|armature current| above this, A ...")
+    overcurrent_trip_ms: float = Field(10.0, ge=0, description="... for this long latches an OVERCURRENT fault")
+    bus_voltage_v: float = Field(24.0, gt=0, description="reported in DRIVE_STATUS")
+
+
+class HexapodBoardConfig(Strict):
+    max_segments: int = Field(32, ge=1, le=255, description="segments a profile may have")
+    stop_ramp_s: float = Field(1.0, gt=0, description="HEXAPOD_STOP ramps the motion to zero over this time")
+
+
+class BoardsConfig(Strict):
+    driver: DriverBoardConfig = DriverBoardConfig()
+    hexapod: HexapodBoardConfig = HexapodBoardConfig()
+    serial_base: int = Field(1000, ge=0, description="IDENT serial numbers are serial_base + board id")
+
+
+class EmulatorConfig(Strict):
+    clock: ClockMode = ClockMode.REALTIME
+    seed: int = Field(0, ge=0, description="seeds the plant's noise and every link's fault RNG")
+    plant: Path = Field(REPO / "profiles" / "plant" / "default.yaml", description="plant YAML (relative to this file)")
+    lockstep_timeout_ms: float = Field(20.0, gt=0, description="lockstep: wait this long (wall) for DRIVE_CMD k")
+    realtime_prep_us: float = Field(
+        300.0, ge=50, le=900,
+        description="realtime: the world advances when DRIVE_CMD k arrives, or this long before the next "
+        "sample is due if it has not; a command later than that is applied one tick late")
+    boards: BoardsConfig = BoardsConfig()
+    links: dict[LinkName, LinkFaults] = Field(default_factory=dict, description="continuous faults per link")
+    faults: list[ScheduledFault] = Field(default_factory=list, description="one-off faults at simulated times")
+
+    def link_faults(self, link: LinkName) -> LinkFaults:
+        return self.links.get(link, LinkFaults())
+
+
+def describe_validation_error(source: str, err: ValidationError) -> str:
+    """The first problem of a pydantic error as one line: `source: field.path: reason`."""
+    first = err.errors()[0]
+    where = ".".join(str(p) for p in first["loc"]) or "(top level)"
+    got = first.get("input")
+    shown = "" if isinstance(got, dict | list) or got is None else f" (got {got!r})"
+    return f"{source}: {where}: {first['msg']}{shown}"
+
+
+def load_yaml_model(model: type[M], path: str | Path, overrides: dict | None = None) -> M:
+    """Load a YAML file into a pydantic model; relative paths in it stay relative to the file."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read YAML: {' '.join(str(exc).split())}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    data.update(overrides or {})
+    try:
+        return model.model_validate(data, context={"base_dir": path.parent})
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(str(path), exc)) from None
+
+
+def load_emulator_config(path: str | Path | None = None, **overrides: object) -> EmulatorConfig:
+    """Load an emulator YAML (default profiles/emulator/default.yaml); overrides replace top-level fields."""
+    path = Path(path) if path is not None else DEFAULT_EMULATOR_CONFIG
+    config = load_yaml_model(EmulatorConfig, path, {k: v for k, v in overrides.items() if v is not None})
+    plant = config.plant if config.plant.is_absolute() else (path.parent / config.plant).resolve()
+    return config.model_copy(update={"plant": plant})

@@ -1,0 +1,286 @@
+"""The emulated lab in one process: the plant, the four boards on their ptys, the clock and the faults.
+
+Clock modes (docs/emulator.md):
+
+- realtime: the world advances one 1 ms tick at each deadline of a precise clock (select-sleep
+  then spin, never asyncio timers); the driver applies whatever command arrived last.
+- lockstep: after GYRO_SAMPLE k goes out, the world waits for DRIVE_CMD k (or
+  ``lockstep_timeout_ms``, counted), then advances one tick with it. Frames the host sent after
+  DRIVE_CMD k are handled after that step, whatever the read chunking, so the same seed, config
+  and commands give the same bytes on every link. While the stream is off the world is frozen (so
+  commands sent before STREAM take effect at tick 0); while the servo link is not delivering
+  (stall, latency spike, disconnect) time runs in real time, so the host's watchdog sees the gap.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import tempfile
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from firmware_stub.boards import DriverBoard, EmulatedBoard, HexapodBoard, ImageBoard, ServoBoard
+from firmware_stub.clock import Readers, poll_readers, wait_for, wait_until
+from firmware_stub.config import ClockMode, EmulatorConfig, LinkFaults, LinkName, ScheduledFault
+from firmware_stub.control import ControlServer
+from firmware_stub.link import BoardLink, FaultRecorder
+from firmware_stub.plant import CarrierMotion, Plant, load_plant_config
+from hil.protocol import CATALOGUE, Board, DriveCmd, Frame
+from hil.protocol.swing import Envelope
+
+TICK_S = 1e-3
+BOARD_IDS = {LinkName.SERVO: Board.SERVO, LinkName.DRIVER: Board.DRIVER, LinkName.IMAGE: Board.IMAGE,
+             LinkName.HEXAPOD: Board.HEXAPOD}
+
+
+def hexapod_envelope(plant: Plant) -> Envelope:
+    """The hexapod's limits from the plant config, in HexAxis order (mm and deg)."""
+    h = plant.config.hexapod
+    linear, angular = (h.x, h.y, h.z), (h.roll, h.pitch, h.yaw)
+    return Envelope(
+        (*(a.position_mm for a in linear), *(a.angle_deg for a in angular)),
+        (*(a.rate_mm_s for a in linear), *(a.rate_dps for a in angular)),
+        (*(a.accel_mm_s2 for a in linear), *(a.accel_dps2 for a in angular)),
+    )
+
+
+class Emulator:
+    """The world the boards live in. ``run()`` blocks until ``request_stop()`` (or max_ticks)."""
+
+    def __init__(self, config: EmulatorConfig, *, run_dir: Path | None = None, fault_log: Path | None = None,
+                 fingerprint: int = CATALOGUE.fingerprint) -> None:
+        self.config = config
+        self.tick = 0
+        self.deadline: float | None = None
+        self.stop_requested = False
+        self.lockstep_timeouts = 0
+        self.misaddressed = 0
+        self._own_run_dir = run_dir is None
+        self.run_dir = Path(tempfile.mkdtemp(prefix="hil-emu-")) if run_dir is None else run_dir
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.recorder = FaultRecorder(fault_log)
+        self.plant = Plant(load_plant_config(config.plant), config.seed)
+        self.links = {name: BoardLink(name, BOARD_IDS[name], self.run_dir, config.link_faults(name),
+                                      seed=config.seed, recorder=self.recorder) for name in LinkName}
+        self.servo = ServoBoard(self, self.links[LinkName.SERVO], fingerprint)
+        self.driver = DriverBoard(self, self.links[LinkName.DRIVER], fingerprint)
+        self.image = ImageBoard(self, self.links[LinkName.IMAGE], fingerprint)
+        self.hexapod = HexapodBoard(self, self.links[LinkName.HEXAPOD], hexapod_envelope(self.plant), fingerprint)
+        self.boards: dict[LinkName, EmulatedBoard] = {
+            LinkName.SERVO: self.servo, LinkName.DRIVER: self.driver, LinkName.IMAGE: self.image,
+            LinkName.HEXAPOD: self.hexapod}
+        self.inbox: dict[LinkName, deque[tuple[Frame, float]]] = {name: deque() for name in LinkName}
+        self.schedule: deque[ScheduledFault] = deque(sorted(config.faults, key=lambda f: f.at_s))
+        self.awaiting: int | None = None  # lockstep: the tick whose DRIVE_CMD releases the next step
+        self.released = False
+        self.control = ControlServer(self.run_dir / "control.sock", self.handle_control)
+        self.started_wall = time.time()
+
+    # --- what the host connects to -----------------------------------------------------------------
+
+    def ports(self) -> dict[str, str]:
+        """Board -> serial port path (stable symlinks), plus the control socket."""
+        return {**{name.value: str(link.path) for name, link in self.links.items()},
+                "control": str(self.control.path)}
+
+    # --- inputs ------------------------------------------------------------------------------------
+
+    def readers(self) -> Readers:
+        readers: dict[int, Callable[[float], None]] = self.control.fds()
+        for name, link in self.links.items():
+            if link.fd is not None:
+                readers[link.fd] = lambda t, name=name: self._on_readable(name, t)
+        return readers
+
+    def _on_readable(self, name: LinkName, t_rx: float) -> None:
+        self.inbox[name].extend((frame, t_rx) for frame in self.links[name].receive())
+        self._drain(name)
+
+    def _drain(self, name: LinkName) -> None:
+        box, board = self.inbox[name], self.boards[name]
+        while box and not (name is LinkName.DRIVER and self.released):
+            frame, t_rx = box.popleft()
+            if frame.dst != board.board_id:
+                self.misaddressed += 1
+                continue
+            board.handle(frame, t_rx)
+            if self.awaiting is not None and type(frame.message) is DriveCmd and frame.message.tick == self.awaiting:
+                self.released = True  # lockstep: the rest of the inbox waits for the step
+
+    # --- the world's tick --------------------------------------------------------------------------
+
+    def step(self) -> None:
+        """Advance the world one tick: plant (with the driver's output and the hexapod's motion), faults due,
+        then every board's periodic output (the servo board's GYRO_SAMPLE last)."""
+        u_az, u_el = self.driver.output_counts()
+        pose, rate, accel = self.hexapod.motion(self.tick)
+        self.hexapod.pose = pose
+        self.plant.step_tick(u_az, u_el, CarrierMotion(pose, rate, accel))
+        self.tick += 1
+        self.recorder.now_tick = self.tick
+        while self.schedule and round(self.schedule[0].at_s * 1000) <= self.tick:
+            f = self.schedule.popleft()
+            self.inject(f.link, f.kind, f.duration_ms, f.n_bytes)
+        for link in self.links.values():
+            link.on_tick(self.tick)
+        for board in (self.driver, self.hexapod, self.image, self.servo):
+            board.on_tick(self.tick)
+        if self.tick % 100 == 0:
+            self.recorder.flush()
+
+    def inject(self, link: LinkName | str, kind: str, duration_ms: float = 0.0, n_bytes: int = 64) -> None:
+        name = LinkName(link)
+        target = self.links[name]
+        ticks = round(duration_ms)
+        if kind == "stall":
+            target.stall(ticks, self.tick)
+        elif kind == "latency_spike":
+            target.latency_spike(ticks, self.tick)
+        elif kind == "disconnect":
+            self.inbox[name].clear()
+            target.disconnect(ticks, self.tick)
+        elif kind == "reset":
+            self.inbox[name].clear()
+            self.boards[name].reboot()
+        elif kind == "garbage":
+            target.garbage(n_bytes)
+        else:
+            raise ValueError(f"unknown fault kind {kind!r} (stall, latency_spike, reset, disconnect, garbage)")
+
+    # --- the clock ---------------------------------------------------------------------------------
+
+    def run(self, max_ticks: int | None = None) -> None:
+        end = None if max_ticks is None else self.tick + max_ticks
+        if self.config.clock == ClockMode.LOCKSTEP:
+            self._run_lockstep(end)
+        else:
+            self._run_realtime(end)
+        self.recorder.flush()
+
+    def _done(self, end: int | None) -> bool:
+        return self.stop_requested or (end is not None and self.tick >= end)
+
+    def _run_realtime(self, end: int | None) -> None:
+        """Each tick: wait for DRIVE_CMD k (at most until PREP_S before the next deadline), advance the
+        world and prepare its output, then write it exactly at the deadline."""
+        t0, base = time.perf_counter(), self.tick
+        prep_s = self.config.realtime_prep_us * 1e-6
+        while not self._done(end):
+            self.deadline = t0 + (self.tick - base + 1) * TICK_S
+            self.awaiting = self.servo.last_delivered
+            self._drain(LinkName.DRIVER)
+            if self.awaiting is not None and not self.released:
+                wait_for(lambda: self.released, self.deadline - prep_s - time.perf_counter(), self.readers(),
+                         lambda: self.stop_requested)
+            self.awaiting = None
+            if time.perf_counter() - self.deadline > 0.5:  # suspended (SIGSTOP, debugger): do not race to catch up
+                self.recorder.record("servo", "clock_slip", behind_s=round(time.perf_counter() - self.deadline, 3))
+                t0, base = time.perf_counter() - TICK_S, self.tick
+                continue
+            for link in self.links.values():
+                link.defer()
+            self.step()
+            wait_until(self.deadline, self.readers())
+            for link in self.links.values():
+                link.flush()
+            self.servo.on_written(time.perf_counter())
+            self.released = False
+            self._drain(LinkName.DRIVER)
+
+    def _run_lockstep(self, end: int | None) -> None:
+        self.deadline = None
+        timeout_s = self.config.lockstep_timeout_ms / 1000
+        paced_next = 0.0
+        while not self._done(end):
+            if not self.servo.streaming:
+                poll_readers(self.readers(), 0.02)  # frozen until the host starts the stream
+                paced_next = 0.0
+                continue
+            self.step()
+            self.servo.on_written(time.perf_counter())
+            self.released = False
+            k = self.servo.last_delivered
+            if k is not None:
+                paced_next = 0.0
+                self.awaiting = k
+                self._drain(LinkName.DRIVER)
+                if not self.released and not wait_for(lambda: self.released, timeout_s, self.readers(),
+                                                      lambda: self.stop_requested):
+                    self.lockstep_timeouts += 1
+                self.awaiting = None
+                self.released = False
+                self._drain(LinkName.DRIVER)
+            elif self.servo.streaming:  # the sample did not reach the host: let real time pass
+                paced_next = paced_next + TICK_S if paced_next else time.perf_counter() + TICK_S
+                wait_until(paced_next, self.readers())
+
+    def request_stop(self) -> None:
+        self.stop_requested = True
+
+    # --- control socket ----------------------------------------------------------------------------
+
+    def handle_control(self, request: dict[str, Any]) -> dict[str, Any]:
+        cmd = request.get("cmd")
+        if cmd == "status":
+            return self.summary()
+        if cmd == "inject":
+            self.inject(request["link"], request["kind"], float(request.get("duration_ms", 0.0)),
+                        int(request.get("n_bytes", 64)))
+            return {"ok": True, "tick": self.tick}
+        if cmd == "set_faults":
+            name = LinkName(request["link"])
+            fields = {k: v for k, v in request.items() if k not in ("cmd", "link")}
+            link = self.links[name]
+            link.set_faults(LinkFaults.model_validate({**link.faults.model_dump(), **fields}))
+            self.recorder.record(name, "set_faults", **fields)
+            return {"ok": True, "tick": self.tick, "faults": link.faults.model_dump()}
+        if cmd == "records":
+            since = int(request.get("since", 0))
+            return {"tick": self.tick, "records": [r.as_dict() for r in self.recorder.records[since:]],
+                    "next": len(self.recorder.records)}
+        if cmd == "stop":
+            self.request_stop()
+            return {"ok": True}
+        raise ValueError(f"unknown command {cmd!r} (status, inject, set_faults, records, stop)")
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "clock": self.config.clock.value,
+            "seed": self.config.seed,
+            "tick": self.tick,
+            "sim_s": round(self.tick * TICK_S, 3),
+            "wall_s": round(time.time() - self.started_wall, 3),
+            "streaming": self.servo.streaming,
+            "servo": self.servo.summary(),
+            "driver": {"enabled": int(self.driver.enabled), "faults": int(self.driver.faults),
+                       "stale_commands": self.driver.stale_commands},
+            "hexapod": {"state": self.hexapod.hex_state.name, "segments": len(self.hexapod.segments)},
+            "lockstep_timeouts": self.lockstep_timeouts,
+            "misaddressed_frames": self.misaddressed,
+            "links": {name.value: {**asdict(link.stats), "rx": link.decoder.counters.as_dict()}
+                      for name, link in self.links.items()},
+            "fault_records": len(self.recorder.records) + self.recorder.dropped,
+        }
+
+    def close(self) -> None:
+        """Close every pty and socket and remove the run directory: nothing is left behind."""
+        for link in self.links.values():
+            link.close()
+        self.control.close()
+        self.recorder.close()
+        if self._own_run_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                self.run_dir.rmdir()
+
+    def __enter__(self) -> Emulator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
