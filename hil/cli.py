@@ -119,6 +119,237 @@ def _print_selftest(report) -> None:  # type: ignore[no-untyped-def]
             err_console.print(f"[bold red]FAIL[/]: {failure}", highlight=False)
 
 
+def _load_session(path: Path):  # type: ignore[no-untyped-def]
+    from hil.config import ConfigError, load_session
+
+    try:
+        return load_session(path)
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+
+
+def run_session(config, out: Path | None, loopback: bool, clock: str | None, json_out: bool) -> int:  # type: ignore[no-untyped-def]
+    """Run one session (optionally against a freshly started emulator); print the summary; return the exit code."""
+    import asyncio
+
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from hil.config import PortConfig
+    from hil.loopback import EmulatorProcess
+    from hil.session import Session
+    from hil.transport import LinkError
+
+    out_dir = out or config.logging.dir
+    emulator = None
+    watchdog_ms = None
+    if loopback:
+        clock = clock or config.emulator.clock
+        emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed)
+        try:
+            ports = {name: PortConfig(port=path) for name, path in emulator.start().items() if name != "control"}
+        except LinkError as exc:
+            raise fail(str(exc)) from None
+        if clock == "lockstep":  # the emulator waits for us, and we may wait for a descheduled emulator
+            watchdog_ms = max(config.safety.watchdog_ms, 1000.0)
+    elif config.ports is None:
+        raise fail("ports: not set in the session file; give the lab's serial ports, or pass --loopback")
+    else:
+        ports = {name: getattr(config.ports, name) for name in ("servo", "driver", "image", "hexapod")}
+    total = round(config.duration_s * 1000)
+    with Progress(TextColumn(f"[bold]{config.name}[/] {config.controller.name}"), BarColumn(),
+                  TextColumn("{task.fields[sim]:.1f} / {task.fields[total_s]:.1f} s"), TimeRemainingColumn(),
+                  console=err_console, transient=True, disable=json_out) as bar:
+        task = bar.add_task("run", total=total, sim=0.0, total_s=config.duration_s)
+        session = Session(config, ports, out_dir, watchdog_ms=watchdog_ms,
+                          progress=lambda n, _t: bar.update(task, completed=n, sim=n / 1000),
+                          log_attrs={"loopback": bool(loopback), "clock": clock or "hardware"})
+        try:
+            result = asyncio.run(session.run())
+        finally:
+            if emulator is not None:
+                emulator.stop()
+    _print_result(result, json_out)
+    return result.exit_code
+
+
+def _print_result(result, json_out: bool) -> None:  # type: ignore[no-untyped-def]
+    import json
+
+    from hil.report import summarize_log
+
+    summary = summarize_log(result.log_path) if result.log_path and result.log_path.exists() else {}
+    if json_out:
+        console.print_json(json.dumps({"status": result.status, "exit_code": result.exit_code,
+                                       "message": result.message, **summary}, default=str))
+        return
+    if summary:
+        _print_summary(summary)
+    colour = {"completed": "green", "interrupted": "yellow"}.get(result.status, "red")
+    line = f"[bold {colour}]{result.status}[/]"
+    if result.message:
+        line += f": {result.message}"
+    if result.log_path:
+        line += f"   log: {result.log_path}"
+    console.print(line, highlight=False)
+
+
+def _fmt(x: float, digits: int = 3) -> str:
+    return "-" if x != x else f"{x:.{digits}f}"  # NaN -> '-'
+
+
+def _print_summary(s: dict) -> None:  # type: ignore[type-arg]
+    t = Table(title=f"{s.get('session', '')}  ({s.get('controller', '')}, {s['duration_s']:.1f} s, "
+                    f"first {s['settle_s']:g} s left out)")
+    t.add_column("metric")
+    t.add_column("value", justify="right")
+    t.add_column("unit")
+    for axis in ("el", "az"):
+        e = s[f"rate_error_{axis}_dps"]
+        t.add_row(f"rate error {axis}: range +- / std", f"{_fmt(e['range_pm'])} / {_fmt(e['std'])}", "deg/s")
+        t.add_row(f"drive ripple {axis} (std)", _fmt(s[f"drive_ripple_{axis}_counts"], 0), "counts")
+    if "miss_x_px" in s:
+        for axis in ("x", "y"):
+            m = s[f"miss_{axis}_px"]
+            t.add_row(f"miss distance {axis}: range +- / std", f"{_fmt(m['range_pm'], 2)} / {_fmt(m['std'], 2)}", "px")
+        t.add_row("frames tracked", f"{s['frames_valid']} / {s['frames']}", "")
+    lat, board = s["latency_us"], s["board_latency_us"]
+    t.add_row("bench latency p50 / p99", f"{_fmt(lat['p50'], 0)} / {_fmt(lat['p99'], 0)}", "us, sample in -> command out")
+    t.add_row("board-measured p50 / p99", f"{_fmt(board['p50'], 0)} / {_fmt(board['p99'], 0)}",
+              "us, GYRO k written -> DRIVE_CMD k in")
+    t.add_row("cycles / late / missed", f"{s['cycles']} / {s['late_cycles']} / {s['missed_cycles']}", "late: > 1 ms")
+    t.add_row("link errors", " ".join(f"{k} {v}" for k, v in s["link_errors"].items()), "CRC + bad + lost frames")
+    t.add_row("faults", str(s["faults"]), "events")
+    console.print(t)
+
+
+@app.command()
+def run(
+    session: Annotated[Path, typer.Argument(help="Session YAML (see profiles/sessions/).")],
+    loopback: Annotated[bool, typer.Option("--loopback", help="Run against the emulator (started here).")] = False,
+    out: Annotated[Path | None, typer.Option(help="Directory for the log (default: the session's logging.dir).")] = None,
+    clock: Annotated[str | None, typer.Option(help="Emulator clock with --loopback: realtime | lockstep.")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
+) -> None:
+    """Run a bench session: connect, arm, swing, stabilize and track, log; print the summary."""
+    if clock not in (None, "realtime", "lockstep"):
+        raise fail(f"--clock: {clock!r} is not realtime or lockstep")
+    raise typer.Exit(run_session(_load_session(session), out, loopback, clock, json_out))
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option(help="Directory for the log.")] = Path("runs"),
+) -> None:
+    """The README's demo: a 10 s session, 1 deg / 1 Hz swing, ESO+KF, against the emulator (no setup needed)."""
+    from hil.config import PROFILES
+
+    config = _load_session(PROFILES / "sessions" / "demo.yaml")
+    raise typer.Exit(run_session(config, out, True, None, False))
+
+
+@app.command()
+def report(
+    log: Annotated[Path, typer.Argument(help="A session log (.h5).")],
+    json_out: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON.")] = False,
+    settle_s: Annotated[float, typer.Option(min=0, help="Leave out the first seconds.")] = 1.0,
+) -> None:
+    """Metrics of a session log: rate error, miss distance, drive ripple, loop latency, link errors."""
+    import json
+
+    from hil.log import LogError
+    from hil.report import summarize_log
+
+    if not log.is_file():
+        raise fail(f"{log}: no such file")
+    try:
+        s = summarize_log(log, settle_s)
+    except (LogError, OSError, KeyError) as exc:
+        raise fail(f"{log}: not a readable session log ({exc}); if the session crashed, try `hil recover {log}`")
+    if json_out:
+        console.print_json(json.dumps(s, default=str))
+    else:
+        _print_summary(s)
+
+
+@app.command()
+def export(
+    log: Annotated[Path, typer.Argument(help="A session log (.h5).")],
+    fmt: Annotated[str, typer.Option("--format", help="parquet | csv")] = "parquet",
+    out: Annotated[Path | None, typer.Option(help="Output directory (default: beside the log).")] = None,
+) -> None:
+    """Export every group of a log to Parquet or CSV files (units kept)."""
+    from hil.log import LogError, export_log
+
+    if fmt not in ("parquet", "csv"):
+        raise fail(f"--format: {fmt!r} is not parquet or csv")
+    if not log.is_file():
+        raise fail(f"{log}: no such file")
+    try:
+        paths = export_log(log, fmt, out)  # type: ignore[arg-type]
+    except LogError as exc:
+        raise fail(str(exc)) from None
+    for p in paths:
+        console.print(str(p))
+
+
+@app.command()
+def recover(
+    log: Annotated[Path, typer.Argument(help="A log left by a crashed session.")],
+) -> None:
+    """Make a log left by a crash (SIGKILL, power loss) open normally; the original is kept beside it."""
+    from hil.log import LogError, recover_log
+
+    if not log.is_file():
+        raise fail(f"{log}: no such file")
+    try:
+        result = recover_log(log)
+    except LogError as exc:
+        raise fail(str(exc)) from None
+    console.print(str(result))
+
+
+@app.command()
+def watch(
+    broker: Annotated[str, typer.Option(help="mqtt://host:port of the broker the bench publishes to.")] = (
+        "mqtt://127.0.0.1:1883"),
+    bench: Annotated[str, typer.Option(help="The bench id (mqtt.bench_id in the session).")] = "bench",
+    seconds: Annotated[float | None, typer.Option(help="Stop after this long (default: until Ctrl-C).")] = None,
+) -> None:
+    """Live telemetry from the broker: latest value of every channel, session state, events."""
+    import asyncio
+
+    from hil.telemetry import MqttConfig
+    from hil.telemetry import watch as watch_telemetry
+
+    try:
+        config = MqttConfig.from_url(broker).model_copy(update={"bench_id": bench})
+    except ValueError as exc:
+        raise fail(f"--broker: {exc}") from None
+    raise typer.Exit(asyncio.run(watch_telemetry(config, seconds=seconds, console=console)))
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def emulate(  # noqa: PLR0917 (typer maps parameters to options)
+    ctx: typer.Context,
+    config: Annotated[Path | None, typer.Option(help="Emulator YAML (default profiles/emulator/default.yaml).")] = None,
+    clock: Annotated[str | None, typer.Option(help="realtime | lockstep (overrides the config).")] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed of plant noise and link faults (overrides config).")] = None,
+    ports_file: Annotated[Path | None, typer.Option(help="Also write the ports map (JSON) to this file.")] = None,
+    fault_log: Annotated[Path | None, typer.Option(help="Write every injected fault and board event (JSONL).")] = None,
+    seconds: Annotated[float | None, typer.Option(help="Stop after this much simulated time.")] = None,
+) -> None:
+    """Run the emulated lab (gimbal on a hexapod, four boards on ptys) until Ctrl-C: `python -m firmware_stub`."""
+    import os
+
+    args = [sys.executable, "-m", "firmware_stub"]
+    for flag, value in (("--config", config), ("--clock", clock), ("--seed", seed), ("--ports-file", ports_file),
+                        ("--fault-log", fault_log), ("--seconds", seconds)):
+        if value is not None:
+            args += [flag, str(value)]
+    sys.stdout.flush()
+    os.execv(sys.executable, args + list(ctx.args))  # the emulator gets our pid, so signals reach it directly
+
+
 @protocol_app.command("docs")
 def protocol_docs(
     write: Annotated[bool, typer.Option("--write", help="Rewrite the generated blocks of the file.")] = False,

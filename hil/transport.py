@@ -32,6 +32,7 @@ class SerialLink(asyncio.Protocol):
         self.encoder = Encoder(src)
         self.decoder = Decoder()
         self.transport: asyncio.Transport | None = None
+        self.port = ""
         self.closed = asyncio.get_running_loop().create_future()
         self._waiters: list[tuple[Callable[[Frame], bool], asyncio.Future[Frame]]] = []
 
@@ -48,6 +49,10 @@ class SerialLink(asyncio.Protocol):
         except (serial.SerialException, OSError) as exc:
             raise LinkError(f"{name}: cannot open {port}: {exc}") from None
         await asyncio.sleep(0)  # let connection_made run
+        link.port = port
+        ser = getattr(link.transport, "serial", None)
+        if ser is not None:  # bytes the board sent while nobody listened are stale: drop them
+            ser.reset_input_buffer()
         return link
 
     # asyncio.Protocol ------------------------------------------------------------------------
