@@ -160,16 +160,25 @@ def check_envelope(segments: Sequence[Segment], envelope: Envelope, step_s: floa
     for seg in segments:
         ramp = min(seg.ramp_s, seg.duration_s / 2)
         corners += [seg.start_s, seg.start_s + ramp, seg.end_s - ramp, seg.end_s - 1e-9]
-    t = np.unique(np.concatenate([np.arange(0.0, end + step_s, step_s), np.array(corners)]))
-    values = evaluate_batch(segments, t)
-    checks = zip((ErrorCode.ENVELOPE_POSITION, ErrorCode.ENVELOPE_RATE, ErrorCode.ENVELOPE_ACCEL), values,
-                 (envelope.position, envelope.rate, envelope.accel), strict=True)
-    for error, series, limits in checks:
-        excess = np.abs(series) / np.asarray(limits, dtype=float)[:, None]
-        axis, at = np.unravel_index(int(np.argmax(excess)), excess.shape)
-        if excess[axis, at] > 1.0:
-            return EnvelopeViolation(error, HexAxis(int(axis)), float(series[axis, at]), float(limits[axis]),
-                                     float(t[at]))
+    grid = np.arange(0.0, end + step_s, step_s)
+    corner_t = np.array(corners)
+    limits = [np.asarray(lim, dtype=float)[:, None] for lim in (envelope.position, envelope.rate, envelope.accel)]
+    errors = (ErrorCode.ENVELOPE_POSITION, ErrorCode.ENVELOPE_RATE, ErrorCode.ENVELOPE_ACCEL)
+    worst: list[tuple[float, EnvelopeViolation] | None] = [None, None, None]
+    chunk = 20_000  # samples per evaluation: bounded memory for hour-long profiles
+    for i in range(0, grid.size, chunk):
+        t = grid[i : i + chunk]
+        t = np.unique(np.concatenate([t, corner_t[(corner_t >= t[0]) & (corner_t <= t[-1] + step_s)]]))
+        for k, series in enumerate(evaluate_batch(segments, t)):
+            excess = np.abs(series) / limits[k]
+            axis, at = np.unravel_index(int(np.argmax(excess)), excess.shape)
+            ratio = float(excess[axis, at])
+            if ratio > 1.0 and (worst[k] is None or ratio > worst[k][0]):  # type: ignore[index]
+                worst[k] = (ratio, EnvelopeViolation(errors[k], HexAxis(int(axis)), float(series[axis, at]),
+                                                     float(limits[k][axis, 0]), float(t[at])))
+    for found in worst:
+        if found is not None:
+            return found[1]
     return None
 
 
