@@ -1,0 +1,359 @@
+"""Read, recover and export session logs (closed, live or left behind by a crash).
+
+* ``read_log``: every group as numpy arrays, units, decoded attributes. Opens a cleanly closed
+  file normally and anything else (a live SWMR file, a file whose writer was killed) with
+  ``swmr=True``. Rows past the last flush that the file's extent already covers read as zeros:
+  they are trimmed (see ``_trim``).
+* ``recover_log``: copies a crashed file through a SWMR reader into a new file with the same
+  layout and attributes, trimmed, and puts it in the original's place (the original is kept as
+  ``<name>.crashed.h5``). ``hil recover LOG``.
+* ``export_log``: one Parquet or CSV file per group, units included. ``hil export LOG``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import os
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import h5py
+import numpy as np
+
+from hil.log.schema import LOG_FORMAT_VERSION, schema_from_json
+from hil.log.writer import LogError, describe_error
+
+_COPY_ROWS = 1 << 20  # recover copies this many rows per dataset at a time
+
+
+@dataclass
+class LogData:
+    """A session log in memory.
+
+    ``groups[g][channel]`` is a 1-D numpy array with the file's dtype, except the events' ``kind``
+    and ``detail``, which are decoded to numpy str arrays. ``attrs``: the file attributes, JSON
+    ones decoded. ``trimmed[g]``: rows of the file's extent dropped as never written.
+    """
+
+    path: Path
+    attrs: dict[str, Any]
+    groups: dict[str, dict[str, np.ndarray]]
+    units: dict[str, dict[str, str]]
+    docs: dict[str, dict[str, str]] = field(default_factory=dict)
+    rates: dict[str, str] = field(default_factory=dict)
+    trimmed: dict[str, int] = field(default_factory=dict)
+    closed_cleanly: bool = True
+
+    def rows(self, group: str) -> int:
+        cols = self.groups[group]
+        return len(next(iter(cols.values()))) if cols else 0
+
+
+@dataclass
+class RecoverReport:
+    path: Path  # the file given
+    output: Path | None  # the recovered file (None if nothing was done)
+    backup: Path | None  # where the crashed original went (None if untouched)
+    already_clean: bool
+    rows: dict[str, int]  # rows per group in the recovered (or clean) file
+    trimmed: dict[str, int]  # rows of the crashed file's extent that held no data
+    message: str
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def summary(self) -> str:
+        """The message, then the rows per group (and what was trimmed): what ``hil recover`` prints."""
+        lines = [self.message]
+        for g, n in self.rows.items():
+            cut = self.trimmed.get(g, 0)
+            lines.append(f"  {g:<8} {n:>10} rows" + (f"  ({cut} unwritten rows trimmed)" if cut else ""))
+        return "\n".join(lines)
+
+
+# --- opening ---------------------------------------------------------------------------------
+
+
+def _open(path: Path) -> tuple[h5py.File, bool]:
+    """The file open for reading, and whether it was closed cleanly (opens without SWMR)."""
+    if not path.is_file():
+        raise LogError(f"cannot read session log {path}: no such file")
+    try:
+        return h5py.File(path, "r"), True
+    except OSError:
+        pass
+    try:
+        return h5py.File(path, "r", swmr=True), False
+    except OSError as exc:
+        raise LogError(f"cannot read session log {path}: {describe_error(exc)}") from None
+
+
+def _decode_attrs(raw: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in raw.items():
+        if isinstance(value, bytes):
+            out[key] = value.decode("utf-8", "replace")
+        elif isinstance(value, np.generic):
+            out[key] = value.item()
+        else:
+            out[key] = value
+    try:
+        json_names = json.loads(out.get("json_attrs", "[]"))
+    except (TypeError, ValueError):
+        json_names = []
+    for key in json_names:
+        if isinstance(out.get(key), str):
+            with contextlib.suppress(ValueError):  # not JSON after all: keep the text
+                out[key] = json.loads(out[key])
+    return out
+
+
+def _channel_order(f: h5py.File) -> dict[str, list[str]]:
+    """Groups and channels in schema order (the file's own schema attribute), else as stored."""
+    try:
+        schema = schema_from_json(f.attrs["schema"])
+        order = {g.name: [c.name for c in g.channels] for g in schema}
+    except (KeyError, ValueError, TypeError):
+        order = {}
+    out: dict[str, list[str]] = {}
+    for name in order:
+        if isinstance(f.get(name), h5py.Group):
+            out[name] = [c for c in order[name] if isinstance(f[name].get(c), h5py.Dataset)]
+    for name, obj in f.items():
+        if isinstance(obj, h5py.Group) and name not in out:
+            out[name] = [c for c, ds in obj.items() if isinstance(ds, h5py.Dataset)]
+    return out
+
+
+def _trim(cols: dict[str, np.ndarray]) -> int:
+    """Rows to keep: up to the last row that was written.
+
+    The writer resizes a dataset before it writes the rows, and its flushes are not atomic
+    across datasets, so after a crash the extent can cover rows whose data never reached the
+    file: they read as the fill value, 0. A trailing row is dropped when every channel is 0,
+    or when its ``t_host_ns`` (a monotonic clock, never 0 in a written row) is 0.
+    """
+    if not cols:
+        return 0
+    n = len(next(iter(cols.values())))
+    written = np.zeros(n, dtype=bool)
+    for col in cols.values():
+        written |= col != (b"" if col.dtype.kind == "S" else 0)
+    if "t_host_ns" in cols:
+        written &= cols["t_host_ns"] != 0
+    idx = np.flatnonzero(written)
+    return int(idx[-1]) + 1 if idx.size else 0
+
+
+def _extent(f: h5py.File, group: str, channels: list[str]) -> tuple[int, int]:
+    """Rows of the group that hold data, and rows of its largest extent that do not.
+
+    Looks only at the tail (growing the window while it is all unwritten), so recovering a long
+    session does not load it whole.
+    """
+    dsets = [f[group][c] for c in channels]
+    lengths = [ds.shape[0] for ds in dsets]
+    if not lengths:
+        return 0, 0
+    n = min(lengths)  # a crash between two datasets' resizes leaves them ragged
+    window = min(n, 4096)
+    while True:
+        keep = n - window + _trim({c: ds[n - window : n] for c, ds in zip(channels, dsets, strict=True)})
+        if keep > n - window or window == n:
+            return keep, max(lengths) - keep
+        window = min(n, window * 8)
+
+
+def read_log(path: str | Path, *, groups: Iterable[str] | None = None) -> LogData:
+    """Read a session log: closed, live (SWMR writer still running) or left by a crash."""
+    path = Path(path)
+    f, clean = _open(path)
+    with f:
+        order = _channel_order(f)
+        wanted = list(order) if groups is None else list(groups)
+        unknown = [g for g in wanted if g not in order]
+        if unknown:
+            raise LogError(f"{path}: no group {', '.join(unknown)} (has {', '.join(order)})")
+        data = LogData(path=path, attrs=_decode_attrs(dict(f.attrs)), groups={}, units={}, closed_cleanly=clean)
+        for g in wanted:
+            keep, cut = _extent(f, g, order[g])
+            cols = {}
+            for c in order[g]:
+                v = f[g][c][:keep]
+                cols[c] = np.strings.decode(v, "ascii", "replace") if v.dtype.kind == "S" else v
+            data.groups[g] = cols
+            data.units[g] = {c: _text(f[g][c].attrs.get("unit", "")) for c in order[g]}
+            data.docs[g] = {c: _text(f[g][c].attrs.get("doc", "")) for c in order[g]}
+            data.rates[g] = _text(f[g].attrs.get("rate", ""))
+            data.trimmed[g] = cut
+    return data
+
+
+def _text(v: Any) -> str:
+    return v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)
+
+
+# --- recover ---------------------------------------------------------------------------------
+
+
+def _writer_alive(attrs: dict[str, Any]) -> bool:
+    """True if the pid that wrote the file still runs here as a hil.log writer."""
+    import socket
+
+    pid = attrs.get("writer_pid")
+    if not isinstance(pid, int) or attrs.get("writer_host") != socket.gethostname():
+        return False
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+    return b"hil.log.writer" in cmdline
+
+
+def _fsync_path(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _free_name(path: Path) -> Path:
+    if not path.exists():
+        return path
+    for i in range(2, 10_000):
+        alt = path.with_name(f"{path.stem}-{i}{path.suffix}")
+        if not alt.exists():
+            return alt
+    raise LogError(f"no free name for {path}")
+
+
+def recover_log(path: str | Path, *, output: Path | None = None) -> RecoverReport:
+    """Make a log left by a crash open normally (``hil recover LOG``).
+
+    Copies every group through a SWMR reader into a new file with the same layout (chunks,
+    dtypes, dataset/group/file attributes, plus a ``recovered`` attribute), trimmed like
+    ``read_log``. Without ``output`` the copy replaces the original, which is kept as
+    ``<stem>.crashed.h5``; with ``output`` the original is left alone. A file that already opens
+    normally is reported as such and nothing changes.
+    """
+    path = Path(path)
+    f, clean = _open(path)
+    if clean:
+        with f:
+            order = _channel_order(f)
+            rows = {g: _extent(f, g, order[g])[0] for g in order}
+        return RecoverReport(path, None, None, True, rows, {}, f"{path}: closed cleanly, nothing to recover")
+    target = Path(output) if output is not None else path
+    if output is not None and target.exists():
+        f.close()
+        raise LogError(f"cannot recover {path}: output {target} already exists")
+    tmp = target.with_name(target.name + ".recover-tmp")
+    rows: dict[str, int] = {}
+    trimmed: dict[str, int] = {}
+    try:
+        with f, h5py.File(tmp, "w", libver="latest") as out:
+            attrs = _decode_attrs(dict(f.attrs))
+            if _writer_alive(attrs):
+                raise LogError(f"cannot recover {path}: its writer (pid {attrs['writer_pid']}) is still running")
+            order = _channel_order(f)
+            for g in order:
+                src = f[g]
+                dst = out.create_group(g)
+                for k, v in src.attrs.items():
+                    dst.attrs[k] = v
+                keep, cut = _extent(f, g, order[g])
+                rows[g], trimmed[g] = keep, cut
+                for c in order[g]:
+                    ds = src[c]
+                    new = dst.create_dataset(
+                        c, shape=(keep,), maxshape=(None,), dtype=ds.dtype, chunks=ds.chunks or None
+                    )
+                    for k, v in ds.attrs.items():
+                        new.attrs[k] = v
+                    for a in range(0, keep, _COPY_ROWS):
+                        b = min(a + _COPY_ROWS, keep)
+                        new[a:b] = ds[a:b]
+            for k, v in f.attrs.items():
+                out.attrs[k] = v
+            names = set(attrs.get("json_attrs") or [])
+            out.attrs["recovered"] = json.dumps(
+                {
+                    "time_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+                    "from": path.name,
+                    "trimmed_rows": trimmed,
+                }
+            )
+            out.attrs["json_attrs"] = json.dumps(sorted(names | {"recovered", "json_attrs"}))
+        _fsync_path(tmp)
+        backup = None
+        if output is None:
+            backup = _free_name(path.with_name(f"{path.stem}.crashed.h5"))
+            os.rename(path, backup)
+        os.replace(tmp, target)
+        _fsync_path(target.parent)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    where = f"; the crashed file is kept as {backup.name}" if backup else ""
+    total = sum(trimmed.values())
+    msg = f"{path}: recovered into {target}{where} ({total} unwritten rows trimmed)"
+    return RecoverReport(path, target, backup, False, rows, trimmed, msg)
+
+
+# --- export ----------------------------------------------------------------------------------
+
+
+def export_log(path: str | Path, fmt: Literal["parquet", "csv"], out_dir: Path | None = None) -> list[Path]:
+    """One file per group, ``<stem>.<group>.parquet|csv``, in ``out_dir`` (default: beside the log).
+
+    Parquet: each field carries ``unit`` and ``doc`` metadata; the schema metadata holds
+    ``hil.units`` and ``hil.docs`` (JSON by channel), ``hil.group``, ``hil.rate``, ``hil.source``
+    and ``hil.attrs`` (the file attributes as JSON). CSV: line 1 is ``# units: u1,u2,...`` (one unit
+    per column, in column order), line 2 the channel names, then the rows.
+    """
+    if fmt not in ("parquet", "csv"):
+        raise ValueError(f"unknown export format {fmt!r} (parquet or csv)")
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+    import pyarrow.parquet as pq
+
+    path = Path(path)
+    data = read_log(path)
+    out_dir = Path(out_dir) if out_dir is not None else path.parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for g, cols in data.groups.items():
+        units = data.units[g]
+        docs = data.docs[g]
+        fields = [
+            pa.field(
+                c,
+                pa.from_numpy_dtype(v.dtype) if v.dtype.kind != "U" else pa.string(),
+                metadata={"unit": units[c], "doc": docs[c]},
+            )
+            for c, v in cols.items()
+        ]
+        meta = {
+            "hil.group": g,
+            "hil.rate": data.rates.get(g, ""),
+            "hil.units": json.dumps(units),
+            "hil.docs": json.dumps(docs),
+            "hil.source": path.name,
+            "hil.attrs": json.dumps(data.attrs, default=str),
+            "hil.log_format_version": str(data.attrs.get("log_format_version", LOG_FORMAT_VERSION)),
+        }
+        table = pa.table([pa.array(v) for v in cols.values()], schema=pa.schema(fields, metadata=meta))
+        out = out_dir / f"{path.stem}.{g}.{fmt}"
+        if fmt == "parquet":
+            pq.write_table(table, out)
+        else:
+            with open(out, "wb") as fh:
+                fh.write(("# units: " + ",".join(units[c] for c in cols) + "\n").encode())
+                pacsv.write_csv(table, fh)
+        written.append(out)
+    return written

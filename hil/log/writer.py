@@ -1,0 +1,849 @@
+"""Crash-safe session log: HDF5 in SWMR mode, written by a child process.
+
+Design (measurements: docs/log-format.md, ``benchmarks/bench_log.py``):
+
+* ``SessionLog.append`` (the 1 kHz hot path) packs the row with a precompiled ``struct.Struct``
+  (little-endian, the group's HDF5 row layout) onto a per-group ``bytearray``: ~0.3 us, no I/O,
+  no numpy, no GC-tracked objects piling up. A value the format refuses (NaN in an integer
+  channel, out of range, None, text) is coerced on a slow path and counted in ``bad_values``.
+* A flusher thread in the bench process wakes every ``flush_interval_s`` (100 ms), cuts the
+  bytes off the buffers (a memcpy: a few microseconds of GIL) and sends them through a pipe to a
+  **writer child process**, then sleeps on the reply with the GIL released.
+* The child owns the HDF5 file. It views the bytes as a structured array (``np.frombuffer``),
+  appends each column to its 1-D dataset, flushes (H5Fflush: from now on the rows survive a
+  crash of both processes), acknowledges with the rows now in the file (``SessionLog.rows``) and
+  fsyncs in a background thread (``flush()`` and ``close()`` wait for the fsync).
+
+Why a child process and not a writer thread: h5py holds the GIL (and its own global lock) for
+every HDF5 call, and appending one 100 ms batch to the 64 datasets takes ~3 ms of such calls, so
+a writer *thread* stalls the 1 kHz loop thread by milliseconds at every flush. In a child the HDF5
+work runs in another interpreter.
+
+What survives what:
+* the bench process dies (exception, SIGKILL): the child reads EOF on its pipe, has already
+  written every batch it received, and closes the file normally. Rows still in the bench's
+  buffers are lost (<= flush_interval_s).
+* both die (power loss, OOM killer, ``kill -9`` of the process group): the file stays a SWMR file
+  holding every batch flushed before the kill (after a power loss: every batch fsynced); read it with
+  ``h5py.File(p, 'r', swmr=True)`` or ``read_log``, repair it with ``recover_log``
+  (``hil recover LOG``).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import datetime as _dt
+import json
+import logging
+import math
+import os
+import pickle
+import re
+import select
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from hil.log.schema import (
+    DETAIL_LEN,
+    KIND_LEN,
+    LOG_FORMAT_VERSION,
+    REQUIRED_ATTRS,
+    SCHEMA,
+    Group,
+    schema_from_json,
+    schema_to_json,
+    validate,
+)
+
+log = logging.getLogger("hil.log")
+
+JSON_ATTRS_ALWAYS = ("config", "ident")  # stored as JSON text even when the caller passes a string
+_WRITER_OWNED = (
+    "log_format_version",
+    "schema",
+    "json_attrs",
+    "log_created_unix_ns",
+    "log_created_monotonic_ns",
+    "writer_host",
+    "writer_pid",
+    "recovered",
+)
+_STARTUP_TIMEOUT_S = 60.0  # the child imports numpy and h5py: ~0.3 s, much more on a loaded machine
+_CLOSE_TIMEOUT_S = 60.0
+_WRITER_NICE = 10  # the writer needs ~4 % of a core; it must not preempt the 1 kHz loop
+
+
+class LogError(Exception):
+    """A session log cannot be created, read or recovered. The message is one line naming the file."""
+
+
+# --- framing over the pipes: 4-byte little-endian length + pickle -----------------------------
+
+_LEN = struct.Struct("<I")
+
+
+def _send_bytes(fd: int, data: bytes) -> None:
+    view = memoryview(_LEN.pack(len(data)) + data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+def _send(fd: int, obj: Any) -> None:
+    _send_bytes(fd, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _read_exactly(fd: int, n: int) -> bytes | None:
+    parts = []
+    while n:
+        chunk = os.read(fd, n)
+        if not chunk:
+            return None
+        parts.append(chunk)
+        n -= len(chunk)
+    return b"".join(parts)
+
+
+def _recv(fd: int) -> Any:
+    """The next message, or None at EOF (the other side is gone or closed its end)."""
+    head = _read_exactly(fd, _LEN.size)
+    if head is None:
+        return None
+    body = _read_exactly(fd, _LEN.unpack(head)[0])
+    return None if body is None else pickle.loads(body)
+
+
+def describe_error(exc: BaseException) -> str:
+    """One line for an OS or HDF5 error: the cause, without HDF5's internal call chain."""
+    text = str(exc)
+    mo = re.search(r"error message = '([^']*)'", text)  # HDF5's wording of a failed system call
+    if mo:
+        cause = mo.group(1)
+    elif isinstance(exc, OSError) and exc.strerror:
+        cause = exc.strerror
+    else:
+        cause = text.splitlines()[0] if text else type(exc).__name__
+    errno_ = getattr(exc, "errno", None)
+    if errno_ is None:
+        mo = re.search(r"errno = (\d+)", text)
+        errno_ = int(mo.group(1)) if mo else None
+    return f"{cause} (errno {errno_})" if errno_ else cause
+
+
+# --- attributes ----------------------------------------------------------------------------
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "model_dump"):  # pydantic models
+        return obj.model_dump(mode="json")
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (Path, _dt.datetime, _dt.date)):
+        return str(obj)
+    if isinstance(obj, (set, frozenset, tuple)):
+        return list(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def prepare_attrs(attrs: dict[str, Any]) -> tuple[dict[str, str | int | float], list[str]]:
+    """File attributes as HDF5 will store them, and the names of those holding JSON text."""
+    missing = [k for k in REQUIRED_ATTRS if k not in attrs]
+    if missing:
+        raise ValueError(f"session log attrs lack {', '.join(missing)} (required: {', '.join(REQUIRED_ATTRS)})")
+    reserved = [k for k in attrs if k in _WRITER_OWNED]
+    if reserved:
+        raise ValueError(f"session log attrs {', '.join(reserved)} are written by the log itself")
+    out: dict[str, str | int | float] = {}
+    json_names: list[str] = []
+    for key, given in attrs.items():
+        if not isinstance(key, str) or not key or "/" in key:
+            raise ValueError(f"bad attribute name {key!r}")
+        value = given.item() if isinstance(given, np.generic) else given
+        if key in JSON_ATTRS_ALWAYS or not (
+            isinstance(value, str) or type(value) is float or (type(value) is int and -(2**63) <= value < 2**63)
+        ):
+            if isinstance(value, str):  # config / ident given as JSON text already
+                try:
+                    json.loads(value)
+                except ValueError:
+                    raise ValueError(f"attr {key!r} is a string but not JSON text") from None
+                out[key] = value
+            else:
+                try:
+                    out[key] = json.dumps(value, default=_json_default)
+                except (TypeError, ValueError) as exc:
+                    raise ValueError(f"attr {key!r}: {exc}") from None
+            json_names.append(key)
+        else:
+            out[key] = value
+    out.setdefault("software_version", _software_version())
+    now_unix, now_mono = time.time_ns(), time.monotonic_ns()
+    out.setdefault(
+        "start_time_utc", _dt.datetime.fromtimestamp(now_unix / 1e9, _dt.UTC).isoformat(timespec="milliseconds")
+    )
+    out["log_created_unix_ns"] = now_unix
+    out["log_created_monotonic_ns"] = now_mono
+    out["log_format_version"] = LOG_FORMAT_VERSION
+    out["writer_host"] = socket.gethostname()
+    return out, json_names
+
+
+def _software_version() -> str:
+    try:
+        from hil import __version__
+
+        return str(__version__)
+    except ImportError:  # pragma: no cover
+        return "unknown"
+
+
+# --- the HDF5 side (runs in the writer child; the benchmark also runs it in a thread) ---------
+
+
+def chunk_rows(group: Group) -> int:
+    """Chunk length of the group's datasets: about a second of data, at most ~32 KB per chunk."""
+    per_row = max(np.dtype(c.dtype).itemsize for c in group.channels)
+    by_rate = {"loop": 1024, "timing": 1024, "image": 128, "hexapod": 128, "links": 16}.get(group.name, 64)
+    return max(1, min(by_rate, 32768 // per_row))
+
+
+_F4_MAX = float(np.finfo(np.float32).max)
+_STRUCT_CODES = {
+    "f8": "d",
+    "f4": "f",
+    "i8": "q",
+    "i4": "i",
+    "i2": "h",
+    "i1": "b",
+    "u8": "Q",
+    "u4": "I",
+    "u2": "H",
+    "u1": "B",
+}
+
+
+def row_dtype(group: Group) -> np.dtype:
+    """The little-endian, unpadded structured dtype of a packed row of ``group``."""
+    return np.dtype([(c.name, np.dtype(c.dtype).newbyteorder("<")) for c in group.channels])
+
+
+def row_struct(group: Group) -> struct.Struct:
+    """The struct that packs one row of ``group`` exactly as ``row_dtype`` lays it out."""
+    codes = []
+    for c in group.channels:
+        dt = np.dtype(c.dtype)
+        codes.append(f"{dt.itemsize}s" if dt.kind == "S" else _STRUCT_CODES[dt.str[1:]])
+    st = struct.Struct("<" + "".join(codes))
+    assert st.size == row_dtype(group).itemsize
+    return st
+
+
+class _Coerce(NamedTuple):
+    kind: str  # 'f', 'i' (also unsigned) or 'S'
+    size: int
+    lo: int
+    hi: int
+
+
+def _coercer(dtype: str) -> _Coerce:
+    dt = np.dtype(dtype)
+    if dt.kind in "iu":
+        info = np.iinfo(dt)
+        return _Coerce("i", dt.itemsize, int(info.min), int(info.max))
+    return _Coerce(dt.kind, dt.itemsize, 0, 0)
+
+
+def _coerce(value: Any, c: _Coerce) -> tuple[Any, bool]:
+    """A value the channel can hold, and whether it had to be changed (NaN, None, overflow, text...)."""
+    if c.kind == "S":
+        raw = value if isinstance(value, bytes) else str(value).encode("ascii", "backslashreplace")
+        return raw[: c.size], False
+    if c.kind == "f":
+        try:
+            x = float(value)
+        except (TypeError, ValueError):
+            return math.nan, True
+        if c.size == 4 and math.isfinite(x) and abs(x) > _F4_MAX:
+            return math.copysign(math.inf, x), False  # what numpy does: float32 overflows to inf
+        return x, False
+    if isinstance(value, (int, np.integer)):
+        number = int(value)
+    else:
+        try:
+            x = float(value)
+        except (TypeError, ValueError):
+            return 0, True
+        if math.isnan(x):
+            return 0, True
+        if math.isinf(x):
+            return (c.hi if x > 0 else c.lo), True
+        number = int(x)  # truncation toward zero, as numpy casts
+    clipped = min(max(number, c.lo), c.hi)
+    return clipped, clipped != number
+
+
+class _Syncer:
+    """fsync in a thread of the writer, so a slow disk does not hold up the next batch.
+
+    A SIGKILL cannot lose what H5Fflush handed to the kernel; fsync only matters for a power
+    loss. Requests made while an fsync runs are served by one more fsync after it.
+    """
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.error: str | None = None
+        self._cv = threading.Condition()
+        self._requested = self._done = 0
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="hil.log fsync", daemon=True)
+        self._thread.start()
+
+    def request(self) -> None:
+        with self._cv:
+            self._requested += 1
+            self._cv.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._stop or self._requested > self._done)
+                if self._requested == self._done:
+                    return
+                target = self._requested
+            try:
+                os.fsync(self.fd)
+            except OSError as exc:
+                self.error = describe_error(exc)
+            with self._cv:
+                self._done = target
+                self._cv.notify_all()
+
+    def stop(self) -> None:
+        """Wait for the fsyncs requested so far, then end the thread."""
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        self._thread.join()
+
+
+class H5Sink:
+    """Owns the HDF5 file: creates the layout, switches SWMR on, appends batches, flushes, closes."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        attrs: dict[str, Any],
+        json_attrs: list[str],
+        schema: tuple[Group, ...],
+        *,
+        fsync: bool = True,
+        overwrite: bool = False,
+    ) -> None:
+        import h5py
+
+        self._h5s = h5py.h5s
+        self.path = Path(path)
+        self.schema = schema
+        self.fsync = fsync
+        self.rows = [0] * len(schema)
+        self.dtypes = [row_dtype(g) for g in schema]
+        self.f = h5py.File(self.path, "w" if overwrite else "w-", libver="latest")
+        try:
+            attrs = dict(attrs)
+            attrs["schema"] = schema_to_json(schema)
+            attrs["writer_pid"] = os.getpid()
+            attrs["json_attrs"] = json.dumps(sorted({*json_attrs, "schema", "json_attrs"}))
+            for key, value in attrs.items():
+                self.f.attrs[key] = value
+            self.dsets: list[list[Any]] = []
+            self.chunks: list[int] = []
+            for g in schema:
+                grp = self.f.create_group(g.name)
+                grp.attrs["rate"] = g.rate
+                grp.attrs["doc"] = g.doc
+                n_chunk = chunk_rows(g)
+                self.chunks.append(n_chunk)
+                dsets = []
+                for c in g.channels:
+                    ds = grp.create_dataset(c.name, shape=(0,), maxshape=(None,), dtype=c.dtype, chunks=(n_chunk,))
+                    ds.attrs["unit"] = c.unit
+                    ds.attrs["doc"] = c.doc
+                    dsets.append(ds)
+                self.dsets.append(dsets)
+            self.f.flush()
+            self.f.swmr_mode = True
+            self.fd = self.f.id.get_vfd_handle()
+            self.syncer = _Syncer(self.fd) if fsync else None
+            if fsync:
+                os.fsync(self.fd)
+        except BaseException:
+            self.abort()
+            self.path.unlink(missing_ok=True)  # nothing was logged yet: leave no half-made file
+            raise
+
+    def _columns(self, gi: int, packed: bytes | bytearray) -> list[np.ndarray]:
+        arr = np.frombuffer(packed, dtype=self.dtypes[gi])
+        return [np.ascontiguousarray(arr[name]) for name in arr.dtype.names]  # type: ignore[union-attr]
+
+    def _append(self, ds: Any, n0: int, col: np.ndarray) -> None:
+        # the low-level calls: h5py's ds.resize + ds[a:b] = col cost ~4x more per dataset
+        k = col.shape[0]
+        ds.id.set_extent((n0 + k,))
+        fspace = ds.id.get_space()
+        fspace.select_hyperslab((n0,), (k,))
+        ds.id.write(self._h5s.create_simple((k,)), fspace, col)
+
+    def write(self, batches: dict[int, bytes | bytearray], *, sync: bool = True) -> dict[str, float]:
+        """Append the batches (packed rows by group index), flush and fsync. Raises on I/O errors.
+
+        ``sync``: fsync before returning; otherwise the fsync runs in the background (``_Syncer``)
+        and the rows are already safe from a crash of the processes, not yet from a power loss.
+
+        A batch larger than a chunk (the writer fell behind) goes in rounds of at most one chunk
+        per dataset, each flushed. Within a round nothing is evicted from HDF5's caches and
+        H5Fflush writes raw data before metadata, so a writer killed at any point leaves no extent
+        on disk that covers unwritten rows (beyond the all-zero tail read_log trims). A failed
+        write is different: HDF5 goes on flushing metadata, so the caller rolls back (``rollback``).
+        """
+        if self.syncer is not None and self.syncer.error:
+            raise OSError(f"fsync failed: {self.syncer.error}")
+        t0 = time.perf_counter()
+        cols = {gi: self._columns(gi, packed) for gi, packed in batches.items()}
+        n_rows = sum(len(c[0]) for c in cols.values())
+        flush_s = 0.0
+        start = 0
+        while True:
+            wrote = False
+            for gi, gcols in cols.items():
+                step = self.chunks[gi]
+                a, b = start * step, min((start + 1) * step, len(gcols[0]))
+                if a >= b:
+                    continue
+                n0 = self.rows[gi]
+                for ds, col in zip(self.dsets[gi], gcols, strict=True):
+                    self._append(ds, n0, col[a:b])
+                wrote = True
+            if not wrote:
+                break
+            t2 = time.perf_counter()
+            self.f.flush()
+            for gi, gcols in cols.items():  # this round is in the file now
+                step = self.chunks[gi]
+                self.rows[gi] += max(0, min((start + 1) * step, len(gcols[0])) - start * step)
+            flush_s += time.perf_counter() - t2
+            start += 1
+        t3 = time.perf_counter()
+        if self.syncer is not None:
+            if sync:
+                os.fsync(self.fd)
+            else:
+                self.syncer.request()
+        t4 = time.perf_counter()
+        return {
+            "rows": n_rows,
+            "rounds": start,
+            "write_us": (t3 - t0 - flush_s) * 1e6,
+            "flush_us": flush_s * 1e6,
+            "fsync_us": (t4 - t3) * 1e6,
+            "t_child0": t0,
+            "t_child1": t4,
+        }
+
+    def rollback(self) -> None:
+        """After a failed write: shrink every dataset back to the rows known to be in the file.
+
+        HDF5 keeps flushing metadata after a raw-data write fails (a full disk refuses new chunks,
+        not rewrites of existing metadata), which can leave an extent covering rows that were never
+        written. Best effort; shrinking allocates nothing.
+        """
+        for gi, dsets in enumerate(self.dsets):
+            for ds in dsets:
+                if ds.shape[0] != self.rows[gi]:
+                    ds.id.set_extent((self.rows[gi],))
+        self.f.flush()
+
+    def close(self) -> None:
+        if self.syncer is not None:
+            self.syncer.stop()
+        self.f.close()  # ends SWMR: the file opens normally from now on
+        if self.fsync:
+            fd = os.open(self.path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+
+    def abort(self) -> None:
+        """Close after an error, best effort (the file keeps what earlier flushes wrote)."""
+        try:
+            self.f.close()
+        except Exception as exc:  # the disk may still be full
+            print(f"hil.log writer: closing {self.path} after an error: {describe_error(exc)}", file=sys.stderr)
+
+
+def _child_main() -> None:
+    """The writer process: messages in on stdin, replies out on the original stdout."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the bench closes us
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # we exit at EOF on stdin, after closing the file
+    with contextlib.suppress(OSError):
+        os.nice(_WRITER_NICE)  # on a busy machine the loop process gets the CPU first
+    out_fd = os.dup(1)
+    os.dup2(2, 1)  # a stray print must not corrupt the replies
+    in_fd = 0
+
+    def reply(obj: Any) -> None:
+        with contextlib.suppress(OSError):  # the bench is gone: carry on to EOF and close the file
+            _send(out_fd, obj)
+
+    msg = _recv(in_fd)
+    if msg is None or msg[0] != "open":
+        return
+    _, path, attrs, json_attrs, schema_text, fsync, overwrite = msg
+    try:
+        sink = H5Sink(path, attrs, json_attrs, schema_from_json(schema_text), fsync=fsync, overwrite=overwrite)
+    except Exception as exc:
+        reply(("fail", describe_error(exc)))
+        return
+    reply(("ready", os.getpid()))
+    failed: str | None = None
+    while True:
+        msg = _recv(in_fd)
+        if msg is None or msg[0] == "close":
+            break
+        if msg[0] == "batch":
+            if failed:
+                reply(("error", failed))
+                continue
+            try:
+                stats = sink.write(msg[1], sync=msg[2])
+            except Exception as exc:
+                # Stop touching the file: flushing or closing now would write the extents of a
+                # half-written batch. On disk it stays as the last good flush left it, like after a
+                # crash (read_log reads it, recover_log repairs it).
+                failed = describe_error(exc)
+                try:
+                    sink.rollback()
+                except Exception as exc2:
+                    print(f"hil.log writer: {path}: rollback after an error: {describe_error(exc2)}", file=sys.stderr)
+                reply(("error", failed))
+                continue
+            reply(("ack", sink.rows, stats))
+    if failed:
+        reply(("closed", sink.rows, failed))
+        os._exit(0)  # no HDF5 close, no atexit flush
+    close_error = None
+    try:
+        sink.close()
+    except Exception as exc:
+        close_error = describe_error(exc)
+    reply(("closed", sink.rows, close_error))
+
+
+def _writer_argv() -> list[str]:
+    """The command that starts the writer child (tests wrap it to limit the file size)."""
+    return [sys.executable, "-c", "from hil.log.writer import _child_main; _child_main()"]
+
+
+# --- the bench side -------------------------------------------------------------------------
+
+
+class _Discard:
+    """Stands in for a group's buffer once the log has failed: rows are dropped, silently."""
+
+    __slots__ = ()
+
+    def __iadd__(self, data: bytes) -> _Discard:
+        return self
+
+
+class _Closed:
+    __slots__ = ()
+
+    def __iadd__(self, data: bytes) -> _Closed:
+        raise LogError("the session log is closed")
+
+
+class SessionLog:
+    """One session's log file: HDF5, one group per rate, one 1-D dataset per channel, SWMR.
+
+    ``append`` and ``event`` never block and never raise on I/O trouble: if the writer fails
+    (disk full, writer killed) the log records the cause in ``error``, drops further rows and
+    keeps everything flushed before. Creating the log raises ``LogError`` if the file cannot be
+    made. Close it (or use it as a context manager) for a file that opens without SWMR.
+
+    ``rows``: rows in the file per group (updated at every flush; fsynced in the background).
+    ``bad_values``: values per group that had to be coerced (NaN or None in an integer channel
+    -> 0, out of range -> clipped, non-numbers in a float channel -> NaN). ``stats``: one dict
+    per flush (diagnostics). ``writer_pid``: the writer process.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        attrs: dict[str, Any],
+        schema: tuple[Group, ...] = SCHEMA,
+        flush_interval_s: float = 0.1,
+        fsync: bool = True,
+        overwrite: bool = False,
+    ) -> None:
+        self.path = Path(path).absolute()
+        self.flush_interval_s = float(flush_interval_s)
+        if not self.flush_interval_s > 0:
+            raise ValueError("flush_interval_s must be > 0")
+        self._init_buffers(schema)
+        self.error: str | None = None
+        self.rows: dict[str, int] = {g.name: 0 for g in schema}
+        self.stats: collections.deque[dict[str, float]] = collections.deque(maxlen=100_000)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._closed = False
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._thread: threading.Thread | None = None
+        prepared, json_names = prepare_attrs(attrs)  # ValueError for bad attrs, before any file exists
+
+        where = f"cannot create session log {self.path}"
+        if not self.path.parent.is_dir():
+            raise LogError(f"{where}: directory {self.path.parent} does not exist")
+        if self.path.exists() and not overwrite:
+            raise LogError(f"{where}: the file already exists")
+        env = dict(os.environ)
+        root = str(Path(__file__).resolve().parents[2])
+        env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+        try:
+            self._proc = subprocess.Popen(
+                _writer_argv(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env, close_fds=True
+            )
+        except OSError as exc:
+            raise LogError(f"{where}: cannot start the writer process: {describe_error(exc)}") from None
+        assert self._proc.stdin is not None and self._proc.stdout is not None
+        self._wfd = self._proc.stdin.fileno()
+        self._rfd = self._proc.stdout.fileno()
+        try:
+            _send(self._wfd, ("open", str(self.path), prepared, json_names, schema_to_json(schema), fsync, overwrite))
+            ready, _, _ = select.select([self._rfd], [], [], _STARTUP_TIMEOUT_S)
+            reply = _recv(self._rfd) if ready else None
+        except OSError:
+            reply = None
+        if reply is None or reply[0] != "ready":
+            cause = reply[1] if reply is not None and reply[0] == "fail" else self._writer_gone()
+            self._reap(kill=True)
+            raise LogError(f"{where}: {cause}")
+        self.writer_pid: int = reply[1]
+        self._thread = threading.Thread(target=self._flusher, name=f"hil.log flusher {self.path.name}", daemon=True)
+        self._thread.start()
+
+    def _init_buffers(self, schema: tuple[Group, ...]) -> None:
+        validate(schema)
+        self.schema = schema
+        self._names = [g.name for g in schema]
+        self._bufs = [bytearray() for _ in schema]
+        self._slots: dict[str, tuple[Any, Any]] = {
+            g.name: (row_struct(g).pack, buf) for g, buf in zip(schema, self._bufs, strict=True)
+        }
+        self.bad_values: dict[str, int] = {g.name: 0 for g in schema}
+        self._coercers = {g.name: [_coercer(c.dtype) for c in g.channels] for g in schema}
+
+    # -- hot path --------------------------------------------------------------------------
+
+    def append(self, group: str, row: Sequence[Any]) -> None:
+        """Queue one row (values in schema order). ~0.3 us; never blocks, never does I/O.
+
+        Integer channels want ints (a float is truncated, on a slower path), strings want bytes.
+        Raises ValueError for an unknown group or a row of the wrong length.
+        """
+        try:
+            pack, buf = self._slots[group]
+        except KeyError:
+            raise ValueError(f"unknown log group {group!r}") from None
+        try:
+            buf += pack(*row)
+        except (struct.error, OverflowError, TypeError, ValueError):
+            buf += self._repack(group, row)
+
+    def _repack(self, group: str, row: Sequence[Any]) -> bytes:
+        """The slow path: a row the struct refused, value by value."""
+        coercers = self._coercers[group]
+        if len(row) != len(coercers):
+            raise ValueError(f"log group {group!r} takes {len(coercers)} values, got {len(row)}")
+        values = []
+        bad = 0
+        for v, c in zip(row, coercers, strict=True):
+            fixed, changed = _coerce(v, c)
+            values.append(fixed)
+            bad += changed
+        if bad:
+            self.bad_values[group] += bad
+        return self._slots[group][0](*values)  # type: ignore[no-any-return]
+
+    def event(self, kind: str, tick: int, detail: dict[str, Any] | str = "") -> None:
+        """Log an event now (t_host_ns = time.monotonic_ns()). ``detail``: a dict (stored as JSON) or text."""
+        t = time.monotonic_ns()
+        text = detail if isinstance(detail, str) else json.dumps(detail, separators=(",", ":"), default=str)
+        raw = text.encode("ascii", "backslashreplace")
+        if len(raw) > DETAIL_LEN:
+            raw = raw[: DETAIL_LEN - 3] + b"..."
+        self.append("events", (t, tick, kind.encode("ascii", "replace")[:KIND_LEN], raw))
+
+    # -- flushing --------------------------------------------------------------------------
+
+    def _take(self) -> dict[int, bytearray]:
+        """Cut what the buffers hold (a memcpy per group; rows appended meanwhile stay)."""
+        batches = {}
+        for gi, buf in enumerate(self._bufs):
+            n = len(buf)
+            if n:
+                batches[gi] = buf[:n]
+                del buf[:n]
+        return batches
+
+    def _flusher(self) -> None:
+        next_t = time.monotonic() + self.flush_interval_s
+        while not self._stop.wait(max(0.0, next_t - time.monotonic())):
+            with self._lock:
+                if self._closed:
+                    return
+                try:
+                    self._ship()
+                except Exception as exc:  # a bug here must not end logging silently
+                    self._fail(f"flusher thread: {exc!r}")
+            next_t = max(next_t + self.flush_interval_s, time.monotonic())
+
+    def _ship(self, *, sync: bool = False) -> None:
+        """Send what the buffers hold to the writer and wait until it is in the file. Call with _lock held.
+
+        ``sync``: also wait for the fsync (otherwise the writer fsyncs in the background).
+        """
+        if self.error is not None or self._proc is None:
+            return
+        t0 = time.perf_counter()
+        batches = self._take()
+        if not batches:
+            return
+        data = pickle.dumps(("batch", batches, sync), protocol=pickle.HIGHEST_PROTOCOL)
+        t1 = time.perf_counter()
+        try:
+            _send_bytes(self._wfd, data)
+            reply = _recv(self._rfd)
+        except OSError:
+            reply = None
+        t2 = time.perf_counter()
+        if reply is None:
+            self._fail(self._writer_gone())
+        elif reply[0] == "ack":
+            _, rows, stats = reply
+            self.rows = dict(zip(self._names, rows, strict=True))
+            stats.update(t_start=t0, ship_us=(t1 - t0) * 1e6, roundtrip_us=(t2 - t0) * 1e6, bytes=len(data))
+            self.stats.append(stats)
+        else:
+            self._fail(reply[1])
+
+    def _writer_gone(self) -> str:
+        proc = self._proc
+        if proc is None:
+            return "no writer process"
+        try:
+            rc = proc.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            return "the writer process stopped answering"
+        if rc < 0:
+            try:
+                name = signal.Signals(-rc).name
+            except ValueError:
+                name = f"signal {-rc}"
+            return f"the writer process was killed ({name})"
+        return f"the writer process exited with status {rc}"
+
+    def _fail(self, cause: str) -> None:
+        if self.error is None:
+            self.error = f"{self.path}: logging stopped: {cause}"
+            log.error("%s", self.error)
+        for name in self._names:
+            pack, _ = self._slots[name]
+            self._slots[name] = (pack, _Discard())
+        for buf in self._bufs:
+            buf.clear()
+
+    def flush(self) -> None:
+        """Write everything queued so far to the file (and fsync); returns when it is on disk.
+
+        Blocks for a few ms: call it from the session's control code, not from the 1 kHz loop.
+        """
+        with self._lock:
+            if not self._closed:
+                self._ship(sync=True)
+
+    def close(self) -> None:
+        """Flush, end SWMR and close: the file then opens with a plain ``h5py.File(p, 'r')``.
+
+        Never raises on I/O trouble; check ``error`` afterwards. Appending after close raises LogError.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            for name in self._names:
+                pack, _ = self._slots[name]
+                self._slots[name] = (pack, _Closed())
+            self._stop.set()
+            if self.error is None:
+                self._ship(sync=True)
+            reply = None
+            try:
+                _send(self._wfd, ("close",))
+                reply = _recv(self._rfd)
+            except OSError:
+                pass
+            if self.error is None:
+                if reply is None or reply[0] != "closed":
+                    self._fail(self._writer_gone())
+                else:
+                    _, rows, close_error = reply
+                    self.rows = dict(zip(self._names, rows, strict=True))
+                    if close_error:
+                        self._fail(close_error)
+            self._reap(kill=False)
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join()
+
+    def _reap(self, *, kill: bool) -> None:
+        proc = self._proc
+        if proc is None:
+            return
+        for pipe in (proc.stdin, proc.stdout):
+            if pipe is not None:
+                pipe.close()
+        if kill:
+            proc.kill()
+        try:
+            proc.wait(timeout=_CLOSE_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> SessionLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else ("failed" if self.error else "open")
+        return f"<SessionLog {self.path} {state} rows={self.rows}>"
