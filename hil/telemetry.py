@@ -1,0 +1,793 @@
+"""Live MQTT telemetry of a bench session, and `hil watch` (docs/telemetry.md).
+
+The control loop calls `Telemetry.sample()` on every 1 kHz cycle, in the event loop's thread.
+The rule of this module is that telemetry never blocks, slows down or crashes that loop:
+
+- `sample()` decimates by board time (`t_s`) to `telemetry_hz`; a call that is not due is two
+  attribute loads and a compare (~0.1 us). A due call copies the values into a bounded deque
+  and wakes the publisher task; it never waits, never raises.
+- One background task owns the MQTT connection (aiomqtt, which does not reconnect by itself):
+  it connects, publishes, and on `aiomqtt.MqttError` waits an exponential backoff between
+  `reconnect_min_s` and `reconnect_max_s` and connects again, for as long as the session runs.
+- Everything queued is bounded. Telemetry is accepted only while connected and while fewer
+  than `queue_size` samples wait; otherwise the *newest* sample is dropped and counted
+  (`stats.dropped`): a live view wants fresh data, not a backlog replayed after an outage.
+  Events (and state changes, which are also events) are kept while disconnected, up to
+  `queue_size` of them, and sent after the reconnection; past that the newest is dropped and
+  counted, and a warning is logged. Nothing is dropped without being counted.
+- `stop()` publishes the retained ``offline`` status and disconnects cleanly, in at most 2 s
+  even with no broker; whatever could not be sent by then is counted as dropped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import re
+import secrets
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar, Self
+from urllib.parse import parse_qsl, unquote, urlsplit
+
+import aiomqtt
+import paho.mqtt.client as paho
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+if TYPE_CHECKING:
+    from rich.console import Console, RenderableType
+
+__all__ = [
+    "MqttConfig",
+    "Telemetry",
+    "TelemetryStats",
+    "meta_topic",
+    "session_topic",
+    "status_topic",
+    "watch",
+]
+
+log = logging.getLogger(__name__)
+
+TOPIC_ROOT = "hil"
+STOP_TIMEOUT_S = 2.0  # stop() returns within this, broker or not
+EVENT_QOS = 1  # status, meta, state and events: rare and worth an acknowledgement
+_BURST = 25  # telemetry messages handed to paho per loop step when a backlog has built up
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")
+_NAME_RULE = "1-64 characters from A-Z a-z 0-9 _ . - starting with a letter or digit (topic-safe: no / + # or spaces)"
+
+
+def _check_name(what: str, value: str) -> str:
+    if not isinstance(value, str) or not _NAME.fullmatch(value):
+        raise ValueError(f"{what} {value!r} is not topic-safe: use {_NAME_RULE}")
+    return value
+
+
+# --- topics -----------------------------------------------------------------------------------
+
+
+def status_topic(bench_id: str) -> str:
+    """``hil/<bench_id>/status``: retained online/offline (the last will publishes offline)."""
+    return f"{TOPIC_ROOT}/{bench_id}/status"
+
+
+def session_topic(bench_id: str, session_id: str, leaf: str) -> str:
+    """``hil/<bench_id>/session/<session_id>/<leaf>``; leaf is state, meta, telemetry or events."""
+    return f"{TOPIC_ROOT}/{bench_id}/session/{session_id}/{leaf}"
+
+
+def meta_topic(bench_id: str, session_id: str) -> str:
+    return session_topic(bench_id, session_id, "meta")
+
+
+# --- configuration ----------------------------------------------------------------------------
+
+
+class MqttConfig(BaseModel):
+    """Where and how to publish. No config means no MQTT: the session creates no Telemetry."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    host: str = Field(min_length=1)
+    port: int = Field(1883, ge=1, le=65535)
+    bench_id: str = "bench"
+    telemetry_hz: float = Field(50.0, gt=0, le=1000)
+    queue_size: int = Field(1000, ge=1, le=1_000_000)
+    qos: int = Field(0, ge=0, le=1)  # of telemetry; status, meta, state and events always use QoS 1
+    keepalive_s: int = Field(10, ge=1, le=65535)
+    reconnect_min_s: float = Field(0.5, gt=0)
+    reconnect_max_s: float = Field(10.0, gt=0)
+    username: str | None = None
+    password: str | None = Field(None, repr=False)
+
+    @field_validator("bench_id")
+    @classmethod
+    def _bench_id_topic_safe(cls, v: str) -> str:
+        return _check_name("bench_id", v)
+
+    @model_validator(mode="after")
+    def _backoff_order(self) -> Self:
+        if self.reconnect_min_s > self.reconnect_max_s:
+            raise ValueError(f"reconnect_min_s ({self.reconnect_min_s}) > reconnect_max_s ({self.reconnect_max_s})")
+        return self
+
+    @classmethod
+    def from_url(cls, url: str, **overrides: Any) -> MqttConfig:
+        """``mqtt://[user[:password]@]host[:port][?bench_id=rig2&telemetry_hz=20]`` -> MqttConfig.
+
+        Query parameters and keyword overrides set the other fields (keywords win). Only plain
+        TCP (``mqtt://`` or ``tcp://``) is supported; raises ValueError on anything else.
+        """
+        parts = urlsplit(url.strip())
+        if parts.scheme not in ("mqtt", "tcp"):
+            raise ValueError(f"MQTT URL {url!r}: scheme must be mqtt:// (TLS is not supported)")
+        if parts.path not in ("", "/") or parts.fragment:
+            raise ValueError(f"MQTT URL {url!r}: expected mqtt://host[:port], with no path")
+        try:
+            port = parts.port
+        except ValueError as exc:
+            raise ValueError(f"MQTT URL {url!r}: {exc}") from None
+        if not parts.hostname:
+            raise ValueError(f"MQTT URL {url!r} names no host")
+        fields: dict[str, Any] = {"host": parts.hostname}
+        if port is not None:
+            fields["port"] = port
+        if parts.username:
+            fields["username"] = unquote(parts.username)
+        if parts.password:
+            fields["password"] = unquote(parts.password)
+        fields.update(parse_qsl(parts.query, strict_parsing=False))
+        fields.update(overrides)
+        return cls(**fields)
+
+    @property
+    def url(self) -> str:
+        """The broker address, without credentials (for messages)."""
+        return f"mqtt://{self.host}:{self.port}"
+
+
+@dataclass
+class TelemetryStats:
+    """Counters of one Telemetry; read them any time (they are plain attributes)."""
+
+    published: int = 0  # telemetry, event and state messages handed to the broker connection
+    dropped: int = 0  # samples and events not published: not connected, queue full, or unsent at stop()
+    reconnects: int = 0  # successful connections after a lost one
+    connected: bool = False
+    last_error: str | None = None
+
+
+# --- JSON -------------------------------------------------------------------------------------
+
+
+def _json_default(o: Any) -> Any:
+    item = getattr(o, "item", None)  # numpy scalars (float32, int64, bool_)
+    if callable(item):
+        with contextlib.suppress(Exception):
+            return item()
+    if isinstance(o, (set, frozenset, tuple)):
+        return list(o)
+    return str(o)
+
+
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False, default=_json_default)
+
+
+def _finite(o: Any) -> Any:
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    return o
+
+
+def dumps(obj: Any) -> str:
+    """Compact JSON; NaN and infinities become null (strict JSON, readable by any client)."""
+    try:
+        return _ENCODER.encode(obj)
+    except ValueError:  # a non-finite float: rare, so the sanitising pass is only paid then
+        return _ENCODER.encode(_finite(json.loads(json.dumps(obj, default=_json_default))))
+
+
+def _safe_dumps(body: dict[str, Any], detail: dict[str, Any]) -> str:
+    """``body`` plus ``"detail": detail`` as JSON; never raises (an unencodable detail becomes its repr)."""
+    try:
+        return dumps(body | {"detail": detail})
+    except Exception:  # e.g. non-string dict keys deep inside detail
+        return dumps(body | {"detail": {"repr": repr(detail)[:2000]}})
+
+
+# --- the publisher ----------------------------------------------------------------------------
+
+
+class Telemetry:
+    """Publishes one session's telemetry, state and events; see the module docstring and docs/telemetry.md.
+
+    Use from the event loop's thread only (sample/event/state are not thread-safe).
+    """
+
+    TASK_NAME: ClassVar[str] = "hil-telemetry"
+
+    def __init__(self, config: MqttConfig, session_id: str, *, units: Mapping[str, str] | None = None) -> None:
+        self.config = config
+        self.session_id = _check_name("session_id", session_id)
+        self.stats = TelemetryStats()
+        self._units: dict[str, str] = dict(units or {})
+        self._period = 1.0 / config.telemetry_hz
+        self._eps = self._period * 1e-6  # absorbs float error in t_s = k * 0.001
+        self._due = -math.inf  # exact board time the next sample is due
+        self._next_due = -math.inf  # _due - _eps: what the fast path compares against
+        self._last_due = -math.inf  # board time of the last due sample (t_s going back resets)
+        self._telemetry: deque[tuple[float, dict[str, float]]] = deque()
+        self._events: deque[str] = deque()  # JSON payloads for the events topic
+        self._state_payload: str | None = None  # latest state, retained; republished at every connect
+        self._state_dirty = False
+        self._meta_dirty = False
+        self._event_seq = 0
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+        self._stopping = False
+        self._client_id = f"hil-{config.bench_id}-{session_id}-{secrets.token_hex(3)}"
+        self.topic_status = status_topic(config.bench_id)
+        self.topic_state = session_topic(config.bench_id, session_id, "state")
+        self.topic_meta = session_topic(config.bench_id, session_id, "meta")
+        self.topic_telemetry = session_topic(config.bench_id, session_id, "telemetry")
+        self.topic_events = session_topic(config.bench_id, session_id, "events")
+
+    # -- called from the control loop ------------------------------------------------------
+
+    def sample(self, t_s: float, values: dict[str, float] | Callable[[], dict[str, float]]) -> None:
+        """Offer one cycle's values at board time ``t_s``; published at most at ``telemetry_hz``.
+
+        Call it every cycle. When no sample is due this returns after one compare; pass a
+        callable to build the dict only when a sample is due. Never raises; a sample that cannot
+        be queued (not connected, queue full, the callable failed) is counted in ``stats.dropped``.
+        """
+        if self._last_due <= t_s < self._next_due:
+            return
+        self._sample_due(t_s, values)
+
+    def _sample_due(self, t_s: float, values: dict[str, float] | Callable[[], dict[str, float]]) -> None:
+        if math.isnan(t_s):  # NaN board time: never due (it would otherwise be due on every call)
+            self.stats.dropped += 1
+            return
+        due = self._due + self._period
+        if not (t_s < due <= t_s + self._period):  # first sample, a gap of over a period, or t_s went back
+            due = t_s + self._period
+        self._due = due
+        self._next_due = due - self._eps
+        self._last_due = t_s
+        if not self.stats.connected or len(self._telemetry) >= self.config.queue_size:
+            self.stats.dropped += 1
+            return
+        try:
+            data = dict(values() if callable(values) else values)  # a snapshot: callers may reuse their dict
+        except Exception as exc:
+            self.stats.dropped += 1
+            self.stats.last_error = f"sample(): {type(exc).__name__}: {exc}"
+            return
+        self._telemetry.append((t_s, data))
+        if not self._wake.is_set():
+            self._wake.set()
+
+    def event(self, kind: str, /, **detail: Any) -> None:
+        """Publish an event (QoS 1, not retained). Queued while disconnected; a drop is counted and logged."""
+        self._event_seq += 1
+        body = {"kind": str(kind), "seq": self._event_seq, "t": time.time(), "session": self.session_id}
+        self._push_event(_safe_dumps(body, detail), str(kind))
+
+    def state(self, state: str, /, **detail: Any) -> None:
+        """Set the session state: retained on ``.../state`` (latest wins) and also sent as a ``state`` event."""
+        body = {"state": str(state), "t": time.time(), "session": self.session_id}
+        self._state_payload = _safe_dumps(body, detail)
+        self._state_dirty = True
+        self.event("state", **{**detail, "state": str(state)})
+
+    def set_units(self, units: Mapping[str, str]) -> None:
+        """Channel -> unit, published retained on ``.../meta`` (again now if connected)."""
+        self._units.update(units)
+        self._meta_dirty = True
+        if not self._wake.is_set():
+            self._wake.set()
+
+    def _push_event(self, payload: str, kind: str) -> None:
+        if len(self._events) >= self.config.queue_size:
+            self.stats.dropped += 1
+            log.warning("telemetry: event queue full (%d), dropped event %r", len(self._events), kind)
+            return
+        self._events.append(payload)
+        if not self._wake.is_set():
+            self._wake.set()
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Start the background publisher; returns at once (it connects, and reconnects, on its own)."""
+        if self._task is not None and not self._task.done():
+            return
+        self._stopping = False
+        self._wake = asyncio.Event()  # bound to the running loop
+        if self._events or self._state_dirty:
+            self._wake.set()
+        self._task = asyncio.get_running_loop().create_task(self._run(), name=self.TASK_NAME)
+
+    async def stop(self) -> None:
+        """Publish the retained offline status, disconnect; returns within 2 s, broker or not."""
+        task, self._task = self._task, None
+        if task is None:
+            return
+        t_end = time.monotonic() + STOP_TIMEOUT_S - 0.1
+        self._stopping = True
+        self._wake.set()
+        if not self.stats.connected:
+            task.cancel()  # in a backoff sleep or a connection attempt: nothing to flush
+        else:
+            await asyncio.wait({task}, timeout=max(0.0, t_end - 0.3 - time.monotonic()))
+        for _ in range(3):  # cancel again if a cleanup await swallowed the first cancellation
+            if task.done():
+                break
+            task.cancel()
+            await asyncio.wait({task}, timeout=max(0.01, (t_end - time.monotonic()) / 2))
+        if task.done() and not task.cancelled() and task.exception() is not None:
+            self.stats.last_error = f"publisher: {task.exception()!r}"
+        unsent = len(self._telemetry) + len(self._events)
+        if unsent:
+            self.stats.dropped += unsent
+            log.warning("telemetry: %d messages not sent at stop (counted as dropped)", unsent)
+        self._telemetry.clear()
+        self._events.clear()
+        self.stats.connected = False
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    # -- the background task ---------------------------------------------------------------
+
+    def _status_payload(self, status: str, reason: str | None = None, t: float | None = None) -> str:
+        body: dict[str, Any] = {
+            "status": status,
+            "bench": self.config.bench_id,
+            "session": self.session_id,
+            "t": time.time() if t is None else t,
+        }
+        if reason:
+            body["reason"] = reason
+        return dumps(body)
+
+    def _meta_payload(self) -> str:
+        return dumps(
+            {
+                "session": self.session_id,
+                "bench": self.config.bench_id,
+                "telemetry_hz": self.config.telemetry_hz,
+                "qos": self.config.qos,
+                "units": self._units,
+                "t": time.time(),
+            }
+        )
+
+    def _client(self) -> aiomqtt.Client:
+        cfg = self.config
+        # The will is registered at connect: its "t" is that connection's start, which is the
+        # best the broker can tell (it does not stamp wills). See docs/telemetry.md.
+        will = aiomqtt.Will(
+            self.topic_status,
+            self._status_payload("offline", reason="connection lost"),
+            qos=EVENT_QOS,
+            retain=True,
+        )
+        return aiomqtt.Client(
+            cfg.host,
+            cfg.port,
+            identifier=self._client_id,
+            username=cfg.username,
+            password=cfg.password,
+            will=will,
+            keepalive=cfg.keepalive_s,
+            timeout=float(max(2, cfg.keepalive_s)),
+            clean_session=True,
+            max_queued_outgoing_messages=cfg.queue_size,
+            max_queued_incoming_messages=16,  # we subscribe to nothing
+        )
+
+    async def _run(self) -> None:
+        cfg = self.config
+        delay = cfg.reconnect_min_s
+        ever_connected = False
+        while not self._stopping:
+            connected_now = False
+            try:
+                async with self._client() as client:
+                    connected_now = True
+                    self._on_connected(ever_connected)
+                    ever_connected = True
+                    delay = cfg.reconnect_min_s
+                    await self._connected_session(client)
+                    if self._stopping:
+                        await client.publish(
+                            self.topic_status, self._status_payload("offline", reason="stopped"), EVENT_QOS, True
+                        )
+            except aiomqtt.MqttError as exc:
+                self._on_error(exc, connected_now)
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # a bug here must not take the bench down: log it and retry
+                log.exception("telemetry publisher failed; retrying")
+                self._on_error(exc, connected_now)
+            finally:
+                self._on_disconnected()
+            if self._stopping:
+                return
+            await asyncio.sleep(delay)
+            delay = min(delay * 2.0, cfg.reconnect_max_s)
+
+    def _on_connected(self, is_reconnect: bool) -> None:
+        self.stats.connected = True
+        if is_reconnect:
+            self.stats.reconnects += 1
+        log.info("telemetry: connected to %s as %s", self.config.url, self._client_id)
+
+    def _on_error(self, exc: BaseException, was_connected: bool) -> None:
+        self.stats.last_error = f"{type(exc).__name__}: {exc}"
+        if was_connected:
+            log.warning("telemetry: lost the broker %s (%s); reconnecting", self.config.url, exc)
+        else:
+            log.debug("telemetry: cannot connect to %s (%s)", self.config.url, exc)
+
+    def _on_disconnected(self) -> None:
+        self.stats.connected = False
+        if self._telemetry:  # stale by the time we are back: drop them (counted); events stay queued
+            self.stats.dropped += len(self._telemetry)
+            self._telemetry.clear()
+
+    async def _connected_session(self, client: aiomqtt.Client) -> None:
+        """Announce, then publish until the connection drops (MqttError) or stop() drains the queues."""
+        await client.publish(self.topic_status, self._status_payload("online"), EVENT_QOS, True)
+        await client.publish(self.topic_meta, self._meta_payload(), EVENT_QOS, True)
+        self._meta_dirty = False
+        if self._state_payload is not None:  # the broker may have restarted and lost the retained state
+            self._state_dirty = False
+            await client.publish(self.topic_state, self._state_payload, EVENT_QOS, True)
+        loop = asyncio.get_running_loop()
+        pump = loop.create_task(self._pump(client), name=f"{self.TASK_NAME}-pump")
+        watchdog = loop.create_task(self._wait_lost(client), name=f"{self.TASK_NAME}-watchdog")
+        try:
+            done, _ = await asyncio.wait({pump, watchdog}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for t in (pump, watchdog):
+                t.cancel()
+            await asyncio.gather(pump, watchdog, return_exceptions=True)
+        for t in done:
+            t.result()  # re-raises the MqttError that ended the connection
+
+    @staticmethod
+    async def _wait_lost(client: aiomqtt.Client) -> None:
+        """Raises MqttError as soon as the connection drops, even while nothing is being published."""
+        async for _ in client.messages:  # we subscribe to nothing: this only ends on a disconnection
+            pass
+
+    async def _pump(self, client: aiomqtt.Client) -> None:
+        stats, qos = self.stats, self.config.qos
+        telemetry, events = self._telemetry, self._events
+        fast = _paho_of(client) if qos == 0 else None
+        backlog: deque[paho.MQTTMessageInfo] = deque()  # fast path: handed to paho, not yet on the socket
+        while True:
+            if self._state_dirty and self._state_payload is not None:
+                self._state_dirty = False
+                await client.publish(self.topic_state, self._state_payload, EVENT_QOS, True)
+                stats.published += 1
+            elif self._meta_dirty:
+                self._meta_dirty = False
+                await client.publish(self.topic_meta, self._meta_payload(), EVENT_QOS, True)
+            elif events:
+                await client.publish(self.topic_events, events[0], EVENT_QOS, False)
+                events.popleft()  # only once sent: an event in flight when the link drops is sent again
+                stats.published += 1
+            elif telemetry:
+                if fast is not None:
+                    self._publish_telemetry_now(fast, backlog)
+                    if telemetry:
+                        await asyncio.sleep(0)  # a backlog goes out in bursts, letting the loop run between
+                    continue
+                payload = self._telemetry_payload(*telemetry.popleft())
+                if payload is None:
+                    continue
+                try:
+                    await client.publish(self.topic_telemetry, payload, qos, False)
+                except BaseException:
+                    stats.dropped += 1
+                    raise
+                stats.published += 1
+            elif self._stopping:
+                return
+            else:
+                self._wake.clear()
+                await self._wake.wait()
+
+    def _telemetry_payload(self, t_s: float, data: dict[str, Any]) -> str | None:
+        body: dict[str, Any] = {"t_s": t_s}
+        body.update(data)
+        try:
+            return dumps(body)
+        except Exception as exc:  # e.g. a non-string channel name: count it, keep the connection
+            self.stats.dropped += 1
+            self.stats.last_error = f"telemetry payload: {type(exc).__name__}: {exc}"
+            return None
+
+    def _publish_telemetry_now(self, pc: paho.Client, backlog: deque[paho.MQTTMessageInfo]) -> None:
+        """QoS 0 fast path: hand up to a burst of samples to paho without awaiting each one.
+
+        aiomqtt's awaitable publish() costs an Event, a wait_for task and three extra loop
+        callbacks per message only to learn that a QoS 0 packet reached the socket. Here the
+        packet is queued in paho (aiomqtt's socket callbacks still do the writing) and paho's
+        MQTTMessageInfo tells what is still unwritten, which keeps paho's own queue bounded.
+        """
+        telemetry, stats, limit = self._telemetry, self.stats, self.config.queue_size
+        while backlog and backlog[0].is_published():
+            backlog.popleft()
+        for _ in range(min(len(telemetry), _BURST)):
+            t_s, data = telemetry.popleft()
+            if len(backlog) >= limit:  # the socket is not draining: drop the newest, counted
+                stats.dropped += 1
+                continue
+            payload = self._telemetry_payload(t_s, data)
+            if payload is None:
+                continue
+            info = pc.publish(self.topic_telemetry, payload, 0, False)
+            if info.rc != paho.MQTT_ERR_SUCCESS:
+                stats.dropped += 1
+                raise aiomqtt.MqttCodeError(info.rc, "Could not publish message")
+            backlog.append(info)
+            stats.published += 1
+
+
+def _paho_of(client: aiomqtt.Client) -> paho.Client | None:
+    """The paho client inside an aiomqtt Client (a private attribute: None if a release renames it)."""
+    pc = getattr(client, "_client", None)
+    return pc if isinstance(pc, paho.Client) else None
+
+
+# --- hil watch --------------------------------------------------------------------------------
+
+
+@dataclass
+class _SessionView:
+    values: dict[str, Any]
+    units: dict[str, str]
+    arrivals: deque[float]
+    events: deque[dict[str, Any]]
+    t_s: float | None = None
+    state: dict[str, Any] | None = None
+    count: int = 0
+    last_seen: float = 0.0
+
+    @classmethod
+    def new(cls) -> _SessionView:
+        return cls(values={}, units={}, arrivals=deque(maxlen=2000), events=deque(maxlen=5))
+
+
+class _WatchView:
+    """What `hil watch` knows, updated from messages and rendered as rich tables."""
+
+    RATE_WINDOW_S = 2.0
+
+    def __init__(self, config: MqttConfig, session: str | None) -> None:
+        self.config = config
+        self.pinned = session
+        self.status: dict[str, Any] | None = None
+        self.sessions: dict[str, _SessionView] = {}
+        self.connected = False
+        self.note = ""
+        self.bad = 0
+        self._prefix = f"{TOPIC_ROOT}/{config.bench_id}/"
+
+    def followed(self) -> str | None:
+        if self.pinned:
+            return self.pinned
+        if self.status and isinstance(self.status.get("session"), str):
+            return self.status["session"]
+        live = [(v.last_seen, k) for k, v in self.sessions.items() if v.last_seen]
+        return max(live)[1] if live else None
+
+    def handle(self, topic: str, payload: bytes, now: float) -> None:
+        if not topic.startswith(self._prefix):
+            return
+        try:
+            body = json.loads(payload) if payload else None
+        except ValueError:
+            self.bad += 1
+            return
+        rest = topic[len(self._prefix) :].split("/")
+        if rest == ["status"]:
+            self.status = body if isinstance(body, dict) else None
+            return
+        if len(rest) != 3 or rest[0] != "session" or not isinstance(body, dict):
+            return
+        view = self.sessions.setdefault(rest[1], _SessionView.new())
+        leaf = rest[2]
+        if leaf == "telemetry":
+            view.t_s = body.pop("t_s", None)
+            view.values.update(body)
+            view.arrivals.append(now)
+            view.count += 1
+            view.last_seen = now
+        elif leaf == "meta":
+            units = body.get("units")
+            if isinstance(units, dict):
+                view.units.update({str(k): str(v) for k, v in units.items()})
+        elif leaf == "state":
+            view.state = body
+        elif leaf == "events":
+            view.events.append(body)
+            view.last_seen = now
+
+    def rate_hz(self, view: _SessionView, now: float) -> float:
+        arr = view.arrivals
+        while arr and now - arr[0] > self.RATE_WINDOW_S:
+            arr.popleft()
+        if len(arr) < 2 or arr[-1] <= arr[0]:
+            return 0.0
+        return (len(arr) - 1) / (arr[-1] - arr[0])
+
+    def render(self, now: float) -> RenderableType:
+        from rich.console import Group
+        from rich.table import Table
+        from rich.text import Text
+
+        bench = self.config.bench_id
+        status = (self.status or {}).get("status", "unknown")
+        style = {"online": "bold green", "offline": "bold red"}.get(status, "yellow")
+        head = Text.assemble(
+            ("bench ", "bold"),
+            (bench, "bold"),
+            ": ",
+            (str(status), style),
+            f"  broker {self.config.host}:{self.config.port} ",
+            ("connected", "green") if self.connected else ("disconnected", "red"),
+        )
+        if self.note:
+            head.append(f"  ({self.note})", style="dim")
+        sid = self.followed()
+        view = self.sessions.get(sid) if sid else None
+        if view is None:
+            return Group(head, Text(f"session: {sid or '-'}   (no telemetry yet)"))
+        state = (view.state or {}).get("state", "-")
+        rate = self.rate_hz(view, now)
+        age = now - view.last_seen if view.last_seen else math.inf
+        info = Text.assemble(
+            ("session ", "bold"),
+            (sid or "-", "cyan"),
+            "  state ",
+            (str(state), "bold"),
+            f"  rate {rate:.1f} Hz",
+            f"  t_s {view.t_s:.3f}" if isinstance(view.t_s, (int, float)) else "",
+            f"  messages {view.count}",
+            ("  (stale)", "yellow") if age > 2.0 and view.count else "",
+        )
+        table = Table(title=None, expand=False)
+        table.add_column("channel")
+        table.add_column("value", justify="right")
+        table.add_column("unit")
+        for name in sorted(view.values):
+            table.add_row(name, _fmt(view.values[name]), view.units.get(name, ""))
+        parts: list[RenderableType] = [head, info, table]
+        if view.events:
+            ev = Table(title="last events", expand=False)
+            ev.add_column("time")
+            ev.add_column("kind")
+            ev.add_column("detail")
+            for e in reversed(view.events):
+                t = e.get("t")
+                when = time.strftime("%H:%M:%S", time.localtime(t)) if isinstance(t, (int, float)) else "-"
+                ev.add_row(when, str(e.get("kind", "?")), dumps(e.get("detail", {}))[:80])
+            parts.append(ev)
+        return Group(*parts)
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool) or v is None:
+        return str(v)
+    if isinstance(v, (int, float)):
+        return f"{v:.6g}"
+    return str(v)[:40]
+
+
+async def watch(config: MqttConfig, *, seconds: float | None, console: Console, session: str | None = None) -> int:
+    """Show the bench's live telemetry from the broker (until ``seconds`` elapse, or forever).
+
+    Returns 0; or 1 after printing one line if the broker cannot be reached at the start. A broker
+    lost later is shown as disconnected and reconnected to with backoff.
+    """
+    from rich.live import Live
+
+    if session is not None:
+        _check_name("session", session)
+    loop = asyncio.get_running_loop()
+    deadline = None if seconds is None else loop.time() + seconds
+    view = _WatchView(config, session)
+    prefix = f"{TOPIC_ROOT}/{config.bench_id}"
+    topics = [f"{prefix}/#"] if session is None else [status_topic(config.bench_id), f"{prefix}/session/{session}/#"]
+
+    def make_client() -> aiomqtt.Client:
+        return aiomqtt.Client(
+            config.host,
+            config.port,
+            identifier=f"hil-watch-{secrets.token_hex(4)}",
+            username=config.username,
+            password=config.password,
+            keepalive=config.keepalive_s,
+            timeout=float(max(2, config.keepalive_s)),
+            max_queued_incoming_messages=10_000,
+        )
+
+    client = make_client()
+    try:
+        await client.__aenter__()
+    except aiomqtt.MqttError as exc:
+        msg = str(exc).replace("\n", " ") or type(exc).__name__
+        console.print(
+            f"error: cannot reach the MQTT broker at {config.host}:{config.port}: {msg}",
+            highlight=False,
+            markup=False,
+            soft_wrap=True,
+        )
+        return 1
+
+    async def consume(c: aiomqtt.Client) -> None:
+        for topic in topics:
+            await c.subscribe(topic, qos=1)
+        view.connected, view.note = True, ""
+        async for m in c.messages:
+            payload = m.payload if isinstance(m.payload, bytes) else str(m.payload).encode()
+            view.handle(str(m.topic), payload, loop.time())
+
+    with Live(view.render(loop.time()), console=console, auto_refresh=False, transient=False) as live:
+
+        async def repaint() -> None:
+            while True:
+                live.update(view.render(loop.time()), refresh=True)
+                await asyncio.sleep(0.25)
+
+        painter = loop.create_task(repaint())
+        delay = config.reconnect_min_s
+        try:
+            async with asyncio.timeout_at(deadline):
+                while True:
+                    try:
+                        try:
+                            await consume(client)
+                        finally:
+                            with contextlib.suppress(aiomqtt.MqttError):
+                                await client.__aexit__(None, None, None)
+                    except aiomqtt.MqttError as exc:
+                        view.connected, view.note = False, f"lost: {exc}; reconnecting"
+                    while True:
+                        await asyncio.sleep(delay)
+                        delay = min(delay * 2, config.reconnect_max_s)
+                        client = make_client()
+                        try:
+                            await client.__aenter__()
+                        except aiomqtt.MqttError as exc:
+                            view.note = f"cannot reconnect: {exc}"
+                            continue
+                        delay = config.reconnect_min_s
+                        break
+        except TimeoutError:
+            pass
+        finally:
+            painter.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await painter
+            live.update(view.render(loop.time()), refresh=True)
+    return 0
