@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -194,7 +195,7 @@ def _print_result(result, json_out: bool) -> None:  # type: ignore[no-untyped-de
 
 
 def _fmt(x: float, digits: int = 3) -> str:
-    return "-" if x != x else f"{x:.{digits}f}"  # NaN -> '-'
+    return "-" if math.isnan(x) else f"{x:.{digits}f}"
 
 
 def _print_summary(s: dict) -> None:  # type: ignore[type-arg]
@@ -213,7 +214,8 @@ def _print_summary(s: dict) -> None:  # type: ignore[type-arg]
             t.add_row(f"miss distance {axis}: range +- / std", f"{_fmt(m['range_pm'], 2)} / {_fmt(m['std'], 2)}", "px")
         t.add_row("frames tracked", f"{s['frames_valid']} / {s['frames']}", "")
     lat, board = s["latency_us"], s["board_latency_us"]
-    t.add_row("bench latency p50 / p99", f"{_fmt(lat['p50'], 0)} / {_fmt(lat['p99'], 0)}", "us, sample in -> command out")
+    t.add_row("bench latency p50 / p99", f"{_fmt(lat['p50'], 0)} / {_fmt(lat['p99'], 0)}",
+              "us, sample in -> command out")
     t.add_row("board-measured p50 / p99", f"{_fmt(board['p50'], 0)} / {_fmt(board['p99'], 0)}",
               "us, GYRO k written -> DRIVE_CMD k in")
     t.add_row("cycles / late / missed", f"{s['cycles']} / {s['late_cycles']} / {s['missed_cycles']}", "late: > 1 ms")
@@ -226,7 +228,7 @@ def _print_summary(s: dict) -> None:  # type: ignore[type-arg]
 def run(
     session: Annotated[Path, typer.Argument(help="Session YAML (see profiles/sessions/).")],
     loopback: Annotated[bool, typer.Option("--loopback", help="Run against the emulator (started here).")] = False,
-    out: Annotated[Path | None, typer.Option(help="Directory for the log (default: the session's logging.dir).")] = None,
+    out: Annotated[Path | None, typer.Option(help="Directory for the log (default: the session's logging.dir)")] = None,
     clock: Annotated[str | None, typer.Option(help="Emulator clock with --loopback: realtime | lockstep.")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
 ) -> None:
@@ -264,7 +266,7 @@ def report(
     try:
         s = summarize_log(log, settle_s)
     except (LogError, OSError, KeyError) as exc:
-        raise fail(f"{log}: not a readable session log ({exc}); if the session crashed, try `hil recover {log}`")
+        raise fail(f"{log}: not a readable session log ({exc}); if the session crashed: hil recover {log}") from None
     if json_out:
         console.print_json(json.dumps(s, default=str))
     else:
@@ -322,7 +324,7 @@ def watch(
     from hil.telemetry import watch as watch_telemetry
 
     try:
-        config = MqttConfig.from_url(broker).model_copy(update={"bench_id": bench})
+        config = MqttConfig.from_url(broker, bench_id=bench)
     except ValueError as exc:
         raise fail(f"--broker: {exc}") from None
     raise typer.Exit(asyncio.run(watch_telemetry(config, seconds=seconds, console=console)))

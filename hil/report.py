@@ -1,0 +1,86 @@
+"""Session metrics from a log: what `hil report LOG` prints and what the session summary shows.
+
+The paper's figures of merit (seed 000 Tables 1-3): the rate error's range (+-, half the
+peak-to-peak) and standard deviation, the miss distance's range and standard deviation in pixels,
+and the drive ripple (standard deviation of the drive, counts). Plus the loop's own health: latency
+p50/p99 (bench side and as the board measured it), late and missed cycles, link errors. The first
+``settle_s`` seconds of the run are left out of the control metrics (the swing ramps in, the
+controllers converge).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil.log import read_log
+
+
+def _spread(x: np.ndarray) -> dict[str, float]:
+    if x.size == 0:
+        return {"std": float("nan"), "range_pm": float("nan"), "mean": float("nan")}
+    return {"std": float(np.std(x)), "range_pm": float((np.max(x) - np.min(x)) / 2), "mean": float(np.mean(x))}
+
+
+RIPPLE_WINDOW = 20  # samples (20 ms): what varies faster than this is ripple, not the swing's compensation
+
+
+def drive_ripple(drive: np.ndarray) -> float:
+    """Std of the drive after removing its slow part (a 20 ms moving average), counts: the paper's
+    "controller output ripple" without the 1 Hz effort that cancels the swing."""
+    if drive.size <= RIPPLE_WINDOW:
+        return float("nan")
+    slow = np.convolve(drive, np.ones(RIPPLE_WINDOW) / RIPPLE_WINDOW, mode="valid")
+    fast = drive[RIPPLE_WINDOW // 2 : RIPPLE_WINDOW // 2 + slow.size] - slow
+    return float(np.std(fast))
+
+
+def _pct(x: np.ndarray, q: float) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.percentile(x, q)) if x.size else float("nan")
+
+
+def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
+    data = read_log(path)
+    loop, image, timing, links = (data.groups.get(g, {}) for g in ("loop", "image", "timing", "links"))
+    out: dict[str, Any] = {"log": str(path), "session": data.attrs.get("session_name", ""),
+                           "controller": data.attrs.get("controller", ""), "settle_s": settle_s}
+    t = loop.get("t_s", np.zeros(0))
+    t0 = t[0] if t.size else 0.0
+    config = data.attrs.get("config") or {}
+    run_s = float(config.get("duration_s", np.inf)) if isinstance(config, dict) else np.inf
+    keep = ((t - t0) >= settle_s) & ((t - t0) < run_s)  # the run itself, not the swing's wind-down
+    out["cycles"] = int(t.size)
+    out["duration_s"] = float(t[-1] - t0) if t.size else 0.0
+    for axis in ("el", "az"):
+        err = loop.get(f"rate_err_{axis}_dps", np.zeros(0))[keep]
+        out[f"rate_error_{axis}_dps"] = _spread(err)
+        drive = loop.get(f"drive_{axis}_counts", np.zeros(0))[keep].astype(float)
+        out[f"drive_ripple_{axis}_counts"] = drive_ripple(drive)
+    if image:
+        ti = image["t_exposure_s"]
+        valid = (image["track_valid"] > 0) & ((ti - t0) >= settle_s) & ((ti - t0) < run_s)
+        out["frames"] = int(ti.size)
+        out["frames_valid"] = int(valid.sum())
+        out["miss_x_px"] = _spread(image["miss_x_px"][valid])
+        out["miss_y_px"] = _spread(image["miss_y_px"][valid])
+        radial = np.hypot(image["miss_x_px"][valid], image["miss_y_px"][valid])
+        out["miss_radial_px_rms"] = float(np.sqrt(np.mean(radial**2))) if radial.size else float("nan")
+    lat = loop.get("latency_us", np.zeros(0))
+    out["latency_us"] = {"p50": _pct(lat, 50), "p99": _pct(lat, 99), "max": float(np.max(lat)) if lat.size else 0.0}
+    out["late_cycles"] = int(np.sum(lat > 1000.0))
+    out["missed_cycles"] = int(np.sum(loop.get("tick_gap", np.zeros(0))))
+    board = timing.get("board_latency_us", np.zeros(0))
+    out["board_latency_us"] = {"p50": _pct(board, 50), "p99": _pct(board, 99), "p99.9": _pct(board, 99.9),
+                               "missing": int(np.sum(~np.isfinite(board)))}
+    errors = {}
+    for name in ("servo", "driver", "image", "hexapod"):
+        cols = [f"{name}_crc_errors", f"{name}_bad_frames", f"{name}_frames_lost"]
+        errors[name] = int(sum(int(links[c][-1]) for c in cols if c in links and links[c].size))
+    out["link_errors"] = errors
+    events = data.groups.get("events", {})
+    kinds = [k.decode() if isinstance(k, bytes) else str(k) for k in events.get("kind", [])]
+    out["faults"] = kinds.count("fault")
+    return out

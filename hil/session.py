@@ -1,0 +1,547 @@
+"""A bench session: connect -> configure -> arm -> load and start the swing -> run -> stop the swing -> disarm.
+
+The 1 kHz loop is driven by the servo board's GYRO_SAMPLE stream: :meth:`ControlLoop.on_sample` runs
+inside the servo link's ``data_received`` and writes DRIVE_CMD k before it returns, so the board's
+clock is the loop's clock and no asyncio timer paces anything. Camera frames update the tracking loop
+when they arrive; poses, board timing reports and link counters are logged as they come.
+
+Safety: the watchdog (no GYRO_SAMPLE for ``watchdog_ms``), a lost link or a driver fault zero the
+drive and DISABLE the driver at once, log a fault event, then stop or recover per config. SIGINT and
+SIGTERM disable the driver first, stop the hexapod, close the log and end with 130 / 143.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import signal
+import threading
+import time
+from array import array
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from hil import __version__
+from hil.boards import DriverBoard, ImageBoard, ProtocolHexapod, ServoBoard
+from hil.config import PortConfig, SessionConfig
+from hil.control.controller import RateController
+from hil.control.loops import TrackingLoop
+from hil.control.registry import build_controller
+from hil.log import SessionLog
+from hil.protocol import (
+    NO_LATENCY_US,
+    DriveStatus,
+    Frame,
+    GyroSample,
+    HexapodState,
+    HexapodStatus,
+    Ident,
+    LoopTiming,
+    MissDistance,
+)
+from hil.telemetry import Telemetry
+from hil.transport import LinkError, SerialLink
+
+LINKS = ("servo", "driver", "image", "hexapod")
+LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
+EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
+
+
+class Watchdog:
+    """Trips when nothing fed it for ``timeout_s``.
+
+    A thread sleeps until the deadline (the last feed + timeout; pthread timed waits are precise to
+    ~0.1 ms, where an asyncio timer rounds up to the next millisecond), re-checks, and on a trip hands
+    ``on_trip`` to the event loop with ``call_soon_threadsafe``. ``feed`` is one float store per sample.
+    """
+
+    def __init__(self, timeout_s: float, on_trip: Callable[[float], None]) -> None:
+        self.timeout_s = timeout_s
+        self.on_trip = on_trip
+        self.loop = asyncio.get_running_loop()
+        self.last = time.monotonic()
+        self.armed = False
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="hil-watchdog", daemon=True)
+
+    def feed(self) -> None:
+        self.last = time.monotonic()
+
+    def start(self) -> None:
+        self.last = time.monotonic()
+        self.armed = True
+        if not self._thread.is_alive():
+            self._thread.start()
+
+    def _watch(self) -> None:
+        while not self._closed.is_set():
+            if not self.armed:
+                self._closed.wait(0.01)
+                continue
+            silent = time.monotonic() - self.last
+            if silent < self.timeout_s:
+                self._closed.wait(min(self.timeout_s - silent, 0.05))
+                continue
+            self.armed = False
+            self.loop.call_soon_threadsafe(self._trip)
+
+    def _trip(self) -> None:
+        silent = time.monotonic() - self.last
+        if silent >= self.timeout_s:
+            self.on_trip(silent)
+        else:  # a sample came in while the trip was on its way to the loop
+            self.armed = True
+
+    def stop(self) -> None:
+        self.armed = False
+
+    def close(self) -> None:
+        self.armed = False
+        self._closed.set()
+
+
+@dataclass
+class LoopStats:
+    cycles: int = 0
+    late: int = 0
+    missed: int = 0  # samples that never arrived (tick gaps)
+    latency_us: array = field(default_factory=lambda: array("f"))
+    faults: list[str] = field(default_factory=list)
+    recoveries: int = 0
+
+
+class ControlLoop:
+    """Per-axis controllers and tracking loops; everything that happens per sample and per frame."""
+
+    def __init__(self, config: SessionConfig, driver: DriverBoard, log: SessionLog, *,
+                 telemetry: Telemetry | None, duration_ticks: int, on_done: Callable[[], None]) -> None:
+        self.config = config
+        self.driver = driver
+        self.log = log
+        self.telemetry = telemetry
+        self.duration_ticks = duration_ticks
+        self.on_done = on_done
+        self.stats = LoopStats()
+        self.armed = False
+        self.watchdog: Watchdog | None = None
+        self.last_tick: int | None = None
+        self.t_wraps = 0
+        self.last_t_us = 0
+        self.t0_s: float | None = None
+        self.t_s = 0.0
+        self.limits = config.safety
+        self.decoders: dict[str, Any] = {}
+        self.frames: deque[tuple[int, MissDistance]] = deque()  # (board time to use it, us; frame)
+        self.apply_after_us = round(config.tracking.apply_after_ms * 1000)
+        self.reset_controllers()
+
+    def reset_controllers(self) -> None:
+        c = self.config.controller
+        self.ctrl_az: RateController = build_controller(c.name, c.params)
+        self.ctrl_el: RateController = build_controller(c.name, c.params)
+        tr = self.config.tracking
+        kw = {"kp_per_s": tr.kp_per_s, "ki_per_s2": tr.ki_per_s2, "ifov_deg_per_px": tr.ifov_deg_per_px,
+              "max_rate_dps": tr.max_rate_dps, "stale_s": tr.stale_s}
+        self.track_az, self.track_el = TrackingLoop(**kw), TrackingLoop(**kw)
+        self.u_az = self.u_el = 0
+
+    # --- the 1 kHz cycle -------------------------------------------------------------------------------
+
+    def on_sample(self, g: GyroSample) -> None:
+        t_rx = time.monotonic_ns()
+        if self.watchdog is not None:
+            self.watchdog.feed()
+        gap = 0 if self.last_tick is None else max(0, g.tick - self.last_tick - 1)
+        self.last_tick = g.tick
+        if g.t_us < self.last_t_us:
+            self.t_wraps += 1
+        self.last_t_us = g.t_us
+        t_s = (g.t_us + (self.t_wraps << 32)) / 1e6
+        if self.t0_s is None:
+            self.t0_s = t_s
+        self.t_s = t_s - self.t0_s
+        st = self.stats
+        st.missed += gap
+        while self.frames and self.frames[0][0] < g.t_us + (self.t_wraps << 32):
+            self._use_frame(self.frames.popleft()[1])
+        tracking = self.config.tracking.enabled
+        cmd_az = self.track_az.rate_cmd_dps(t_s) if tracking else 0.0
+        cmd_el = self.track_el.rate_cmd_dps(t_s) if tracking else 0.0
+        if self.armed:
+            lim, slew = self.limits.max_drive_counts, self.limits.max_slew_counts
+            u_az = self.ctrl_az.step(cmd_az, g.rate_z_dps)
+            u_el = self.ctrl_el.step(cmd_el, g.rate_y_dps)
+            u_az = max(-lim, min(lim, max(self.u_az - slew, min(self.u_az + slew, u_az))))
+            u_el = max(-lim, min(lim, max(self.u_el - slew, min(self.u_el + slew, u_el))))
+            if u_az != self.ctrl_az.u_counts:
+                self.ctrl_az.hold(u_az)  # the estimator must see the drive actually applied
+            if u_el != self.ctrl_el.u_counts:
+                self.ctrl_el.hold(u_el)
+            self.driver.drive(g.tick, u_az, u_el)
+        else:
+            u_az = u_el = 0
+        self.u_az, self.u_el = u_az, u_el
+        latency_ns = time.monotonic_ns() - t_rx
+        st.cycles += 1
+        if latency_ns > LATE_NS:
+            st.late += 1
+        st.latency_us.append(latency_ns / 1000)
+        az, el = self.ctrl_az, self.ctrl_el
+        self.log.append("loop", (
+            g.tick, t_s, t_rx, g.rate_x_dps, g.rate_y_dps, g.rate_z_dps, g.az_deg, g.el_deg,
+            cmd_az, cmd_el, az.rate_fb_dps, el.rate_fb_dps, cmd_az - g.rate_z_dps, cmd_el - g.rate_y_dps,
+            az.disturbance_counts, el.disturbance_counts, 0.0, 0.0, u_az, u_el, latency_ns / 1000, min(gap, 255)))
+        if self.telemetry is not None:
+            self.telemetry.sample(t_s, lambda: {
+                "gyro_y_dps": g.rate_y_dps, "gyro_z_dps": g.rate_z_dps, "rate_err_el_dps": cmd_el - g.rate_y_dps,
+                "rate_err_az_dps": cmd_az - g.rate_z_dps, "drive_az_counts": u_az, "drive_el_counts": u_el,
+                "az_deg": g.az_deg, "el_deg": g.el_deg, "latency_us": latency_ns / 1000})
+        if st.cycles % 100 == 0:
+            self._log_links(t_rx)
+        if st.cycles == self.duration_ticks:
+            self.on_done()
+
+    def _log_links(self, t_ns: int) -> None:
+        row: list[int] = [t_ns]
+        for name in LINKS:
+            dec = self.decoders.get(name)
+            if dec is None:
+                row += [0] * 5
+                continue
+            c = dec.counters
+            row += [c.frames_ok, c.crc_errors, c.bad_lengths + c.unknown_ids, c.bytes_discarded,
+                    sum(c.frames_lost.values())]
+        self.log.append("links", [min(v, 0xFFFFFFFF) if i else v for i, v in enumerate(row)])
+
+    def on_timing(self, t: LoopTiming) -> None:
+        for i, lat in enumerate(t.latency_us):
+            self.log.append("timing", (t.first_tick + i, float("nan") if lat == NO_LATENCY_US else float(lat)))
+
+    def on_miss(self, m: MissDistance) -> None:
+        """Log the frame now; feed it to the tracking loop at a board time fixed by its exposure time."""
+        t_exp_us = m.t_exposure_us + (self.t_wraps << 32)
+        self.log.append("image", (m.frame, t_exp_us / 1e6, time.monotonic_ns(), m.miss_x_px, m.miss_y_px,
+                                  int(m.track_valid), self.last_tick or 0))
+        self.frames.append((t_exp_us + self.apply_after_us, m))
+
+    def _use_frame(self, m: MissDistance) -> None:
+        t_exp = (m.t_exposure_us + (self.t_wraps << 32)) / 1e6
+        if self.config.tracking.enabled:
+            self.track_az.on_frame(frame=m.frame, miss_px=m.miss_x_px, track_valid=m.track_valid,
+                                   t_exposure_s=t_exp, now_s=self.t_s + (self.t0_s or 0.0))
+            self.track_el.on_frame(frame=m.frame, miss_px=m.miss_y_px, track_valid=m.track_valid,
+                                   t_exposure_s=t_exp, now_s=self.t_s + (self.t0_s or 0.0))
+
+    def on_pose(self, t_profile_s: float, pose: tuple[float, ...]) -> None:
+        self.log.append("hexapod", (t_profile_s, time.monotonic_ns(), *pose))
+
+
+@dataclass
+class SessionResult:
+    status: str  # completed | fault | interrupted
+    exit_code: int
+    log_path: Path | None
+    stats: LoopStats
+    message: str = ""
+    telemetry: dict[str, Any] = field(default_factory=dict)  # published, dropped, reconnects (MQTT on)
+
+
+class Session:
+    """One run of a session config against four serial ports (real or emulated)."""
+
+    def __init__(self, config: SessionConfig, ports: dict[str, PortConfig], out_dir: Path, *,
+                 watchdog_ms: float | None = None, progress: Callable[[int, int], None] | None = None,
+                 log_attrs: dict[str, Any] | None = None) -> None:
+        self.config = config
+        self.ports = ports
+        self.out_dir = out_dir
+        self.watchdog_s = (watchdog_ms or config.safety.watchdog_ms) / 1000
+        self.progress = progress
+        self.extra_attrs = log_attrs or {}
+        self.links: dict[str, SerialLink] = {}
+        self.servo: ServoBoard | None = None
+        self.driver: DriverBoard | None = None
+        self.image: ImageBoard | None = None
+        self.hexapod: ProtocolHexapod | None = None
+        self.log: SessionLog | None = None
+        self.loop_: ControlLoop | None = None
+        self.telemetry: Telemetry | None = None
+        self.hexapod_state = HexapodState.IDLE
+        self.stop_reason: str | None = None
+        self.exit_code = EXIT_OK
+        self.log_path: Path | None = None
+        self._finished: asyncio.Future[str] | None = None
+        self._recovering = False
+
+    # --- frames from the boards ---------------------------------------------------------------------
+
+    def _on_servo(self, frame: Frame) -> None:
+        msg = frame.message
+        kind = type(msg)
+        if kind is GyroSample:
+            if self.loop_ is not None:
+                self.loop_.on_sample(msg)
+        elif kind is LoopTiming:
+            if self.loop_ is not None:
+                self.loop_.on_timing(msg)
+        elif kind is Ident and self.loop_ is not None and self.loop_.armed:
+            self.fault("servo board reset (it announced itself mid-session)")
+
+    def _on_driver(self, frame: Frame) -> None:
+        msg = frame.message
+        if type(msg) is DriveStatus and self.loop_ is not None and self.loop_.armed:
+            if msg.faults & 0x03:
+                self.fault(f"driver fault {msg.faults!r}: overcurrent, axes now disabled")
+        elif type(msg) is Ident and self.loop_ is not None and self.loop_.armed:
+            self.fault("driver board reset (it announced itself mid-session; the power stage is disabled)")
+
+    def _on_image(self, frame: Frame) -> None:
+        if type(frame.message) is MissDistance and self.loop_ is not None:
+            self.loop_.on_miss(frame.message)
+
+    def _on_hexapod(self, frame: Frame) -> None:
+        msg = frame.message
+        if type(msg) is HexapodStatus:
+            self.hexapod_state = msg.state
+        elif self.hexapod is not None:
+            self.hexapod.handle(frame)
+
+    # --- phases -------------------------------------------------------------------------------------
+
+    async def connect(self) -> None:
+        handlers = {"servo": self._on_servo, "driver": self._on_driver, "image": self._on_image,
+                    "hexapod": self._on_hexapod}
+        for name in LINKS:
+            await self._open(name, handlers[name])
+
+    async def _open(self, name: str, handler: Callable[[Frame], None]) -> None:
+        port = self.ports[name]
+        link = await SerialLink.open(name, port.port, port.baudrate, handler)
+        self.links[name] = link
+        link.closed.add_done_callback(lambda fut, name=name: self._link_lost(name, fut))
+        kinds = {"servo": ServoBoard, "driver": DriverBoard, "image": ImageBoard, "hexapod": ProtocolHexapod}
+        board = kinds[name](link)
+        setattr(self, name, board)
+        await board.identify()
+
+    def _link_lost(self, name: str, fut: asyncio.Future[Any]) -> None:
+        if self._finished is not None and not self._finished.done():
+            self.fault(f"{name} link lost ({fut.result() or 'closed by the board'})")
+
+    def _open_log(self) -> None:
+        now = datetime.now(UTC)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.log_path = self.out_dir / f"{self.config.name}-{now:%Y%m%d-%H%M%S}.h5"
+        idents = {name: getattr(self, name).ident_dict() for name in LINKS}
+        attrs = {"config": self.config.model_dump(mode="json"), "ident": idents, "software_version": __version__,
+                 "seed": self.config.seed, "start_time_utc": now.isoformat(), "session_name": self.config.name,
+                 "controller": self.config.controller.name, **self.extra_attrs}
+        self.log = SessionLog(self.log_path, attrs=attrs, flush_interval_s=self.config.logging.flush_interval_s,
+                              fsync=self.config.logging.fsync)
+
+    def event(self, kind: str, **detail: Any) -> None:
+        tick = (self.loop_.last_tick or 0) if self.loop_ else 0
+        if self.log is not None:
+            self.log.event(kind, tick, detail)
+        if self.telemetry is not None:
+            self.telemetry.event(kind, **detail)
+
+    def fault(self, reason: str) -> None:
+        """Zero drive and DISABLE now, record it, then stop or recover per config."""
+        loop = self.loop_
+        if loop is None or (not loop.armed and self._recovering):
+            return
+        loop.armed = False
+        if self.driver is not None:
+            with contextlib.suppress(LinkError, OSError):
+                self.driver.disable_now()
+        if loop.watchdog is not None:
+            loop.watchdog.stop()
+        loop.stats.faults.append(reason)
+        self.event("fault", reason=reason)
+        safety = self.config.safety
+        if safety.on_fault == "recover" and loop.stats.recoveries < safety.max_recoveries:
+            self._recovering = True
+            asyncio.get_running_loop().create_task(self._recover())
+        else:
+            self.finish("fault", reason)
+
+    async def _recover(self) -> None:
+        """Wait, reopen what was lost, restart the stream, re-arm with fresh controller states."""
+        assert self.loop_ is not None
+        loop = self.loop_
+        await asyncio.sleep(self.config.safety.recover_after_ms / 1000)
+        try:
+            handlers = {"servo": self._on_servo, "driver": self._on_driver, "image": self._on_image,
+                        "hexapod": self._on_hexapod}
+            for name in LINKS:
+                link = self.links.get(name)
+                if link is None or link.transport is None:
+                    for _ in range(50):
+                        try:
+                            await self._open(name, handlers[name])
+                            break
+                        except LinkError:
+                            await asyncio.sleep(0.1)
+                    else:
+                        raise LinkError(f"{name}: did not come back within 5 s")
+            assert self.servo is not None and self.driver is not None
+            await self.servo.start_stream()
+            await self.driver.enable(clear_faults=True)
+            loop.reset_controllers()
+            loop.last_tick = None
+            loop.stats.recoveries += 1
+            loop.armed = True
+            self._recovering = False
+            if loop.watchdog is not None:
+                loop.watchdog.start()
+            self.event("recovered", recoveries=loop.stats.recoveries)
+        except LinkError as exc:
+            self._recovering = False
+            self.finish("fault", f"recovery failed: {exc}")
+
+    def finish(self, status: str, message: str = "") -> None:
+        if self._finished is not None and not self._finished.done():
+            self.stop_reason = message
+            self._finished.set_result(status)
+
+    def _on_signal(self, signum: int) -> None:
+        if self.driver is not None:  # the driver first, before anything else
+            with contextlib.suppress(LinkError, OSError):
+                self.driver.disable_now()
+        if self.loop_ is not None:
+            self.loop_.armed = False
+        self.exit_code = EXIT_SIGINT if signum == signal.SIGINT else EXIT_SIGTERM
+        self.event("signal", signal=signal.Signals(signum).name)
+        self.finish("interrupted", signal.Signals(signum).name)
+
+    async def _progress_task(self) -> None:
+        total = round(self.config.duration_s * 1000)
+        while self.progress is not None:
+            self.progress(self.loop_.stats.cycles if self.loop_ else 0, total)
+            await asyncio.sleep(0.1)
+
+    async def run(self) -> SessionResult:
+        aloop = asyncio.get_running_loop()
+        self._finished = aloop.create_future()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            aloop.add_signal_handler(sig, self._on_signal, sig)
+        status, message = "fault", ""
+        progress = None
+        try:
+            await self.connect()
+            assert self.servo and self.driver and self.image and self.hexapod
+            await self.servo.configure()
+            await self.image.track(self.config.tracking.enabled, self.config.tracking.gate_px)
+            self._open_log()
+            assert self.log is not None
+            if self.config.mqtt is not None:
+                self.telemetry = Telemetry(self.config.mqtt, self.log_path.stem if self.log_path else "session")
+                await self.telemetry.start()
+            self.loop_ = ControlLoop(self.config, self.driver, self.log, telemetry=self.telemetry,
+                                     duration_ticks=round(self.config.duration_s * 1000),
+                                     on_done=lambda: self.finish("completed"))
+            self.loop_.decoders = {name: link.decoder for name, link in self.links.items()}
+            self.hexapod.on_pose = self.loop_.on_pose
+            self.event("state", state="configured")
+            await self.driver.enable(clear_faults=True)
+            self.loop_.armed = True
+            self.event("state", state="armed")
+            segments = self.config.profile.protocol_segments()
+            if segments:
+                await self.hexapod.load(segments)
+                await self.hexapod.start()
+                self.event("state", state="swing started", segments=len(segments))
+            if self.telemetry:
+                self.telemetry.state("running", controller=self.config.controller.name)
+            self.loop_.watchdog = Watchdog(self.watchdog_s, lambda s: self.fault(
+                f"watchdog: no GYRO_SAMPLE for {s * 1000:.1f} ms"))
+            await self.servo.start_stream()
+            self.loop_.watchdog.start()
+            progress = aloop.create_task(self._progress_task())
+            status = await self._finished
+            message = self.stop_reason or ""
+            if status == "completed":
+                await self._wind_down()
+        except LinkError as exc:
+            status, message = "fault", str(exc)
+            self.event("fault", reason=message)
+        finally:
+            if progress is not None:
+                progress.cancel()
+            await self._shutdown()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                aloop.remove_signal_handler(sig)
+        if status == "fault" and self.exit_code == EXIT_OK:
+            self.exit_code = EXIT_FAULT
+        stats = self.loop_.stats if self.loop_ else LoopStats()
+        telemetry = dataclasses.asdict(self.telemetry.stats) if self.telemetry is not None else {}
+        return SessionResult(status, self.exit_code, self.log_path, stats, message, telemetry)
+
+    async def _wind_down(self) -> None:
+        """Normal end: stop the swing while still stabilizing, wait until it rests, then disarm."""
+        assert self.hexapod is not None
+        if self.config.profile.segments:
+            with contextlib.suppress(LinkError):
+                await self.hexapod.stop()
+                self.event("state", state="swing stopping")
+                for _ in range(50):  # the controller ramps down (1 s on the emulator), at most 5 s
+                    if self.hexapod_state not in (HexapodState.RUNNING, HexapodState.STOPPING):
+                        break
+                    await asyncio.sleep(0.1)
+
+    async def _shutdown(self) -> None:
+        """Driver first, then the swing, the stream, telemetry and the log. Never raises."""
+        if self.loop_ is not None:
+            self.loop_.armed = False
+            if self.loop_.watchdog is not None:
+                self.loop_.watchdog.close()
+        for step in (self._disarm, self._stop_swing, self._stop_stream):
+            with contextlib.suppress(LinkError, OSError, TimeoutError):
+                await step()
+        if self.loop_ is not None:
+            self.event("summary", **self.summary_detail())
+        if self.telemetry is not None:
+            self.telemetry.state("stopped")
+            with contextlib.suppress(Exception):
+                await self.telemetry.stop()
+            if self.log is not None:
+                self.log.event("telemetry", self.loop_.last_tick or 0 if self.loop_ else 0,
+                               dataclasses.asdict(self.telemetry.stats))
+        if self.log is not None:
+            self.log.close()
+        for link in self.links.values():
+            link.close()
+
+    async def _disarm(self) -> None:
+        if self.driver is not None and self.driver.link.transport is not None:
+            self.driver.disable_now()
+            await self.driver.disable()
+            self.event("state", state="disarmed")
+
+    async def _stop_swing(self) -> None:
+        if self.hexapod is not None and self.hexapod.link.transport is not None and self.config.profile.segments \
+                and self.hexapod_state in (HexapodState.RUNNING, HexapodState.STOPPING):
+            await self.hexapod.stop()
+
+    async def _stop_stream(self) -> None:
+        if self.servo is not None and self.servo.link.transport is not None:
+            await self.servo.stop_stream()
+
+    def summary_detail(self) -> dict[str, Any]:
+        st = self.loop_.stats if self.loop_ else LoopStats()
+        lat = sorted(st.latency_us)
+        pick = (lambda q: round(lat[min(len(lat) - 1, int(q * len(lat)))], 1)) if lat else (lambda q: None)
+        return {"cycles": st.cycles, "late": st.late, "missed": st.missed, "latency_us_p50": pick(0.5),
+                "latency_us_p99": pick(0.99), "faults": st.faults, "recoveries": st.recoveries,
+                "link_errors": {n: link.decoder.counters.errors() for n, link in self.links.items()}}
+
+
+def dump_json(obj: Any) -> str:
+    return json.dumps(obj, default=str)

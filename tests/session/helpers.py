@@ -1,0 +1,74 @@
+"""Run bench sessions against the emulator (its own process, real ptys) and read what both sides recorded."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+from hil.config import PROFILES, PortConfig, SessionConfig, load_session
+from hil.loopback import EmulatorProcess
+from hil.session import Session, SessionResult
+
+BASE_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
+
+
+def session_config(**overrides: Any) -> SessionConfig:
+    """The shipped 1 deg / 1 Hz ESO session with fields replaced (validated like a file)."""
+    data = load_session(BASE_SESSION).model_dump()
+    for key, value in overrides.items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    return SessionConfig.model_validate(data)
+
+
+class Run:
+    def __init__(self, result: SessionResult, records: list[dict[str, Any]], emulator: dict[str, Any]) -> None:
+        self.result = result
+        self.records = records
+        self.emulator = emulator
+        self.telemetry = result.telemetry
+
+    def kinds(self, link: str | None = None) -> list[str]:
+        return [r["kind"] for r in self.records if link is None or r["link"] == link]
+
+
+During = Callable[[EmulatorProcess, Session], Awaitable[None]]
+
+
+def run_session(config: SessionConfig, out: Path, *, clock: str = "lockstep", emulator_args: list[str] | None = None,
+                during: During | None = None, watchdog_ms: float | None = None) -> Run:
+    fault_log = out / "emulator-records.jsonl"
+    args = [*(emulator_args or []), "--fault-log", str(fault_log)]
+    if watchdog_ms is None and clock == "lockstep":
+        watchdog_ms = 1000.0
+    emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed, extra_args=args)
+    ports = emulator.start()
+    try:
+        session = Session(config, {n: PortConfig(port=p) for n, p in ports.items() if n != "control"}, out,
+                          watchdog_ms=watchdog_ms)
+
+        async def main() -> SessionResult:
+            task = asyncio.create_task(session.run())
+            if during is not None:
+                await during(emulator, session)
+            return await task
+
+        result = asyncio.run(main())
+    finally:
+        summary = emulator.stop()
+    records = [json.loads(line) for line in fault_log.read_text().splitlines()] if fault_log.exists() else []
+    return Run(result, records, summary)
+
+
+async def wait_cycles(session: Session, n: int, timeout_s: float = 30.0) -> None:
+    """Until the session's loop has run n cycles."""
+    for _ in range(int(timeout_s / 0.005)):
+        if session.loop_ is not None and session.loop_.stats.cycles >= n:
+            return
+        await asyncio.sleep(0.005)
+    raise TimeoutError(f"the session did not reach {n} cycles")
