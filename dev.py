@@ -61,7 +61,7 @@ def main(argv: list[str]) -> int:
         return 2
     ensure_env()
     if cmd == "demo":
-        return run([BIN / "hil", "selftest", *rest])
+        return run([BIN / "hil", "demo", *rest])
     if cmd == "hil":
         return run([BIN / "hil", *rest])
     if cmd == "bench":
