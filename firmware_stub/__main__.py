@@ -28,6 +28,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--ports-file", type=Path, default=None, help="also write the ports map (JSON) here")
     ap.add_argument("--fault-log", type=Path, default=None, help="write every fault and board event here (JSONL)")
     ap.add_argument("--seconds", type=float, default=None, help="stop after this much simulated time")
+    ap.add_argument("--rt-priority", type=int, default=0,
+                    help="run the board clock SCHED_FIFO at this priority (1-99; 0 = normal scheduling)")
     ap.add_argument("--fingerprint", type=lambda s: int(s, 0), default=CATALOGUE.fingerprint,
                     help="catalogue fingerprint the boards claim (emulates firmware built from another catalogue)")
     return ap.parse_args(argv)
@@ -45,6 +47,12 @@ def main(argv: list[str] | None = None) -> int:
     def on_signal(signum: int, _frame: object) -> None:
         emulator.request_stop()
 
+    if args.rt_priority:
+        try:  # children (none today) would not inherit it
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(args.rt_priority))
+        except (PermissionError, OSError) as exc:
+            print(f"warning: --rt-priority {args.rt_priority}: {exc.strerror or exc}; running at normal priority",
+                  file=sys.stderr)
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     ports_file: Path | None = args.ports_file
     try:

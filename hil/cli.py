@@ -145,7 +145,8 @@ def run_session(config, out: Path | None, loopback: bool, clock: str | None, jso
     watchdog_ms = None
     if loopback:
         clock = clock or config.emulator.clock
-        emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed)
+        emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed,
+                                   extra_args=["--rt-priority", str(config.emulator.rt_priority)])
         try:
             ports = {name: PortConfig(port=path) for name, path in emulator.start().items() if name != "control"}
         except LinkError as exc:

@@ -146,6 +146,15 @@ class SafetyConfig(Strict):
     max_slew_counts: int = Field(32767, gt=0, le=65535, description="largest change of the drive per tick")
 
 
+class HostConfig(Strict):
+    """How the bench process runs on the lab PC."""
+
+    rt_priority: int = Field(
+        0, ge=0, le=99,
+        description="run the 1 kHz loop thread SCHED_FIFO at this priority (needs root or CAP_SYS_NICE; "
+        "0 = normal scheduling). The log writer and other children keep normal scheduling")
+
+
 class LoggingConfig(Strict):
     dir: Path = Field(Path("runs"), description="session logs go here (relative to the working directory)")
     flush_interval_s: float = Field(0.1, gt=0, le=0.1)
@@ -157,6 +166,7 @@ class EmulatorRef(Strict):
 
     config: Path = PROFILES / "emulator" / "default.yaml"
     clock: Literal["realtime", "lockstep"] = "lockstep"
+    rt_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority of the emulator's clock, 0 = normal")
 
     _rel = field_validator("config", mode="before")(_resolve)
 
@@ -173,6 +183,7 @@ class SessionConfig(Strict):
     hexapod_limits: HexapodLimits
     safety: SafetyConfig = SafetyConfig()
     logging: LoggingConfig = LoggingConfig()
+    host: HostConfig = HostConfig()
     mqtt: MqttConfig | None = Field(None, description="no broker configured -> no telemetry")
     emulator: EmulatorRef = EmulatorRef()
 

@@ -16,6 +16,7 @@ import asyncio
 import contextlib
 import dataclasses
 import json
+import os
 import signal
 import threading
 import time
@@ -345,6 +346,16 @@ class Session:
         self.log = SessionLog(self.log_path, attrs=attrs, flush_interval_s=self.config.logging.flush_interval_s,
                               fsync=self.config.logging.fsync)
 
+    def _raise_priority(self) -> None:
+        prio = self.config.host.rt_priority
+        if not prio:
+            return
+        try:  # this thread (the event loop) only; threads started later inherit it, children do not
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(prio))
+            self.event("info", rt_priority=prio)
+        except OSError as exc:
+            self.event("info", rt_priority=0, warning=f"SCHED_FIFO {prio} refused: {exc.strerror or exc}")
+
     def event(self, kind: str, **detail: Any) -> None:
         tick = (self.loop_.last_tick or 0) if self.loop_ else 0
         if self.log is not None:
@@ -441,6 +452,7 @@ class Session:
             await self.image.track(self.config.tracking.enabled, self.config.tracking.gate_px)
             self._open_log()
             assert self.log is not None
+            self._raise_priority()
             if self.config.mqtt is not None:
                 self.telemetry = Telemetry(self.config.mqtt, self.log_path.stem if self.log_path else "session")
                 await self.telemetry.start()
