@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
 
 import h5py
@@ -74,22 +75,24 @@ def test_lockstep_sessions_are_reproducible(lockstep_run, tmp_path) -> None:  # 
 def test_watchdog_zeroes_the_drive_within_5_ms_of_a_stall(tmp_path) -> None:
     async def stall(emu: EmulatorProcess, session: Session) -> None:
         await wait_cycles(session, 500)
+        while not (session.loop_ and session.loop_.armed):  # not inside a recovery from a spurious trip
+            await asyncio.sleep(0.001)
         with ControlClient(emu.ports["control"]) as ctl:
             ctl.call("inject", link="servo", kind="stall", duration_ms=50)
 
-    # the watchdog trips watchdog_ms after the last sample, then trip -> DISABLE -> driver takes ~0.5 ms;
-    # 3 ms leaves room for a loaded CI machine within the 5 ms the bench promises
-    run = run_session(session_config(duration_s=3.0, safety={"watchdog_ms": 3}), tmp_path, clock="realtime",
-                      during=stall)
-    assert run.result.status == "fault" and run.result.exit_code == 1
-    assert "watchdog" in run.result.message
+    # the watchdog trips watchdog_ms after the last sample, then trip -> DISABLE -> driver takes ~0.5 ms.
+    # 4 ms leaves room within the 5 ms the bench promises; 'recover' keeps the run alive if a loaded CI
+    # machine delays a sample by more than that before the stall we inject
+    safety = {"watchdog_ms": 4, "on_fault": "recover", "max_recoveries": 20, "recover_after_ms": 100}
+    run = run_session(session_config(duration_s=3.0, safety=safety), tmp_path, clock="realtime", during=stall)
+    assert any("watchdog" in f for f in run.result.stats.faults)
     stall = next(r for r in run.records if r["kind"] == "stall")
     disable = next(r for r in run.records if r["kind"] == "drive_disable" and r["tick"] >= stall["tick"])
     # by the emulator's own record: its tick count and its wall clock
     assert disable["tick"] - stall["tick"] <= 5 and disable["wall_s"] - stall["wall_s"] <= 0.005, (stall, disable)
     assert disable["detail"]["cause"] == "host"
     kinds = [str(k) for k in read_log(run.result.log_path).groups["events"]["kind"]]
-    assert "fault" in kinds
+    assert "fault" in kinds and "recovered" in kinds
 
 
 def test_disconnect_mid_session_is_recovered(tmp_path) -> None:
