@@ -104,8 +104,11 @@ def test_disconnect_mid_session_is_recovered(tmp_path) -> None:
     config = session_config(duration_s=3.0, safety={"on_fault": "recover", "recover_after_ms": 100})
     run = run_session(config, tmp_path, clock="realtime", during=unplug)
     assert run.result.status == "completed", run.result.message
-    assert run.result.stats.recoveries == 1 and len(run.result.stats.faults) == 1
-    assert "servo" in run.result.stats.faults[0]
+    faults = run.result.stats.faults
+    # the disconnect is one fault; a loaded machine may add watchdog trips, each recovered too
+    assert sum("servo link lost" in f for f in faults) == 1, faults
+    assert all("servo link lost" in f or "watchdog" in f for f in faults), faults
+    assert run.result.stats.recoveries == len(faults)
     assert run.kinds("servo")[:2] == ["disconnect", "reconnect"]
     events = read_log(run.result.log_path).groups["events"]
     kinds = [str(k) for k in events["kind"]]
