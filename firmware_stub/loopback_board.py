@@ -20,6 +20,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 
+from firmware_stub.boards import percentiles_us
 from firmware_stub.clock import wait_until
 from firmware_stub.pty_port import PtyPort
 from hil.protocol import (
@@ -57,17 +58,6 @@ class BoardSummary:
     pacing_late_us: dict[str, float] = field(default_factory=dict)
     rx_counters: dict = field(default_factory=dict)
     error: str = ""
-
-
-def percentiles(values: list[float]) -> dict[str, float]:
-    if not values:
-        return {}
-    s = sorted(values)
-
-    def pick(q: float) -> float:
-        return round(s[min(len(s) - 1, int(q * len(s)))], 1)
-
-    return {"p50": pick(0.5), "p99": pick(0.99), "p99.9": pick(0.999), "max": round(s[-1], 1)}
 
 
 class LoopbackBoard:
@@ -152,14 +142,14 @@ class LoopbackBoard:
             self.written_at[k] = time.perf_counter()
         self.summary.ticks_sent = self.ticks
         wait_until(time.perf_counter() + 0.05, {self.port.master_fd: self.on_readable})  # trailing commands
-        self.summary.pacing_late_us = percentiles(pacing_late)
+        self.summary.pacing_late_us = percentiles_us(pacing_late)
 
     def finish(self) -> BoardSummary:
         got = [lat * 1e6 for lat in self.latency_s if lat is not None]
         s = self.summary
         s.missing_commands = self.ticks - len(got) if s.ticks_sent else 0
         s.late_commands = sum(1 for lat in got if lat > 1000.0)
-        s.latency_us = percentiles(got)
+        s.latency_us = percentiles_us(got)
         s.rx_counters = self.decoder.counters.as_dict()
         return s
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import json
 import os
 import signal
 import threading
@@ -553,7 +552,3 @@ class Session:
         return {"cycles": st.cycles, "late": st.late, "missed": st.missed, "latency_us_p50": pick(0.5),
                 "latency_us_p99": pick(0.99), "faults": st.faults, "recoveries": st.recoveries,
                 "link_errors": {n: link.decoder.counters.errors() for n, link in self.links.items()}}
-
-
-def dump_json(obj: Any) -> str:
-    return json.dumps(obj, default=str)

@@ -13,7 +13,6 @@ import termios
 import threading
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 from firmware_stub.config import EmulatorConfig, load_emulator_config
@@ -126,6 +125,3 @@ def running_emulator(config: EmulatorConfig | None = None, **overrides: Any) -> 
         thread.join(timeout=5)
         emu.close()
 
-
-def emulator_config(tmp_path: Path | None = None, **overrides: Any) -> EmulatorConfig:
-    return load_emulator_config(**overrides)
