@@ -96,7 +96,9 @@ class EmulatorConfig(Strict):
     clock: ClockMode = ClockMode.REALTIME
     seed: int = Field(0, ge=0, description="seeds the plant's noise and every link's fault RNG")
     plant: Path = Field(REPO / "profiles" / "plant" / "default.yaml", description="plant YAML (relative to this file)")
-    lockstep_timeout_ms: float = Field(20.0, gt=0, description="lockstep: wait this long (wall) for DRIVE_CMD k")
+    lockstep_timeout_ms: float = Field(
+        1000.0, gt=0, description="lockstep: wait this long (wall) for DRIVE_CMD k; a timeout breaks byte-identity, "
+        "so keep it far above a loaded host's worst pause")
     realtime_prep_us: float = Field(
         300.0, ge=50, le=900,
         description="realtime: the world advances when DRIVE_CMD k arrives, or this long before the next "

@@ -209,8 +209,9 @@ class Emulator:
                 paced_next = 0.0
                 self.awaiting = k
                 self._drain(LinkName.DRIVER)
-                if not self.released and not wait_for(lambda: self.released, timeout_s, self.readers(),
-                                                      lambda: self.stop_requested):
+                answered = wait_for(lambda: self.released or not self.servo.streaming, timeout_s,
+                                    self.readers(), lambda: self.stop_requested)
+                if not answered and self.servo.streaming:
                     self.lockstep_timeouts += 1
                 self.awaiting = None
                 self.released = False

@@ -137,6 +137,7 @@ def lockstep_run(seed: int, n: int = 800) -> dict[str, str]:
         stream(host, n)
         assert isinstance(host.request("servo", ServoMode(StreamMode.IDLE)), Ack)
         host.pump_all(0.1)
+        assert emu.lockstep_timeouts == 0  # a timeout would change the plant's input: not a same-commands run
         digests = {name: hashlib.sha256(bytes(port.raw)).hexdigest() for name, port in host.ports.items()}
         assert all(len(port.raw) > 1000 for port in host.ports.values())
         host.close()

