@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -52,11 +53,22 @@ def test_sigterm_disables_the_driver_first_and_closes_the_log(tmp_path: Path) ->
     assert "signal" in events
 
 
+def wait_for_rows(log: Path, rows: int, timeout_s: float = 60.0) -> None:
+    """Wait until the live SWMR log holds at least `rows` loop rows."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        with contextlib.suppress(OSError, KeyError), h5py.File(log, "r", swmr=True) as f:
+            if f["loop/tick"].shape[0] >= rows:
+                return
+        time.sleep(0.1)
+    raise TimeoutError(f"{log}: fewer than {rows} loop rows after {timeout_s} s")
+
+
 def test_sigint_from_the_cli_exits_130(tmp_path: Path) -> None:
     proc = subprocess.Popen([*HIL, "run", str(BASE_SESSION), "--loopback", "--out", str(tmp_path), "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     log = wait_for_log(tmp_path)
-    time.sleep(1.0)
+    wait_for_rows(log, 200)  # the loop is running (a loaded machine may take seconds to get there)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 130, err
@@ -130,10 +142,9 @@ def test_missing_ports_and_missing_file_are_exit_2(tmp_path: Path) -> None:
 
 def test_a_lockstep_session_needs_no_wall_clock_margin(tmp_path: Path) -> None:
     """Bounds that hold on a loaded machine (the speed itself is in benchmarks/): every tick of a lockstep
-    run is answered, none late in simulated time, and it is not slower than half real time."""
-    t0 = time.monotonic()
+    run is answered and none is late in simulated time."""
     run = run_session(session_config(duration_s=4.0), tmp_path)
     assert run.result.status == "completed"
     assert run.emulator["lockstep_timeouts"] <= 1  # at most the sample after the last one the bench took
     assert run.emulator["servo"]["missing_commands"] <= 1
-    assert time.monotonic() - t0 < 4.0 * 2
+    assert run.result.stats.cycles >= 3990

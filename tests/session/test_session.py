@@ -103,7 +103,9 @@ def test_disconnect_mid_session_is_recovered(tmp_path) -> None:
         with ControlClient(emu.ports["control"]) as ctl:
             ctl.call("inject", link="servo", kind="disconnect", duration_ms=300)
 
-    config = session_config(duration_s=3.0, safety={"on_fault": "recover", "recover_after_ms": 100})
+    # a 50 ms watchdog: this test is about the unplugged link, not about a loaded machine's scheduling
+    config = session_config(duration_s=3.0, safety={"on_fault": "recover", "recover_after_ms": 100,
+                                                    "watchdog_ms": 50, "max_recoveries": 20})
     run = run_session(config, tmp_path, clock="realtime", during=unplug)
     assert run.result.status == "completed", run.result.message
     faults = run.result.stats.faults
