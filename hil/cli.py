@@ -252,16 +252,20 @@ def demo(
 
 @app.command()
 def report(
-    log: Annotated[Path, typer.Argument(help="A session log (.h5).")],
+    log: Annotated[Path, typer.Argument(help="A session log (.h5), or a campaign directory.")],
     json_out: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON.")] = False,
     settle_s: Annotated[float, typer.Option(min=0, help="Leave out the first seconds.")] = 1.0,
 ) -> None:
-    """Metrics of a session log: rate error, miss distance, drive ripple, loop latency, link errors."""
+    """Metrics of a session log (rate error, miss distance, drive ripple, latency, link errors), or a
+    campaign directory's report: Markdown and a self-contained HTML page with the paper's tables and plots."""
     import json
 
     from hil.log import LogError
     from hil.report import summarize_log
 
+    if log.is_dir():
+        _campaign_report(log)
+        return
     if not log.is_file():
         raise fail(f"{log}: no such file")
     try:
@@ -272,6 +276,92 @@ def report(
         console.print_json(json.dumps(s, default=str))
     else:
         _print_summary(s)
+
+
+def _campaign_report(campaign_dir: Path) -> None:
+    from hil.campaign import CampaignError
+    from hil.campaign.report import write_report
+
+    try:
+        files = write_report(campaign_dir)
+    except CampaignError as exc:
+        raise fail(str(exc)) from None
+    console.print(f"report: {files.markdown}\n        {files.html}  ({len(files.pngs)} plots)", highlight=False)
+
+
+@app.command()
+def campaign(  # noqa: PLR0917 (typer maps parameters to options)
+    file: Annotated[Path, typer.Argument(help="Campaign YAML (see profiles/campaigns/).")],
+    out: Annotated[Path | None, typer.Option(help="Campaign directory (default: runs/campaigns/NAME).")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Finish a campaign in --out, skipping done cells.")] = False,
+    jobs: Annotated[int, typer.Option(min=1, help="Cells run at once (loopback only).")] = 1,
+    hardware: Annotated[bool, typer.Option("--hardware", help="Run on the lab's ports, one cell at a time.")] = False,
+    report_too: Annotated[bool, typer.Option("--report/--no-report", help="Write the report at the end.")] = True,
+) -> None:
+    """Run a swing campaign: profiles x controllers x seeds, each cell a session with its own log; then the
+    summary table, the acceptance verdict, and the report. Exit 1 if a threshold or an acceptance rule fails."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from hil.campaign import CampaignError, load_campaign, run_campaign
+
+    try:
+        config = load_campaign(file)
+    except CampaignError as exc:
+        raise fail(str(exc)) from None
+    out_dir = out or Path("runs") / "campaigns" / config.name
+    n_cells = len(config.cells())
+    with Progress(TextColumn(f"[bold]{config.name}[/]"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("{task.fields[last]}"), TimeElapsedColumn(), console=err_console,
+                  transient=True) as bar:
+        task = bar.add_task("cells", total=n_cells, last="")
+
+        def on_cell(cell) -> None:  # type: ignore[no-untyped-def]
+            mark = "ok" if cell.passed else "FAIL"
+            bar.update(task, advance=1, last=f"{cell.cell_id} {mark}")
+
+        try:
+            result = run_campaign(config, out_dir, jobs=jobs, resume=resume, hardware=hardware, on_cell=on_cell)
+        except CampaignError as exc:
+            raise fail(str(exc)) from None
+    _print_campaign(result)
+    if report_too:
+        _campaign_report(out_dir)
+    console.print(f"campaign: {out_dir}", highlight=False)
+    raise typer.Exit(0 if result.passed else 1)
+
+
+def _print_campaign(result) -> None:  # type: ignore[no-untyped-def]
+    from hil.campaign import METRICS
+
+    cfg = result.config
+    for profile in cfg.profiles:
+        t = Table(title=f"{cfg.title}: {profile.label}", title_justify="left")
+        t.add_column("controller")
+        for m in cfg.metrics:
+            t.add_column(f"{METRICS[m].label} ({METRICS[m].unit})", justify="right")
+        t.add_column("cells ok", justify="right")
+        for c in cfg.controllers:
+            row = [c.label]
+            for m in cfg.metrics:
+                v = result.values(profile.label, c.label, m)
+                row.append("-" if not v else f"{sum(v) / len(v):.3g}" + (f" [{min(v):.3g}..{max(v):.3g}]"
+                                                                          if len(v) > 1 else ""))
+            cells = [x for x in result.cells if x.profile == profile.label and x.controller == c.label]
+            row.append(f"{sum(x.passed for x in cells)}/{len(cfg.seeds)}")
+            t.add_row(*row)
+        console.print(t)
+    for cell in result.cells:
+        for why in cell.failures:
+            console.print(f"[red]FAIL[/] {cell.cell_id}: {why}", highlight=False)
+    for rule in result.acceptance:
+        colour = "green" if rule.passed else "red"
+        console.print(f"[bold {colour}]{'PASS' if rule.passed else 'FAIL'}[/] {rule.rule}", highlight=False)
+        for line in rule.details:
+            console.print(f"    {line}", highlight=False)
+    state = "complete" if result.complete else "PARTIAL"
+    console.print(f"{len(result.cells)} cells, {state}, {result.wall_s:.1f} s wall with {result.jobs} job(s): "
+                  f"[bold {'green' if result.passed else 'red'}]{'PASS' if result.passed else 'FAIL'}[/]",
+                  highlight=False)
 
 
 @app.command()

@@ -11,6 +11,7 @@ reason; the CLI prints it and exits 2.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -171,6 +172,21 @@ class EmulatorRef(Strict):
     _rel = field_validator("config", mode="before")(_resolve)
 
 
+class SineExcitation(Strict):
+    """A sine added to one axis's rate command, on top of tracking (seed 000 Fig. 13: 5 deg/s at 15 Hz)."""
+
+    axis: Literal["el", "az"] = "el"
+    amplitude_dps: float = Field(gt=0, le=200, description="peak rate added to the command")
+    freq_hz: float = Field(gt=0, le=450, description="below the 500 Hz Nyquist of the 1 kHz loop")
+    start_s: float = Field(0.0, ge=0, description="zero before this session time")
+
+    def rate_dps(self, t_s: float) -> float:
+        """The added rate command at session time ``t_s`` (plain floats: it runs in the 1 kHz loop)."""
+        if t_s < self.start_s:
+            return 0.0
+        return self.amplitude_dps * math.sin(2.0 * math.pi * self.freq_hz * (t_s - self.start_s))
+
+
 class SessionConfig(Strict):
     name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", description="used in the log file name")
     description: str = ""
@@ -186,6 +202,7 @@ class SessionConfig(Strict):
     host: HostConfig = HostConfig()
     mqtt: MqttConfig | None = Field(None, description="no broker configured -> no telemetry")
     emulator: EmulatorRef = EmulatorRef()
+    excitation: SineExcitation | None = Field(None, description="a signal added to one axis's rate command")
 
     @field_validator("controller", "profile", "hexapod_limits", mode="before")
     @classmethod

@@ -139,6 +139,8 @@ class ControlLoop:
         self.decoders: dict[str, Any] = {}
         self.frames: deque[tuple[int, MissDistance]] = deque()  # (board time to use it, us; frame)
         self.apply_after_us = round(config.tracking.apply_after_ms * 1000)
+        self.excitation = config.excitation
+        self.excite_el = config.excitation is None or config.excitation.axis == "el"
         self.reset_controllers()
 
     def reset_controllers(self) -> None:
@@ -173,6 +175,12 @@ class ControlLoop:
         tracking = self.config.tracking.enabled
         cmd_az = self.track_az.rate_cmd_dps(t_s) if tracking else 0.0
         cmd_el = self.track_el.rate_cmd_dps(t_s) if tracking else 0.0
+        exc = self.excitation
+        if exc is not None:
+            if self.excite_el:
+                cmd_el += exc.rate_dps(self.t_s)
+            else:
+                cmd_az += exc.rate_dps(self.t_s)
         if self.armed:
             lim, slew = self.limits.max_drive_counts, self.limits.max_slew_counts
             u_az = self.ctrl_az.step(cmd_az, g.rate_z_dps)

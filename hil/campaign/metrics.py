@@ -1,0 +1,140 @@
+"""Named metrics of one session log: what campaign tables, thresholds and acceptance rules refer to.
+
+Three analyses (a campaign picks one; ``control`` metrics are always computed):
+
+- ``control``: seed 000 Tables 1-3 and seed 001: rate error and miss distance range (+-, half the
+  peak-to-peak) and std, drive ripple, LOS rate, loop health (hil.report.summarize_log);
+- ``static_noise``: seed 000 Fig. 12: the elevation gyro at rest, raw vs the 150 Hz first-order
+  low-pass (applied here to the logged raw gyro) vs the KF estimate the loop fed back;
+- ``filter_lag``: seed 000 Fig. 13: with a sine on the rate command, the lag of the 150 Hz low-pass
+  and of the KF behind the raw gyro at the sine's frequency, in 1 ms loop cycles.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+PAPER_LPF_HZ = 150.0  # seed 000 section 4.3: "a traditional low-pass filter bandwidth of 150 Hz"
+RECORD_S = 1.0  # peak-to-peak noise is read per 1 s record, as the paper's Fig. 12 shows one
+
+
+@dataclass(frozen=True)
+class Metric:
+    label: str
+    unit: str
+    description: str
+    lower_is_better: bool = True
+
+
+METRICS: dict[str, Metric] = {
+    "rate_err_el_std_dps": Metric("EL rate error std", "deg/s", "std of command minus raw gyro, elevation"),
+    "rate_err_el_range_dps": Metric("EL rate error +-", "deg/s", "half peak-to-peak of the elevation rate error"),
+    "rate_err_az_std_dps": Metric("AZ rate error std", "deg/s", "std of command minus raw gyro, azimuth"),
+    "rate_err_az_range_dps": Metric("AZ rate error +-", "deg/s", "half peak-to-peak of the azimuth rate error"),
+    "drive_ripple_el_counts": Metric("EL drive ripple", "counts", "std of the drive minus its 20 ms moving mean"),
+    "drive_ripple_az_counts": Metric("AZ drive ripple", "counts", "std of the drive minus its 20 ms moving mean"),
+    "miss_x_std_px": Metric("miss x std", "px", "std of the valid frames' x miss distance"),
+    "miss_x_range_px": Metric("miss x +-", "px", "half peak-to-peak of the x miss distance"),
+    "miss_y_std_px": Metric("miss y std", "px", "std of the valid frames' y miss distance"),
+    "miss_y_range_px": Metric("miss y +-", "px", "half peak-to-peak of the y miss distance"),
+    "miss_std_px": Metric("miss std", "px", "the larger of the x and y miss-distance std (the paper's off-target std)"),
+    "miss_range_px": Metric("miss +-", "px", "the larger of the x and y miss-distance +- range"),
+    "los_rate_rms_dps": Metric("LOS rate rms", "deg/s", "rms of the gyro's y-z (line-of-sight) rate minus command"),
+    "gyro_raw_peak_dps": Metric("raw gyro +-", "deg/s", "median over 1 s records of max |x - mean|, elevation"),
+    "gyro_raw_std_dps": Metric("raw gyro std", "deg/s", "std of the raw elevation gyro"),
+    "gyro_lpf_peak_dps": Metric("LPF 150 Hz +-", "deg/s", "the same after a 150 Hz first-order low-pass"),
+    "gyro_lpf_std_dps": Metric("LPF 150 Hz std", "deg/s", "std after the 150 Hz low-pass"),
+    "gyro_kf_peak_dps": Metric("KF +-", "deg/s", "the same for the KF estimate the loop fed back"),
+    "gyro_kf_std_dps": Metric("KF std", "deg/s", "std of the KF estimate"),
+    "lag_lpf_cycles": Metric("LPF lag", "cycles", "lag of the 150 Hz low-pass behind the raw gyro, 1 ms cycles"),
+    "lag_kf_cycles": Metric("KF lag", "cycles", "lag of the KF estimate behind the raw gyro, 1 ms cycles"),
+    "latency_p99_us": Metric("latency p99", "us", "bench side: sample decoded -> DRIVE_CMD written"),
+    "missed_cycles": Metric("missed cycles", "1", "samples the bench never saw"),
+}
+
+
+def _nan_if_empty(x: np.ndarray, f: Any) -> float:
+    return float(f(x)) if x.size else math.nan
+
+
+def peak_per_record(x: np.ndarray, record: int = round(RECORD_S * 1000)) -> float:
+    """Median over whole records of ``max |x - mean(record)|`` (the paper's "+-" for noise at rest)."""
+    n = x.size // record
+    if n == 0:
+        return _nan_if_empty(x, lambda v: np.max(np.abs(v - v.mean())))
+    rec = x[: n * record].reshape(n, record)
+    return float(np.median(np.max(np.abs(rec - rec.mean(axis=1, keepdims=True)), axis=1)))
+
+
+def low_pass(x: np.ndarray, cutoff_hz: float = PAPER_LPF_HZ, dt_s: float = 1e-3) -> np.ndarray:
+    """The bench's own first-order low-pass (hil.control.filters.LowPass1) over a logged channel."""
+    from hil.control.filters import LowPass1
+
+    f = LowPass1(cutoff_hz=cutoff_hz, dt_s=dt_s)
+    f.reset(float(x[0]) if x.size else 0.0)
+    return np.fromiter((f.step(float(v)) for v in x), dtype=float, count=x.size)
+
+
+def lag_cycles(reference: np.ndarray, filtered: np.ndarray, freq_hz: float, dt_s: float = 1e-3) -> float:
+    """How many samples ``filtered`` lags ``reference`` at ``freq_hz``: the phase difference of their
+    single-frequency DFT components over whole periods, divided by 2 pi f dt."""
+    period = 1.0 / (freq_hz * dt_s)
+    n = int(math.floor(reference.size / period) * period)
+    if n < period:
+        return math.nan
+    t = np.arange(n) * dt_s
+    w = np.exp(-2j * math.pi * freq_hz * t)
+    phase = np.angle(np.dot(filtered[:n], w) / np.dot(reference[:n], w))
+    return float(-phase / (2 * math.pi * freq_hz * dt_s))
+
+
+def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float = 1.0) -> dict[str, float]:
+    """Every metric of ``analysis`` (plus the control ones) for the session log at ``path``."""
+    from hil.log import read_log
+    from hil.report import summarize_log
+
+    s = summarize_log(path, settle_s=settle_s)
+    m: dict[str, float] = {}
+    for axis in ("el", "az"):
+        m[f"rate_err_{axis}_std_dps"] = s[f"rate_error_{axis}_dps"]["std"]
+        m[f"rate_err_{axis}_range_dps"] = s[f"rate_error_{axis}_dps"]["range_pm"]
+        m[f"drive_ripple_{axis}_counts"] = s[f"drive_ripple_{axis}_counts"]
+    if "miss_x_px" in s:
+        for axis in ("x", "y"):
+            m[f"miss_{axis}_std_px"] = s[f"miss_{axis}_px"]["std"]
+            m[f"miss_{axis}_range_px"] = s[f"miss_{axis}_px"]["range_pm"]
+        m["miss_std_px"] = max(m["miss_x_std_px"], m["miss_y_std_px"])
+        m["miss_range_px"] = max(m["miss_x_range_px"], m["miss_y_range_px"])
+    m["latency_p99_us"] = s["latency_us"]["p99"]
+    m["missed_cycles"] = float(s["missed_cycles"])
+
+    data = read_log(path)
+    loop = data.groups["loop"]
+    t = loop["t_s"] - (loop["t_s"][0] if loop["t_s"].size else 0.0)
+    config = data.attrs.get("config") or {}
+    run_s = float(config.get("duration_s", np.inf))
+    keep = (t >= settle_s) & (t < run_s)
+    err_y = (loop["rate_cmd_el_dps"] - loop["gyro_y_dps"])[keep].astype(float)
+    err_z = (loop["rate_cmd_az_dps"] - loop["gyro_z_dps"])[keep].astype(float)
+    m["los_rate_rms_dps"] = _nan_if_empty(err_y, lambda _: np.sqrt(np.mean(err_y**2 + err_z**2)))
+
+    raw_all = loop["gyro_y_dps"].astype(float)
+    lpf_all = low_pass(raw_all)  # filtered from the start, so the window sees a settled filter
+    raw, lpf, kf = raw_all[keep], lpf_all[keep], loop["rate_fb_el_dps"].astype(float)[keep]
+    if analysis == "static_noise":
+        for name, x in (("raw", raw), ("lpf", lpf), ("kf", kf)):
+            m[f"gyro_{name}_peak_dps"] = peak_per_record(x)
+            m[f"gyro_{name}_std_dps"] = _nan_if_empty(x, np.std)
+    elif analysis == "filter_lag":
+        exc = config.get("excitation") or {}
+        freq = float(exc.get("freq_hz", math.nan))
+        if exc.get("axis", "el") != "el" or not math.isfinite(freq):
+            raise ValueError(f"{path}: filter_lag needs a sine excitation on the elevation axis")
+        m["lag_lpf_cycles"] = lag_cycles(raw, lpf, freq)
+        m["lag_kf_cycles"] = lag_cycles(raw, kf, freq)
+    return m

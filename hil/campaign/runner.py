@@ -1,0 +1,224 @@
+"""Run a campaign's cells, keep each cell's log, resume, judge thresholds and acceptance.
+
+Each cell is one `hil run CELL/session.yaml --json` in its own process (with ``--loopback`` against its
+own emulator, in lockstep, so cells are reproducible and may run ``jobs`` at a time; on the lab's
+hardware one after another). A cell's ``result.json`` is written when it finishes, and the
+campaign's ``campaign.json`` after every cell, so an interrupted campaign resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from hil.campaign.metrics import METRICS, compute_metrics
+from hil.campaign.model import CampaignConfig, CampaignResult, CellResult, CellSpec, RuleResult
+from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line
+
+RESULT = "result.json"
+CAMPAIGN_JSON = "campaign.json"
+
+
+class CampaignError(ValueError):
+    """Bad campaign input or output directory (one line)."""
+
+
+def load_campaign(path: str | Path) -> CampaignConfig:
+    try:
+        return load_model(CampaignConfig, path)
+    except ConfigError as exc:
+        raise CampaignError(str(exc)) from None
+
+
+def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in extra.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardware: bool = False) -> dict[str, Any]:
+    """The session file of one cell: the base session with the campaign's overrides and the cell's
+    profile, controller and seed (paths absolute, so the file stands on its own)."""
+    try:
+        base = load_session(config.session)
+    except ConfigError as exc:
+        raise CampaignError(f"session: {exc}") from None
+    data = _merge(base.model_dump(mode="json", exclude_none=True), config.overrides)
+    data.update(name=spec.cell_id, seed=spec.seed, controller={"name": spec.controller.name,
+                                                               "params": spec.controller.params},
+                profile=str(spec.profile.path), logging={**data.get("logging", {}), "dir": str(cell_dir)})
+    if config.duration_s is not None:
+        data["duration_s"] = config.duration_s
+    if not hardware:
+        data["emulator"] = {**data.get("emulator", {}), "clock": "lockstep"}
+    try:
+        SessionConfig.model_validate(data)
+    except ValidationError as exc:
+        raise CampaignError(one_line(f"cell {spec.cell_id}", exc)) from None
+    return data
+
+
+def _check(config: CampaignConfig, spec: CellSpec, result: CellResult) -> CellResult:
+    failures = list(result.failures)
+    for metric, threshold in config.thresholds.items():
+        if (why := threshold.check(metric, result.metrics.get(metric, float("nan")))) is not None:
+            failures.append(why)
+    return result.model_copy(update={"failures": failures})
+
+
+def run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware: bool = False,
+             timeout_s: float | None = None) -> CellResult:
+    """Run one cell in its own process; its log, session file and result.json go to ``out_dir/cells/ID``."""
+    cell_dir = out_dir / "cells" / spec.cell_id
+    if cell_dir.exists():
+        shutil.rmtree(cell_dir)  # a cell that did not finish starts again from nothing
+    cell_dir.mkdir(parents=True)
+    session_file = cell_dir / "session.yaml"
+    data = cell_session(config, spec, cell_dir, hardware)
+    session_file.write_text(yaml.safe_dump(data, sort_keys=False))
+    cmd = [sys.executable, "-m", "hil", "run", str(session_file), "--json", "--out", str(cell_dir)]
+    if not hardware:
+        cmd.append("--loopback")
+    duration = float(data["duration_s"])
+    t0 = time.monotonic()
+    base = {"cell_id": spec.cell_id, "profile": spec.profile.label, "controller": spec.controller.label,
+            "controller_name": spec.controller.name, "seed": spec.seed}
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=False,
+                              timeout=timeout_s or 120.0 + 30.0 * duration, env={**os.environ, "COLUMNS": "200"})
+    except subprocess.TimeoutExpired:
+        result = CellResult(**base, status="error", exit_code=-1, message="timed out",
+                            failures=["the session did not finish in time"], wall_s=time.monotonic() - t0)
+    else:
+        (cell_dir / "stderr.txt").write_text(proc.stderr)
+        try:
+            summary = json.loads(proc.stdout)
+        except json.JSONDecodeError:
+            last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+            summary = {"status": "error", "exit_code": proc.returncode, "message": last}
+        log = Path(summary["log"]) if summary.get("log") else None
+        metrics: dict[str, float] = {}
+        failures: list[str] = []
+        if summary.get("status") != "completed":
+            failures.append(f"session {summary.get('status')}: {summary.get('message', '')}".rstrip(": "))
+        if log is not None and log.exists():
+            try:
+                metrics = {k: v for k, v in compute_metrics(log, config.analysis).items() if math.isfinite(v)}
+            except (ValueError, KeyError, OSError) as exc:
+                failures.append(f"metrics: {exc}")
+        result = CellResult(**base, status=summary.get("status", "error"),
+                            exit_code=int(summary.get("exit_code", proc.returncode)),
+                            message=str(summary.get("message") or ""),
+                            log=str(log.relative_to(out_dir)) if log is not None and log.is_relative_to(out_dir)
+                            else (str(log) if log else None),
+                            metrics=metrics, failures=failures, wall_s=time.monotonic() - t0)
+    result = _check(config, spec, result)
+    (cell_dir / RESULT).write_text(result.model_dump_json(indent=2))
+    return result
+
+
+def judge(config: CampaignConfig, cells: list[CellResult]) -> list[RuleResult]:
+    """Every acceptance rule on every profile and seed."""
+    by_key = {(c.profile, c.controller, c.seed): c for c in cells}
+    out = []
+    for rule in config.acceptance:
+        ok, details = True, []
+        for profile in rule.profiles or [p.label for p in config.profiles]:
+            for seed in config.seeds:
+                better, than = by_key.get((profile, rule.better, seed)), by_key.get((profile, rule.than, seed))
+                b = better.metrics.get(rule.metric) if better and better.status == "completed" else None
+                a = than.metrics.get(rule.reference_metric) if than and than.status == "completed" else None
+                if a is None or b is None or math.isnan(a) or math.isnan(b) or a <= 0:
+                    ok = False
+                    details.append(f"{profile}, seed {seed}: not available")
+                    continue
+                gain = 100.0 * (a - b) / a
+                holds = gain >= rule.by_pct and b < a
+                ok &= holds
+                ref = rule.than if rule.reference_metric == rule.metric else rule.reference_metric
+                what = rule.better if rule.reference_metric == rule.metric else rule.metric
+                details.append(f"{profile}, seed {seed}: {ref} {a:.4g} -> {what} {b:.4g} "
+                               f"({gain:+.1f} %){'' if holds else '  FAILS'}")
+        out.append(RuleResult(rule=rule.describe(), passed=ok, details=details))
+    return out
+
+
+def _write_json(path: Path, text: str) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def load_results(out_dir: Path) -> CampaignResult:
+    path = out_dir / CAMPAIGN_JSON
+    try:
+        return CampaignResult.model_validate_json(path.read_text())
+    except FileNotFoundError:
+        raise CampaignError(f"{out_dir}: no {CAMPAIGN_JSON} (not a campaign directory)") from None
+    except ValidationError as exc:
+        raise CampaignError(one_line(str(path), exc)) from None
+
+
+def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume: bool = False,
+                 hardware: bool = False, on_cell: Callable[[CellResult], None] | None = None) -> CampaignResult:
+    """Run (or finish) every cell; returns the campaign's result, also written to ``out_dir/campaign.json``."""
+    if jobs < 1:
+        raise CampaignError(f"--jobs: {jobs} (need at least 1)")
+    if hardware:
+        jobs = 1  # one lab
+    specs = config.cells()
+    done: dict[str, CellResult] = {}
+    if (out_dir / CAMPAIGN_JSON).exists() or (out_dir / "cells").exists():
+        if not resume:
+            raise CampaignError(f"{out_dir}: already holds a campaign; pass --resume to finish it, "
+                                "or choose another --out")
+        for spec in specs:
+            path = out_dir / "cells" / spec.cell_id / RESULT
+            if path.exists():
+                try:
+                    cell = CellResult.model_validate_json(path.read_text())
+                except ValidationError:
+                    continue
+                if cell.status == "completed":
+                    run_failures = [f for f in cell.failures if f.split(" ", 1)[0] not in METRICS]
+                    done[spec.cell_id] = _check(config, spec, cell.model_copy(update={"failures": run_failures}))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "campaign.yaml").write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
+    for spec in specs:  # fail early, before any cell runs, on a cell that cannot be built
+        cell_session(config, spec, out_dir / "cells" / spec.cell_id, hardware)
+    t0 = time.monotonic()
+    results = dict(done)
+
+    def snapshot(complete: bool) -> CampaignResult:
+        cells = [results[s.cell_id] for s in specs if s.cell_id in results]
+        return CampaignResult(config=config, cells=cells, acceptance=judge(config, cells), jobs=jobs,
+                              wall_s=time.monotonic() - t0, complete=complete)
+
+    for cell in done.values():
+        if on_cell is not None:
+            on_cell(cell)
+    todo = [s for s in specs if s.cell_id not in done]
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        futures = {pool.submit(run_cell, config, spec, out_dir, hardware=hardware): spec for spec in todo}
+        for future in as_completed(futures):
+            cell = future.result()
+            results[cell.cell_id] = cell
+            _write_json(out_dir / CAMPAIGN_JSON, snapshot(False).model_dump_json(indent=2))
+            if on_cell is not None:
+                on_cell(cell)
+    final = snapshot(len(results) == len(specs))
+    _write_json(out_dir / CAMPAIGN_JSON, final.model_dump_json(indent=2))
+    return final
