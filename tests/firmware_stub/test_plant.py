@@ -22,7 +22,13 @@ from firmware_stub.plant import (
     load_plant_config,
 )
 from hil.control.pos_kinematics import azel_los_inertial_rate, azel_rot_body_to_el, rot_x, rot_y, rot_z
-from tests.firmware_stub.closed_loop import run_closed_loop, static_gyro_peak, swing_carrier
+from tests.firmware_stub.closed_loop import (
+    filter_lag,
+    run_closed_loop,
+    static_filters,
+    static_gyro_peak,
+    swing_carrier,
+)
 
 G0 = 9.80665
 D2R = math.pi / 180.0
@@ -540,13 +546,44 @@ def test_closed_loop_eso_rate_error_is_of_the_papers_order(default: PlantConfig)
     """Seed 000 Table 1, plain ESO under the 1 deg / 1 Hz swing: std 0.32 deg/s, range +-0.72; the emulator must be
     within a factor ~2 (docs/emulator.md has the numbers for all three controllers)."""
     res = run_closed_loop("eso", config=default, seconds=5.0)
-    for axis, s in res.items():
+    for axis in ("el", "az"):
+        s = res.axis(axis)
         print(f"eso {axis}: std {s.std_dps:.3f} deg/s, range +-{s.range_dps:.2f}, true std {s.true_std_dps:.3f}")
         assert 0.15 <= s.std_dps <= 0.65
         assert 0.36 <= s.range_dps <= 1.44
     # without the swing the loop only sees gyro noise: the error collapses to the noise level
     quiet = run_closed_loop("eso", config=default, seconds=2.0, amplitude_deg=0.0)
-    assert quiet["el"].std_dps < 0.05
+    assert quiet.el.std_dps < 0.05
+
+
+@pytest.mark.parametrize("seed", [1, 4])
+def test_paper_ordering_of_rate_error_and_miss_distance(default: PlantConfig, seed: int) -> None:
+    """Seed 000 Tables 1-2 on a short run: under the 1 deg / 1 Hz swing ESO > ESO + KF > high-gain ESO + KF in the
+    rate error (rate command 0) and in the camera's miss distance (tracking on), on both axes. The paper's margin
+    (miss std 55 % lower with ESO + KF) is NOT reached: the emulator gives ~7 % (docs/emulator.md says why)."""
+    names = ("eso", "eso_kf", "eso_kf_high_gain")
+    rate = {n: run_closed_loop(n, config=default, seconds=2.0, seed=seed) for n in names}
+    miss = {n: run_closed_loop(n, config=default, seconds=2.0, tracking=True, seed=seed) for n in names}
+    for axis in ("el", "az"):
+        r = [rate[n].axis(axis).std_dps for n in names]
+        m = [miss[n].axis(axis).miss_std_px for n in names]
+        print(f"seed {seed} {axis}: rate std {r[0]:.3f} / {r[1]:.3f} / {r[2]:.3f} deg/s, "
+              f"miss std {m[0]:.2f} / {m[1]:.2f} / {m[2]:.2f} px")
+        assert r[0] > 1.02 * r[1] > 1.02 * 1.5 * r[2]
+        assert m[0] > 1.04 * m[1] > 1.04 * 2.0 * m[2]
+        assert 2.0 <= m[0] <= 12.0  # paper 6.07 px
+
+
+def test_kalman_filter_is_quieter_than_the_low_pass_and_lags_less(default: PlantConfig) -> None:
+    """Seed 000 Figs 12-13: at rest the KF's rate is at least as quiet as a 150 Hz low-pass of the raw gyro; under a
+    5 deg/s 15 Hz rate command it lags the raw gyro less than the low-pass does (it predicts with the drive)."""
+    st = static_filters(default, seconds=4.0)
+    lag = filter_lag(default, seconds=1.0)
+    print(f"peaks raw {st['raw']:.3f} lpf {st['lpf']:.3f} kf {st['kf']:.3f}; lag lpf {lag['lpf']:.2f} "
+          f"kf {lag['kf']:.2f} ticks")
+    assert st["kf"] <= st["lpf"] < 0.8 * st["raw"]
+    assert lag["kf"] < lag["lpf"]
+    assert 0.5 < lag["lpf"] < 0.8  # first-order 150 Hz at 1 kHz: (1 - a) / a = 0.64 ticks
 
 
 # --- configuration ------------------------------------------------------------------------------------------------
