@@ -81,9 +81,10 @@ def test_bad_campaign_is_one_line_and_exit_2(tmp_path: Path, changes: dict[str, 
     assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
 
 
-def shortened(name: str, tmp_path: Path, duration_s: float, seeds: list[int]) -> Path:
+def shortened(name: str, tmp_path: Path, duration_s: float, seeds: list[int], **changes: Any) -> Path:
     data = yaml.safe_load((CAMPAIGNS / name).read_text())
-    data.update(session=str((CAMPAIGNS / data["session"]).resolve()), duration_s=duration_s, seeds=seeds)
+    data.update(session=str((CAMPAIGNS / data["session"]).resolve()), duration_s=duration_s, seeds=seeds,
+                **changes)
     for p in data["profiles"]:
         p["path"] = str((CAMPAIGNS / p["path"]).resolve())
     path = tmp_path / name
@@ -91,12 +92,21 @@ def shortened(name: str, tmp_path: Path, duration_s: float, seeds: list[int]) ->
     return path
 
 
-@pytest.mark.parametrize(("name", "duration_s"), [
-    ("static-gyro-noise.yaml", 3.0),
-    ("filter-lag-15hz.yaml", 2.0),
+# The miss-distance campaign's ">= 40 %" rule is the paper's magnitude, which the default emulated plant does
+# not reach (ESO+KF is ~8 % better: docs/emulator.md); its short version checks the paper's order.
+ORDER_ONLY = [{"metric": "miss_std_px", "better": "ESO+KF", "than": "ESO"},
+              {"metric": "miss_std_px", "better": "high-gain ESO+KF", "than": "ESO+KF"}]
+
+
+@pytest.mark.parametrize(("name", "duration_s", "changes"), [
+    ("static-gyro-noise.yaml", 3.0, {}),
+    ("filter-lag-15hz.yaml", 2.0, {}),
+    ("swing-rate-error.yaml", 4.0, {}),
+    ("swing-miss-distance.yaml", 4.0, {"acceptance": ORDER_ONLY}),
 ])
-def test_shipped_campaign_acceptance_on_a_short_lockstep_run(tmp_path: Path, name: str, duration_s: float) -> None:
-    path = shortened(name, tmp_path, duration_s, seeds=[7])
+def test_shipped_campaign_acceptance_on_a_short_lockstep_run(tmp_path: Path, name: str, duration_s: float,
+                                                             changes: dict[str, Any]) -> None:
+    path = shortened(name, tmp_path, duration_s, seeds=[7], **changes)
     proc = subprocess.run([*HIL, "campaign", str(path), "--out", str(tmp_path / "out"), "--jobs", "2",
                            "--no-report"], capture_output=True, text=True, timeout=600, check=False)
     result = json.loads((tmp_path / "out" / "campaign.json").read_text())
