@@ -1,0 +1,686 @@
+"""The campaign report: Markdown, self-contained HTML and PNG plots from a campaign directory.
+
+``write_report(CAMPAIGN_DIR)`` reads ``campaign.json`` (a :class:`~hil.campaign.model.CampaignResult`)
+and, for the plots, each controller's first logged seed per profile. It writes ``report.md``,
+``report.html`` (PNGs embedded as data URIs, inline CSS: one file to mail) and the PNGs into
+``CAMPAIGN_DIR/report/``. Contents (docs/campaigns.md, "Reports"): a verdict banner (which controller
+won, by how much, acceptance PASS/FAIL), per profile the paper's table (mean over seeds, min–max,
+the paper's value, gain vs the baseline) and plots (rate error, miss distance, PSD, metric bars, the
+analysis's own filter plot), the acceptance rules, every cell's pass/fail and the run info.
+
+The document is built once as a list of neutral blocks (:class:`Heading`, :class:`Table`, ...) and
+rendered twice, so the Markdown and the HTML always say the same thing.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil.campaign.metrics import METRICS, low_pass
+from hil.campaign.model import CampaignResult, slug
+from hil.campaign.runner import load_results
+
+SETTLE_S = 1.0  # as hil.campaign.metrics.compute_metrics: the plots start after the swing ramped in
+WINDOW_S = 2.0  # the rate-error time series
+STATIC_WINDOW_S = 0.2  # seed 000 Fig. 12
+LAG_PERIODS = 4  # seed 000 Fig. 13: a few periods of the excitation sine
+PSD_SEGMENT = 1024  # Welch segment length, samples
+DPI = 100
+
+
+# --- the neutral document --------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Cell:
+    text: str
+    best: bool = False  # the best value of its column
+    status: str | None = None  # "pass" or "fail"
+
+
+@dataclass(frozen=True)
+class Table:
+    header: list[str]
+    rows: list[list[Cell]]
+    align: str = ""  # per column 'l' or 'r'; columns past its end are right-aligned (numbers)
+
+    def right(self, i: int) -> bool:
+        return (self.align[i:i + 1] or "r") == "r"
+
+
+@dataclass(frozen=True)
+class Heading:
+    level: int
+    text: str
+
+
+@dataclass(frozen=True)
+class Text:
+    text: str
+
+
+@dataclass(frozen=True)
+class Item:
+    text: str
+    status: str | None = None
+    sub: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Bullets:
+    items: list[Item]
+
+
+@dataclass(frozen=True)
+class Banner:
+    headline: str
+    text: str
+    passed: bool
+
+
+@dataclass(frozen=True)
+class Figure:
+    path: Path
+    caption: str
+
+
+Block = Heading | Text | Bullets | Banner | Table | Figure
+
+
+@dataclass(frozen=True)
+class ReportFiles:
+    markdown: Path
+    html: Path
+    pngs: list[Path]
+
+
+# --- numbers ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Stat:
+    mean: float
+    lo: float
+    hi: float
+    n: int
+
+
+def _stat(result: CampaignResult, profile: str, controller: str, metric: str) -> Stat:
+    v = [x for x in result.values(profile, controller, metric) if math.isfinite(x)]
+    if not v:
+        return Stat(math.nan, math.nan, math.nan, 0)
+    return Stat(float(np.mean(v)), min(v), max(v), len(v))
+
+
+def _num(x: float) -> str:
+    """Three significant digits, never an exponent: 0.281, 6.02, 15.6, 1234."""
+    if not math.isfinite(x):
+        return "n/a"
+    if x == 0:
+        return "0"
+    return f"{x:.{max(0, 2 - math.floor(math.log10(abs(x))))}f}"
+
+
+def _value(metric: str, x: float, fmt: Callable[[float], str] = _num) -> str:
+    """As the paper writes it: '+-0.72' for a range (half peak-to-peak), '0.32' for a std."""
+    return f"+-{fmt(x)}" if "_range_" in metric and math.isfinite(x) else fmt(x)
+
+
+def _ours(metric: str, s: Stat) -> str:
+    spread = f" ({_num(s.lo)}–{_num(s.hi)})" if s.n > 1 else ""
+    return _value(metric, s.mean) + spread
+
+
+def gain_pct(value: float, ref: float, lower_is_better: bool = True) -> float:
+    """How much better ``value`` is than ``ref``, % of ``ref`` (positive = better); NaN if undefined."""
+    if not (math.isfinite(value) and math.isfinite(ref)) or ref == 0:
+        return math.nan
+    return 100.0 * ((ref - value) if lower_is_better else (value - ref)) / abs(ref)
+
+
+def _pct(x: float) -> str:
+    return f"{x:+.1f} %" if math.isfinite(x) else "n/a"
+
+
+def _best(stats: dict[str, Stat], lower_is_better: bool) -> str | None:
+    """The controller with the best mean, if at least two have one."""
+    have = {c: s.mean for c, s in stats.items() if math.isfinite(s.mean)}
+    if len(have) < 2:
+        return None
+    return (min if lower_is_better else max)(have, key=lambda c: have[c])
+
+
+def _labels(result: CampaignResult) -> list[str]:
+    return [c.label for c in result.config.controllers]
+
+
+def _baseline(result: CampaignResult) -> str | None:
+    return result.config.baseline if len(result.config.controllers) > 1 else None
+
+
+# --- the verdict -----------------------------------------------------------------------------
+
+
+def _columns(result: CampaignResult) -> list[tuple[str, str]]:
+    return [(p.label, m) for p in result.config.profiles for m in result.config.metrics]
+
+
+def _wins(result: CampaignResult) -> tuple[dict[str, int], int]:
+    wins = dict.fromkeys(_labels(result), 0)
+    total = 0
+    for profile, metric in _columns(result):
+        best = _best({c: _stat(result, profile, c, metric) for c in wins}, METRICS[metric].lower_is_better)
+        if best is not None:
+            wins[best] += 1
+            total += 1
+    return wins, total
+
+
+def _gains(result: CampaignResult, controller: str, ref: str) -> list[float]:
+    out = [gain_pct(_stat(result, p, controller, m).mean, _stat(result, p, ref, m).mean,
+                    METRICS[m].lower_is_better) for p, m in _columns(result)]
+    return [g for g in out if math.isfinite(g)]
+
+
+def _acceptance_summary(result: CampaignResult) -> str:
+    total = len(result.config.cells())
+    parts = [f"{sum(r.passed for r in result.acceptance)}/{len(result.acceptance)} acceptance rules hold",
+             f"{sum(c.passed for c in result.cells)}/{total} cells pass"]
+    if not result.complete:
+        parts.append(f"partial campaign: {len(result.cells)}/{total} cells run")
+    return f"{'PASS' if result.passed else 'FAIL'} ({'; '.join(parts)})"
+
+
+def verdict(result: CampaignResult) -> Banner:
+    """Which controller won (best in most table columns), by how much (mean gain over the baseline, or
+    over the runner-up when the baseline won), and the campaign's PASS/FAIL."""
+    labels = _labels(result)
+    wins, total = _wins(result)
+    accept = f"Acceptance: {_acceptance_summary(result)}."
+    if len(labels) < 2:
+        return Banner(f"{labels[0]} (one controller, no comparison)", accept, result.passed)
+    if total == 0:
+        return Banner("No winner: no results to compare yet", accept, result.passed)
+    ranked = sorted(labels, key=lambda c: -wins[c])  # stable: the campaign's order breaks ties
+    winner = ranked[0]
+    ref = result.config.baseline if result.config.baseline not in (None, winner) else ranked[1]
+    gains = _gains(result, winner, ref)
+    by = (f"{np.mean(gains):.1f} % better than {ref} on average ({_pct(min(gains))} to {_pct(max(gains))})"
+          if gains else f"no metric to compare with {ref}")
+    return Banner(f"{winner} wins", f"Best in {wins[winner]} of {total} table columns; {by}. {accept}",
+                  result.passed)
+
+
+# --- tables ----------------------------------------------------------------------------------
+
+
+def _gain_cell(result: CampaignResult, profile: str, metric: str, controller: str, stats: dict[str, Stat]) -> Cell:
+    base = _baseline(result)
+    assert base is not None
+    if controller == base:
+        return Cell("baseline")
+    lower = METRICS[metric].lower_is_better
+    text = _pct(gain_pct(stats[controller].mean, stats[base].mean, lower))
+    paper = result.config.paper.get(profile, {})
+    theirs = gain_pct(paper.get(controller, {}).get(metric, math.nan), paper.get(base, {}).get(metric, math.nan),
+                      lower)
+    return Cell(text + (f" (paper {_pct(theirs)})" if math.isfinite(theirs) else ""))
+
+
+def _metric_columns(result: CampaignResult, profile: str, metric: str) -> list[tuple[str, list[Cell]]]:
+    """Ours (best emphasised), the paper's value if it has one, the gain vs the baseline."""
+    meta, labels = METRICS[metric], _labels(result)
+    stats = {c: _stat(result, profile, c, metric) for c in labels}
+    best = _best(stats, meta.lower_is_better)
+    cols = [(f"{meta.label} [{meta.unit}]", [Cell(_ours(metric, stats[c]), best=c == best) for c in labels])]
+    paper = result.config.paper.get(profile, {})
+    if any(metric in paper.get(c, {}) for c in labels):
+        theirs = [paper.get(c, {}).get(metric) for c in labels]
+        cols.append(("paper", [Cell("—" if x is None else _value(metric, x, "{:g}".format)) for x in theirs]))
+    if _baseline(result) is not None:
+        cols.append((f"vs {_baseline(result)}", [_gain_cell(result, profile, metric, c, stats) for c in labels]))
+    return cols
+
+
+def _seeds_done(result: CampaignResult, profile: str, controller: str) -> str:
+    done = sum(1 for s in result.config.seeds
+               if (c := result.cell(profile, controller, s)) is not None and c.status == "completed")
+    return f"{done}/{len(result.config.seeds)}"
+
+
+def profile_table(result: CampaignResult, profile: str) -> Table:
+    """The paper's table for one profile: one row per controller, the configured metrics as columns."""
+    labels = _labels(result)
+    columns = [("Controller", [Cell(c) for c in labels]),
+               ("seeds", [Cell(_seeds_done(result, profile, c)) for c in labels])]
+    for metric in result.config.metrics:
+        columns += _metric_columns(result, profile, metric)
+    return Table([h for h, _ in columns], [list(row) for row in zip(*(cells for _, cells in columns), strict=True)],
+                 align="l")
+
+
+def _pass_cell(passed: bool) -> Cell:
+    return Cell("PASS" if passed else "FAIL", status="pass" if passed else "fail")
+
+
+def cells_table(result: CampaignResult) -> Table:
+    """Every cell of the matrix, run or not."""
+    rows = []
+    for spec in result.config.cells():
+        c = result.cell(spec.profile.label, spec.controller.label, spec.seed)
+        head = [Cell(spec.profile.label), Cell(spec.controller.label), Cell(str(spec.seed))]
+        if c is None:
+            rows.append([*head, Cell("not run"), Cell(""), Cell("—"), Cell("missing from the campaign")])
+            continue
+        why = "; ".join(c.failures) or (c.message if c.status != "completed" else "")
+        rows.append([*head, Cell(c.status), Cell(f"{c.wall_s:.1f}"), _pass_cell(c.passed), Cell(why)])
+    return Table(["profile", "controller", "seed", "status", "wall [s]", "result", "failures"], rows, "llrlrll")
+
+
+# --- the document ----------------------------------------------------------------------------
+
+
+def _thresholds(result: CampaignResult) -> str:
+    parts = []
+    for metric, t in result.config.thresholds.items():
+        bounds = [f"<= {t.max:g}" if t.max is not None else "", f">= {t.min:g}" if t.min is not None else ""]
+        parts.append(f"{metric} {' and '.join(b for b in bounds if b)} {METRICS[metric].unit}")
+    return "Thresholds per cell: " + ("; ".join(parts) if parts else "none") + "."
+
+
+def _run_info(result: CampaignResult, campaign_dir: Path) -> Bullets:
+    total = len(result.config.cells())
+    missing = total - len(result.cells)
+    state = "complete" if result.complete else f"partial ({missing} cell{'s' * (missing != 1)} missing)"
+    return Bullets([Item(f"Campaign: {state}, {len(result.cells)} of {total} cells run"),
+                    Item(f"Matrix: {len(result.config.profiles)} profiles x {len(result.config.controllers)} "
+                         f"controllers x {len(result.config.seeds)} seeds; analysis {result.config.analysis}"),
+                    Item(f"Jobs: {result.jobs}"), Item(f"Wall time: {result.wall_s:.1f} s"),
+                    Item(f"Campaign directory: {campaign_dir}")])
+
+
+def build_document(result: CampaignResult, campaign_dir: Path, figures: dict[str, list[Figure]],
+                   extra: list[Figure]) -> list[Block]:
+    cfg = result.config
+    doc: list[Block] = [Heading(1, cfg.title), verdict(result)]
+    doc += [Text(cfg.description.strip())] if cfg.description.strip() else []
+    doc += [Text(f"Source of the paper's values: {cfg.source}")] if cfg.source else []
+    for p in cfg.profiles:
+        doc += [Heading(2, p.label), profile_table(result, p.label), *figures.get(p.label, [])]
+    if extra:
+        doc += [Heading(2, "Identification"), *extra]
+    doc += [Heading(2, "Acceptance"),
+            Bullets([Item(r.rule, "pass" if r.passed else "fail", r.details) for r in result.acceptance]
+                    or [Item("no acceptance rules configured")]),
+            Heading(2, "Cells"), Text(_thresholds(result)), cells_table(result),
+            Heading(2, "Run"), _run_info(result, campaign_dir)]
+    return doc
+
+
+# --- Markdown --------------------------------------------------------------------------------
+
+
+def _md_cell(c: Cell) -> str:
+    text = c.text.replace("|", "\\|")
+    return f"**{text}**" if c.best or c.status == "fail" else text
+
+
+def _md_table(t: Table) -> str:
+    lines = ["| " + " | ".join(h.replace("|", "\\|") for h in t.header) + " |",
+             "|" + "|".join("---:" if t.right(i) else "---" for i in range(len(t.header))) + "|"]
+    lines += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in t.rows]
+    return "\n".join(lines)
+
+
+def _md_item(i: Item) -> str:
+    head = f"- **{i.status.upper()}** {i.text}" if i.status else f"- {i.text}"
+    return "\n".join([head, *(f"  - {s}" for s in i.sub)])
+
+
+def render_markdown(doc: list[Block], out_dir: Path) -> str:
+    parts = []
+    for b in doc:
+        match b:
+            case Heading():
+                parts.append(f"{'#' * b.level} {b.text}")
+            case Banner():
+                parts.append(f"> **Verdict: {b.headline}.** {b.text}")
+            case Text():
+                parts.append(b.text)
+            case Bullets():
+                parts.append("\n".join(_md_item(i) for i in b.items))
+            case Table():
+                parts.append(_md_table(b))
+            case Figure():
+                parts.append(f"![{b.caption}]({Path(os.path.relpath(b.path, out_dir)).as_posix()})\n\n*{b.caption}*")
+    return "\n\n".join(parts) + "\n"
+
+
+# --- HTML ------------------------------------------------------------------------------------
+
+CSS = """
+body { font-family: system-ui, sans-serif; max-width: 1200px; margin: 2em auto; padding: 0 1em; color: #222; }
+table { border-collapse: collapse; margin: 1em 0; font-size: 0.92em; }
+th, td { border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: right; vertical-align: top; }
+th { background: #f2f2f2; }
+th.l, td.l { text-align: left; }
+td.best { font-weight: bold; background: #dff3e4; }
+.pass { color: #0a7d28; font-weight: bold; }
+.fail { color: #b00020; font-weight: bold; }
+.banner { padding: 0.8em 1.2em; border-radius: 6px; margin: 1em 0; }
+.banner .headline { font-size: 1.6em; font-weight: bold; }
+.banner.pass { background: #dff3e4; border: 2px solid #0a7d28; }
+.banner.fail { background: #fde7ea; border: 2px solid #b00020; }
+figure { margin: 1em 0; } figure img { max-width: 100%; } figcaption { color: #555; font-size: 0.9em; }
+"""
+
+
+def _esc(text: str) -> str:
+    return html.escape(text).replace("+-", "±")
+
+
+def _html_cell(c: Cell, right: bool) -> str:
+    cls = " ".join(x for x in ("best" if c.best else "", c.status or "", "" if right else "l") if x)
+    return f'<td class="{cls}">{_esc(c.text)}</td>' if cls else f"<td>{_esc(c.text)}</td>"
+
+
+def _html_table(t: Table) -> str:
+    head = "".join(("<th>" if t.right(i) else '<th class="l">') + f"{_esc(h)}</th>" for i, h in enumerate(t.header))
+    rows = "".join("<tr>" + "".join(_html_cell(c, t.right(i)) for i, c in enumerate(row)) + "</tr>\n"
+                   for row in t.rows)
+    return f"<table>\n<thead><tr>{head}</tr></thead>\n<tbody>\n{rows}</tbody>\n</table>"
+
+
+def _html_item(i: Item) -> str:
+    status = f'<span class="{i.status}">{i.status.upper()}</span> ' if i.status else ""
+    sub = "<ul>" + "".join(f"<li>{_esc(s)}</li>" for s in i.sub) + "</ul>" if i.sub else ""
+    return f"<li>{status}{_esc(i.text)}{sub}</li>"
+
+
+def _html_figure(f: Figure) -> str:
+    data = base64.b64encode(f.path.read_bytes()).decode("ascii")
+    return (f'<figure><img alt="{_esc(f.caption)}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{_esc(f.caption)}</figcaption></figure>")
+
+
+def _html_block(b: Block) -> str:
+    match b:
+        case Heading():
+            return f"<h{b.level}>{_esc(b.text)}</h{b.level}>"
+        case Banner():
+            cls = "pass" if b.passed else "fail"
+            return f'<div class="banner {cls}"><div class="headline">{_esc(b.headline)}</div>{_esc(b.text)}</div>'
+        case Text():
+            return f"<p>{_esc(b.text)}</p>"
+        case Bullets():
+            return "<ul>" + "".join(_html_item(i) for i in b.items) + "</ul>"
+        case Table():
+            return _html_table(b)
+        case Figure():
+            return _html_figure(b)
+    raise TypeError(f"not a report block: {b!r}")
+
+
+def render_html(doc: list[Block]) -> str:
+    title = next((b.text for b in doc if isinstance(b, Heading)), "Campaign report")
+    body = "\n".join(_html_block(b) for b in doc)
+    return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{_esc(title)}</title>\n'
+            f"<style>{CSS}</style>\n</head>\n<body>\n{body}\n</body>\n</html>\n")
+
+
+# --- signals ---------------------------------------------------------------------------------
+
+
+def welch(x: np.ndarray, fs: float, nperseg: int = PSD_SEGMENT) -> tuple[np.ndarray, np.ndarray]:
+    """One-sided power spectral density (unit²/Hz): Hann-windowed segments, 50 % overlap, each segment's
+    mean removed, periodograms averaged (as scipy.signal.welch's defaults)."""
+    x = np.asarray(x, dtype=float)
+    n = min(nperseg, x.size)
+    if n < 8:
+        return np.zeros(0), np.zeros(0)
+    w = np.hanning(n)
+    segs = np.stack([x[s : s + n] for s in range(0, x.size - n + 1, n // 2)])
+    spec = np.abs(np.fft.rfft((segs - segs.mean(axis=1, keepdims=True)) * w, axis=1)) ** 2 / (fs * np.sum(w**2))
+    spec[:, 1 : None if n % 2 else -1] *= 2  # one-sided: fold the negative frequencies (not DC, not Nyquist)
+    return np.fft.rfftfreq(n, 1.0 / fs), spec.mean(axis=0)
+
+
+@dataclass(frozen=True)
+class Trace:
+    """One controller's logged run (its first seed with a readable log) in one profile."""
+
+    controller: str
+    seed: int
+    loop: dict[str, np.ndarray]
+    image: dict[str, np.ndarray]
+    config: dict[str, Any]
+
+    @property
+    def t(self) -> np.ndarray:
+        t = self.loop["t_s"].astype(float)
+        return t - t[0] if t.size else t
+
+    @property
+    def fs(self) -> float:
+        dt = np.diff(self.loop["t_s"])
+        return 1.0 / float(np.median(dt)) if dt.size and np.median(dt) > 0 else 1000.0
+
+    def end(self) -> float:
+        """End of the run proper (the log goes on while the swing winds down)."""
+        return min(float(self.t[-1]), float(self.config.get("duration_s") or math.inf))
+
+    def window(self, length_s: float) -> np.ndarray:
+        """A ``length_s`` mask starting after settling (earlier if the run is short)."""
+        end = self.end()
+        start = min(SETTLE_S, max(0.0, end - length_s))
+        return (self.t >= start) & (self.t < min(start + length_s, end))
+
+    def settled(self) -> np.ndarray:
+        end = self.end()
+        return self.window(end - SETTLE_S if end > SETTLE_S else end)
+
+
+def _read_trace(result: CampaignResult, campaign_dir: Path, profile: str, controller: str) -> Trace | None:
+    from hil.log import LogError, read_log
+
+    for seed in result.config.seeds:
+        cell = result.cell(profile, controller, seed)
+        if cell is None or not cell.log:
+            continue
+        path = Path(cell.log) if Path(cell.log).is_absolute() else campaign_dir / cell.log
+        try:
+            data = read_log(path)
+        except (OSError, KeyError, ValueError, LogError):
+            continue
+        loop = data.groups.get("loop", {})
+        if loop.get("t_s", np.zeros(0)).size < 2:
+            continue
+        config = data.attrs.get("config")
+        return Trace(controller, seed, loop, data.groups.get("image", {}), config if isinstance(config, dict) else {})
+    return None
+
+
+# --- plots -----------------------------------------------------------------------------------
+
+
+def _figure(rows: int = 1, cols: int = 1, height: float = 3.6) -> tuple[Any, Any]:
+    from matplotlib.figure import Figure as MplFigure  # lazy, and no pyplot: no global state, no GUI backend
+
+    fig = MplFigure(figsize=(9.0, height * rows), layout="constrained")
+    return fig, fig.subplots(rows, cols, squeeze=False)
+
+
+def _color(result: CampaignResult, controller: str) -> str:
+    return f"C{_labels(result).index(controller) % 10}"
+
+
+def _save(fig: Any, path: Path) -> Path:
+    fig.savefig(path, dpi=DPI, format="png")
+    return path
+
+
+def plot_rate_error(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
+    fig, ax = _figure()
+    for tr in traces:
+        keep = tr.window(WINDOW_S)
+        ax[0, 0].plot(tr.t[keep], tr.loop["rate_err_el_dps"][keep], lw=0.8, color=_color(result, tr.controller),
+                      label=f"{tr.controller} (seed {tr.seed})")
+    ax[0, 0].set(title=f"{profile}: elevation rate error (command - gyro)", xlabel="time [s]",
+                 ylabel="rate error [deg/s]")
+    ax[0, 0].legend(loc="upper right")
+    ax[0, 0].grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def _valid_frames(tr: Trace) -> np.ndarray:
+    valid = tr.image.get("track_valid")
+    return np.zeros(0, dtype=bool) if valid is None else valid.astype(bool)
+
+
+def plot_miss(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
+    with_frames = [tr for tr in traces if _valid_frames(tr).any()]
+    if not with_frames:
+        return None
+    fig, ax = _figure(2, 1, height=2.8)
+    for tr in with_frames:
+        t = tr.image["t_exposure_s"] - float(tr.loop["t_s"][0])
+        keep = _valid_frames(tr) & (t >= min(SETTLE_S, float(t.max()))) & (t < tr.end())
+        for a, axis in zip(ax[:, 0], ("y", "x"), strict=True):
+            a.plot(t[keep], tr.image[f"miss_{axis}_px"][keep], lw=0.8, color=_color(result, tr.controller),
+                   label=f"{tr.controller} (seed {tr.seed})")
+    for a, axis in zip(ax[:, 0], ("y", "x"), strict=True):
+        a.set(ylabel=f"miss {axis} [px]")
+        a.grid(alpha=0.3)
+    ax[0, 0].set(title=f"{profile}: miss distance (valid frames)")
+    ax[1, 0].set(xlabel="time [s]")
+    ax[0, 0].legend(loc="upper right")
+    return _save(fig, path)
+
+
+def plot_psd(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
+    fig, ax = _figure()
+    for tr in traces:
+        f, p = welch(tr.loop["rate_err_el_dps"][tr.settled()], tr.fs)
+        if f.size > 1:
+            ax[0, 0].semilogy(f[1:], p[1:], lw=0.9, color=_color(result, tr.controller), label=tr.controller)
+    ax[0, 0].set(title=f"{profile}: PSD of the elevation rate error (Welch)", xlabel="frequency [Hz]",
+                 ylabel="PSD [(deg/s)²/Hz]")
+    ax[0, 0].legend(loc="upper right")
+    ax[0, 0].grid(alpha=0.3, which="both")
+    return _save(fig, path)
+
+
+def _bars(ax: Any, result: CampaignResult, profile: str, metric: str) -> None:
+    labels = _labels(result)
+    stats = [_stat(result, profile, c, metric) for c in labels]
+    x = np.arange(len(labels))
+    mean = np.array([s.mean for s in stats])
+    err = np.nan_to_num(np.array([[s.mean - s.lo for s in stats], [s.hi - s.mean for s in stats]]))
+    ax.bar(x, np.nan_to_num(mean), yerr=err, capsize=4, color=[_color(result, c) for c in labels])
+    paper = result.config.paper.get(profile, {})
+    px = [i for i, c in enumerate(labels) if metric in paper.get(c, {})]
+    if px:
+        ax.plot(px, [paper[labels[i]][metric] for i in px], "kD", ms=7, label="paper")
+        ax.legend(loc="upper right")
+    ax.set_xticks(x, labels, rotation=20)
+    ax.set(title=METRICS[metric].label.replace("+-", "±"), ylabel=METRICS[metric].unit)
+    ax.grid(alpha=0.3, axis="y")
+
+
+def plot_metrics(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
+    metrics = result.config.metrics
+    cols = min(3, len(metrics))
+    rows = -(-len(metrics) // cols)
+    fig, ax = _figure(rows, cols, height=3.4)
+    for a, metric in zip(ax.flat, metrics, strict=False):
+        _bars(a, result, profile, metric)
+    for a in list(ax.flat)[len(metrics) :]:
+        a.set_visible(False)
+    fig.suptitle(f"{profile}: mean over seeds (bars: min–max; diamonds: the paper)")
+    return _save(fig, path)
+
+
+def _filter_window_s(result: CampaignResult, tr: Trace) -> float:
+    if result.config.analysis == "filter_lag":
+        freq = float((tr.config.get("excitation") or {}).get("freq_hz", math.nan))
+        if math.isfinite(freq) and freq > 0:
+            return LAG_PERIODS / freq
+    return STATIC_WINDOW_S
+
+
+def plot_filters(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
+    """Seed 000 Figs. 12/13: the raw elevation gyro, the 150 Hz low-pass of it and the KF estimate."""
+    fig, ax = _figure(len(traces), 1, height=2.8)
+    for a, tr in zip(ax[:, 0], traces, strict=True):
+        raw = tr.loop["gyro_y_dps"].astype(float)
+        keep = tr.window(_filter_window_s(result, tr))
+        t = tr.t[keep]
+        a.plot(t, raw[keep], lw=0.7, color="0.6", label="raw gyro")
+        a.plot(t, low_pass(raw)[keep], lw=1.2, color="C1", label="150 Hz low-pass")
+        a.plot(t, tr.loop["rate_fb_el_dps"][keep], lw=1.2, color="C0", label="KF (fed back)")
+        a.set(title=f"{profile}, {tr.controller} (seed {tr.seed})", ylabel="EL rate [deg/s]")
+        a.grid(alpha=0.3)
+        a.legend(loc="upper right")
+    ax[-1, 0].set(xlabel="time [s]")
+    return _save(fig, path)
+
+
+Plotter = Callable[[CampaignResult, str, list[Trace], Path], Path | None]
+
+PLOTS: list[tuple[str, Plotter, str]] = [
+    ("rate-error", plot_rate_error, "elevation rate error, {w:g} s after settling, first logged seed"),
+    ("miss", plot_miss, "miss distance y (top) and x (bottom), valid frames"),
+    ("psd", plot_psd, "PSD of the elevation rate error after settling (Welch, Hann, 50 % overlap)"),
+    ("metrics", plot_metrics, "the table's metrics per controller: mean, min–max over seeds, the paper's value"),
+]
+FILTER_PLOTS = {"static_noise": "at rest: raw gyro vs 150 Hz low-pass vs KF over {s:g} s (seed 000 Fig. 12)",
+                "filter_lag": "sine on the rate command: raw gyro vs 150 Hz low-pass vs KF, "
+                              f"{LAG_PERIODS} periods (seed 000 Fig. 13)"}
+
+
+def _profile_plots(result: CampaignResult, campaign_dir: Path, out_dir: Path, profile: str) -> list[Figure]:
+    traces = [tr for c in _labels(result) if (tr := _read_trace(result, campaign_dir, profile, c)) is not None]
+    plots = list(PLOTS)
+    if result.config.analysis in FILTER_PLOTS:
+        plots.append(("filters", plot_filters, FILTER_PLOTS[result.config.analysis]))
+    figures = []
+    for name, plot, caption in plots:
+        if not traces and name != "metrics":
+            continue
+        path = plot(result, profile, traces, out_dir / f"{slug(profile)}-{name}.png")
+        if path is not None:
+            figures.append(Figure(path, f"{profile}: {caption.format(w=WINDOW_S, s=STATIC_WINDOW_S)}"))
+    return figures
+
+
+def _bode_figures(campaign_dir: Path, out_dir: Path) -> list[Figure]:
+    found = sorted(p for p in campaign_dir.rglob("bode*.png") if out_dir.resolve() not in p.resolve().parents)
+    return [Figure(p, f"{p.relative_to(campaign_dir).as_posix()} (hil ident)") for p in found]
+
+
+# --- entry point -----------------------------------------------------------------------------
+
+
+def write_report(campaign_dir: Path, out_dir: Path | None = None) -> ReportFiles:
+    """Write report.md, report.html and the PNGs of the campaign in ``campaign_dir`` (default output:
+    ``campaign_dir/report/``). Raises hil.campaign.CampaignError if it holds no campaign.json."""
+    campaign_dir = Path(campaign_dir)
+    result = load_results(campaign_dir)
+    out = Path(out_dir) if out_dir is not None else campaign_dir / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    figures = {p.label: _profile_plots(result, campaign_dir, out, p.label) for p in result.config.profiles}
+    extra = _bode_figures(campaign_dir, out)
+    doc = build_document(result, campaign_dir, figures, extra)
+    md, page = out / "report.md", out / "report.html"
+    md.write_text(render_markdown(doc, out), encoding="utf-8")
+    page.write_text(render_html(doc), encoding="utf-8")
+    return ReportFiles(md, page, [f.path for fs in figures.values() for f in fs] + [f.path for f in extra])
