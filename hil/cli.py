@@ -131,6 +131,11 @@ def _load_session(path: Path):  # type: ignore[no-untyped-def]
 
 def run_session(config, out: Path | None, loopback: bool, clock: str | None, json_out: bool) -> int:  # type: ignore[no-untyped-def]
     """Run one session (optionally against a freshly started emulator); print the summary; return the exit code."""
+    return _run_session(config, out, loopback, clock, json_out).exit_code
+
+
+def _run_session(config, out: Path | None, loopback: bool, clock: str | None, json_out: bool):  # type: ignore[no-untyped-def]
+    """Run one session, print its summary, return its SessionResult."""
     import asyncio
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
@@ -171,7 +176,7 @@ def run_session(config, out: Path | None, loopback: bool, clock: str | None, jso
             if emulator is not None:
                 emulator.stop()
     _print_result(result, json_out)
-    return result.exit_code
+    return result
 
 
 def _print_result(result, json_out: bool) -> None:  # type: ignore[no-untyped-def]
@@ -237,6 +242,73 @@ def run(
     if clock not in (None, "realtime", "lockstep"):
         raise fail(f"--clock: {clock!r} is not realtime or lockstep")
     raise typer.Exit(run_session(_load_session(session), out, loopback, clock, json_out))
+
+
+MAX_EL_TRAVEL_DEG = 60.0  # hil ident: keep the elevation axis away from the az-el gimbal's 90 deg singularity
+
+
+@app.command()
+def ident(  # noqa: PLR0913, PLR0917 (typer maps parameters to options)
+    session: Annotated[Path, typer.Argument(help="Session YAML: ports, controller (see profiles/sessions/).")],
+    loopback: Annotated[bool, typer.Option("--loopback", help="Identify the emulator (started here).")] = False,
+    out: Annotated[Path, typer.Option(help="Directory for the log, bode-AXIS.png and ident.json.")] = Path(
+        "runs/ident"),
+    axis: Annotated[str, typer.Option(help="el | az")] = "el",
+    f_start_hz: Annotated[float, typer.Option(min=0.01, help="Sweep start.")] = 0.5,
+    f_stop_hz: Annotated[float, typer.Option(max=450, help="Sweep stop (below the 500 Hz Nyquist).")] = 300.0,
+    sweep_s: Annotated[float, typer.Option(min=1, help="Length of the sweep.")] = 20.0,
+    amplitude_dps: Annotated[float, typer.Option(min=0, help="Sweep amplitude on the rate command.")] = 2.0,
+    offset_dps: Annotated[float, typer.Option(
+        help="Constant rate under the sweep, above its amplitude, so Coulomb friction stays on one side "
+        "(docs/ident.md); the axis turns offset x (sweep + 1 s) deg.")] = 2.5,
+) -> None:
+    """Frequency-sweep identification (seed 000 Figs. 8-9): a swept sine on the rate command of the closed rate
+    loop, the plant's frequency response from the log (indirect closed-loop method), a Bode plot, and the fit of
+    k_m (deg/s^2 per count), the gyro's bandwidth and the delay."""
+    import json
+
+    from pydantic import ValidationError
+
+    from hil.config import SessionConfig, one_line
+    from hil.control.registry import K_M_DEFAULT
+    from hil.ident import SweptSine, bode_plot, identify_log
+    from hil.log import read_log
+
+    if axis not in ("el", "az"):
+        raise fail(f"--axis: {axis!r} is not el or az")
+    base = _load_session(session)
+    try:
+        sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s,
+                          amplitude_dps=amplitude_dps, axis=axis, offset_dps=offset_dps)  # type: ignore[arg-type]
+        data = base.model_dump(mode="json", exclude_none=True)
+        data.update(name=f"{base.name}-ident-{axis}", duration_s=sweep.total_s + 0.5, excitation=sweep.model_dump(),
+                    tracking={**data.get("tracking", {}), "enabled": False}, profile={"segments": []})
+        config = SessionConfig.model_validate(data)
+    except ValidationError as exc:
+        raise fail(one_line("ident", exc)) from None
+    travel_deg = abs(offset_dps) * sweep.total_s
+    if axis == "el" and travel_deg > MAX_EL_TRAVEL_DEG:
+        raise fail(f"--offset-dps: the elevation axis would turn {travel_deg:.0f} deg during the sweep (at most "
+                   f"{MAX_EL_TRAVEL_DEG:g}: near 90 deg the cross-elevation gyro loses the azimuth axis); lower "
+                   "--offset-dps or --sweep-s, or identify --axis az")
+    result = _run_session(config, out, loopback, None, False)
+    if result.status != "completed" or result.log_path is None:
+        raise typer.Exit(result.exit_code or 1)
+    try:
+        frf, fit = identify_log(read_log(result.log_path), sweep)
+    except ValueError as exc:
+        raise fail(f"{result.log_path}: cannot identify: {exc}", code=1) from None
+    png = bode_plot(frf, fit, out / f"bode-{axis}.png", title=f"{config.name}: k_m = {fit.k_m_dps2_per_count:.5f} deg/s^2 per count")
+    error_pct = 100.0 * (fit.k_m_dps2_per_count - K_M_DEFAULT) / K_M_DEFAULT
+    report = {"log": str(result.log_path), "axis": axis, "sweep": sweep.model_dump(),
+              "k_m_dps2_per_count": fit.k_m_dps2_per_count, "k_m_vs_default_pct": error_pct,
+              "gyro_bandwidth_hz": fit.gyro_bandwidth_hz, "delay_ms": fit.delay_ms,
+              "rms_error_db": fit.rms_error_db, "f_range_hz": list(fit.f_range_hz), "bins": fit.n_bins}
+    (out / f"ident-{axis}.json").write_text(json.dumps(report, indent=2))
+    console.print(f"[bold]{fit.describe()}[/]", highlight=False)
+    console.print(f"k_m {fit.k_m_dps2_per_count:.5f} deg/s^2 per count: {error_pct:+.1f} % vs the controllers' "
+                  f"default {K_M_DEFAULT} (set b0_dps2_per_count to the fitted value if it differs)", highlight=False)
+    console.print(f"bode: {png}\nident: {out / f'ident-{axis}.json'}", highlight=False)
 
 
 @app.command()

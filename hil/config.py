@@ -19,6 +19,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from hil.control.registry import ControllerConfigError, controller_params
+from hil.ident import SweptSine
 from hil.protocol import HexAxis
 from hil.protocol.swing import Envelope, Segment, check_envelope
 from hil.telemetry import MqttConfig
@@ -202,7 +203,8 @@ class SessionConfig(Strict):
     host: HostConfig = HostConfig()
     mqtt: MqttConfig | None = Field(None, description="no broker configured -> no telemetry")
     emulator: EmulatorRef = EmulatorRef()
-    excitation: SineExcitation | None = Field(None, description="a signal added to one axis's rate command")
+    excitation: SineExcitation | SweptSine | None = Field(
+        None, description="a signal added to one axis's rate command: a sine, or a swept sine (hil ident)")
 
     @field_validator("controller", "profile", "hexapod_limits", mode="before")
     @classmethod
