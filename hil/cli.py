@@ -248,7 +248,7 @@ MAX_EL_TRAVEL_DEG = 60.0  # hil ident: keep the elevation axis away from the az-
 
 
 @app.command()
-def ident(  # noqa: PLR0913, PLR0917 (typer maps parameters to options)
+def ident(  # noqa: PLR0917 (typer maps parameters to options)
     session: Annotated[Path, typer.Argument(help="Session YAML: ports, controller (see profiles/sessions/).")],
     loopback: Annotated[bool, typer.Option("--loopback", help="Identify the emulator (started here).")] = False,
     out: Annotated[Path, typer.Option(help="Directory for the log, bode-AXIS.png and ident.json.")] = Path(
