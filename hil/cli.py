@@ -298,7 +298,8 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
         frf, fit = identify_log(read_log(result.log_path), sweep)
     except ValueError as exc:
         raise fail(f"{result.log_path}: cannot identify: {exc}", code=1) from None
-    png = bode_plot(frf, fit, out / f"bode-{axis}.png", title=f"{config.name}: k_m = {fit.k_m_dps2_per_count:.5f} deg/s^2 per count")
+    png = bode_plot(frf, fit, out / f"bode-{axis}.png",
+                    title=f"{config.name}: k_m = {fit.k_m_dps2_per_count:.5f} deg/s^2 per count")
     error_pct = 100.0 * (fit.k_m_dps2_per_count - K_M_DEFAULT) / K_M_DEFAULT
     report = {"log": str(result.log_path), "axis": axis, "sweep": sweep.model_dump(),
               "k_m_dps2_per_count": fit.k_m_dps2_per_count, "k_m_vs_default_pct": error_pct,
