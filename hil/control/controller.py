@@ -78,13 +78,18 @@ class RateController:
         self.loop = loop
         self.imbalance = imbalance  # the session feeds it and passes drive_counts(...) as feedforward_counts
         self.u_counts = 0
+        self.ff_counts = 0.0  # the feed-forward inside u_counts
         self.rate_fb_dps = 0.0
         self.disturbance_counts = 0.0
 
     def step(self, rate_cmd_dps: float, gyro_dps: float, feedforward_counts: float = 0.0) -> int:
+        """One 1 kHz step. The estimator is told the drive applied last tick *minus* the feed-forward it held:
+        an ESO estimates the whole disturbance from the drive it is told about, so with the feed-forward left in,
+        the imbalance would be cancelled twice and the P term settle at -ff (a rate error of ff / kp)."""
         est = self.estimator
-        self.rate_fb_dps = rate_fb = est.step(gyro_dps, self.u_counts)
+        self.rate_fb_dps = rate_fb = est.step(gyro_dps, self.u_counts - self.ff_counts)
         self.disturbance_counts = d = est.disturbance_counts
+        self.ff_counts = feedforward_counts
         self.u_counts = u = self.loop.step(rate_cmd_dps, rate_fb, d - feedforward_counts)
         return u
 
