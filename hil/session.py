@@ -31,6 +31,7 @@ from hil import __version__
 from hil.boards import DriverBoard, ImageBoard, ProtocolHexapod, ServoBoard
 from hil.config import PortConfig, SessionConfig
 from hil.control.controller import RateController
+from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
 from hil.control.loops import TrackingLoop
 from hil.control.registry import build_controller
 from hil.log import SessionLog
@@ -152,6 +153,12 @@ class ControlLoop:
               "max_rate_dps": tr.max_rate_dps, "stale_s": tr.stale_s}
         self.track_az, self.track_el = TrackingLoop(**kw), TrackingLoop(**kw)
         self.u_az = self.u_el = 0
+        self.ff_el = 0.0
+        # seed 001's imbalance feed-forward (elevation), for a controller that carries a UKF
+        imbalance = self.ctrl_el.imbalance
+        self.imbalance_feed = None if imbalance is None else ImbalanceFeed(
+            imbalance, self.config.profile.protocol_segments(), dt_s=1e-3)
+        self.profile_clock = ProfileClock()
 
     # --- the 1 kHz cycle -------------------------------------------------------------------------------
 
@@ -184,7 +191,10 @@ class ControlLoop:
         if self.armed:
             lim, slew = self.limits.max_drive_counts, self.limits.max_slew_counts
             u_az = self.ctrl_az.step(cmd_az, g.rate_z_dps)
-            u_el = self.ctrl_el.step(cmd_el, g.rate_y_dps)
+            feed = self.imbalance_feed
+            if feed is not None:
+                self.ff_el = feed.tick(self.profile_clock.at(self.t_s), g.rate_y_dps, g.az_deg, g.el_deg, self.u_el)
+            u_el = self.ctrl_el.step(cmd_el, g.rate_y_dps, self.ff_el)
             u_az = max(-lim, min(lim, max(self.u_az - slew, min(self.u_az + slew, u_az))))
             u_el = max(-lim, min(lim, max(self.u_el - slew, min(self.u_el + slew, u_el))))
             if u_az != self.ctrl_az.u_counts:
@@ -204,7 +214,8 @@ class ControlLoop:
         self.log.append("loop", (
             g.tick, t_s, t_rx, g.rate_x_dps, g.rate_y_dps, g.rate_z_dps, g.az_deg, g.el_deg,
             cmd_az, cmd_el, az.rate_fb_dps, el.rate_fb_dps, cmd_az - g.rate_z_dps, cmd_el - g.rate_y_dps,
-            az.disturbance_counts, el.disturbance_counts, 0.0, 0.0, u_az, u_el, latency_ns / 1000, min(gap, 255)))
+            az.disturbance_counts, el.disturbance_counts, 0.0, self.ff_el, u_az, u_el, latency_ns / 1000,
+            min(gap, 255)))
         if self.telemetry is not None:
             self.telemetry.sample(t_s, lambda: {
                 "gyro_y_dps": g.rate_y_dps, "gyro_z_dps": g.rate_z_dps, "rate_err_el_dps": cmd_el - g.rate_y_dps,
@@ -248,6 +259,7 @@ class ControlLoop:
 
     def on_pose(self, t_profile_s: float, pose: tuple[float, ...]) -> None:
         self.log.append("hexapod", (t_profile_s, time.monotonic_ns(), *pose))
+        self.profile_clock.on_pose(t_profile_s, self.t_s)
 
 
 @dataclass

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 PAPER_LPF_HZ = 150.0  # seed 000 section 4.3: "a traditional low-pass filter bandwidth of 150 Hz"
+LOS_BAND_HZ = 20.0  # seed 001's LOS rate: the 2.5 Hz vibration's band, above it the gyro's white noise dominates
 RECORD_S = 1.0  # peak-to-peak noise is read per 1 s record, as the paper's Fig. 12 shows one
 
 
@@ -45,6 +46,8 @@ METRICS: dict[str, Metric] = {
     "miss_std_px": Metric("miss std", "px", "the larger of the x and y miss-distance std (the paper's off-target std)"),
     "miss_range_px": Metric("miss +-", "px", "the larger of the x and y miss-distance +- range"),
     "los_rate_rms_dps": Metric("LOS rate rms", "deg/s", "rms of the gyro's y-z (line-of-sight) rate minus command"),
+    "los_rate_lf_std_dps": Metric("LOS rate std < 20 Hz", "deg/s", "std of the y-z rate error after a 20 Hz "
+                                  "first-order low-pass: the carrier-disturbance band without the gyro's white noise"),
     "gyro_raw_peak_dps": Metric("raw gyro +-", "deg/s", "median over 1 s records of max |x - mean|, elevation"),
     "gyro_raw_std_dps": Metric("raw gyro std", "deg/s", "std of the raw elevation gyro"),
     "gyro_lpf_peak_dps": Metric("LPF 150 Hz +-", "deg/s", "the same after a 150 Hz first-order low-pass"),
@@ -122,6 +125,8 @@ def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float
     err_y = (loop["rate_cmd_el_dps"] - loop["gyro_y_dps"])[keep].astype(float)
     err_z = (loop["rate_cmd_az_dps"] - loop["gyro_z_dps"])[keep].astype(float)
     m["los_rate_rms_dps"] = _nan_if_empty(err_y, lambda _: np.sqrt(np.mean(err_y**2 + err_z**2)))
+    lf_y, lf_z = (low_pass(e, LOS_BAND_HZ) for e in (err_y, err_z))
+    m["los_rate_lf_std_dps"] = _nan_if_empty(err_y, lambda _: np.sqrt(np.var(lf_y) + np.var(lf_z)))
 
     raw_all = loop["gyro_y_dps"].astype(float)
     lpf_all = low_pass(raw_all)  # filtered from the start, so the window sees a settled filter

@@ -100,6 +100,7 @@ class CampaignConfig(Strict):
     duration_s: float | None = Field(None, gt=0, description="overrides the base session's duration")
     overrides: dict[str, Any] = Field(default_factory=dict, description="merged into the base session")
     analysis: Analysis = "control"
+    settle_s: float = Field(1.0, ge=0, description="left out of every metric: ramps, convergence (a UKF: seconds)")
     profiles: list[ProfileEntry] = Field(min_length=1)
     controllers: list[ControllerEntry] = Field(min_length=1)
     seeds: list[int] = Field(min_length=1, description="one repetition per seed")

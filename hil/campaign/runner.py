@@ -116,7 +116,8 @@ def run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware:
             failures.append(f"session {summary.get('status')}: {summary.get('message', '')}".rstrip(": "))
         if log is not None and log.exists():
             try:
-                metrics = {k: v for k, v in compute_metrics(log, config.analysis).items() if math.isfinite(v)}
+                computed = compute_metrics(log, config.analysis, config.settle_s)
+                metrics = {k: v for k, v in computed.items() if math.isfinite(v)}
             except (ValueError, KeyError, OSError) as exc:
                 failures.append(f"metrics: {exc}")
         result = CellResult(**base, status=summary.get("status", "error"),
