@@ -5,7 +5,7 @@ Creates `.venv` beside this file on first use (and again whenever pyproject.toml
 installs the project into it, then runs the command. Needs only python3 >= 3.11; no root.
 
     python3 dev.py demo            the loopback demo (README's main command)
-    python3 dev.py test [ARGS]     ruff, then the whole test suite (extra ARGS go to pytest)
+    python3 dev.py test [ARGS]     mosquitto if possible, ruff, then the whole test suite (ARGS go to pytest)
     python3 dev.py bench           the benchmarks in benchmarks/ (results: docs/performance.md)
     python3 dev.py hil ARGS        any `hil` command inside the environment
 """
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -50,6 +51,26 @@ def ensure_env() -> None:
     STAMP.write_text(want + "\n")
 
 
+def ensure_mosquitto() -> None:
+    """Best effort: the telemetry tests want a real MQTT broker. Installs Debian's mosquitto when root with
+    apt-get; otherwise (or if that fails) the tests start amqtt, pure Python and slower, themselves."""
+    if shutil.which("mosquitto") or Path("/usr/sbin/mosquitto").exists():
+        return
+    if not hasattr(os, "geteuid") or os.geteuid() != 0 or not shutil.which("apt-get"):
+        say("mosquitto not found and not root: the telemetry tests will use amqtt")
+        return
+    say("installing mosquitto for the telemetry tests (best effort)")
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "env": env}
+    try:
+        ok = subprocess.call(["apt-get", "update", "-qq"], timeout=300, **quiet) == 0 and subprocess.call(
+            ["apt-get", "install", "-y", "-qq", "--no-install-recommends", "mosquitto"], timeout=300, **quiet) == 0
+    except subprocess.TimeoutExpired:
+        ok = False
+    if not ok:
+        say("mosquitto install failed: the telemetry tests will use amqtt")
+
+
 def main(argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(__doc__)
@@ -70,6 +91,7 @@ def main(argv: list[str]) -> int:
             say(f"running {script.relative_to(ROOT)}")
             rc |= run([PY, script, *rest])
         return rc
+    ensure_mosquitto()
     say("ruff check")
     if run([PY, "-m", "ruff", "check", "."]) != 0:
         say("ruff found problems (above); `.venv/bin/ruff check --fix .` fixes most")
