@@ -178,6 +178,13 @@ def _segments(x: np.ndarray, nperseg: int, starts: np.ndarray) -> np.ndarray:
     return seg - mean - slope * t
 
 
+def windowed_spectra(x: np.ndarray, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
+    """The Welch building block shared by the FRF and the report's PSD: rfft of each detrended segment
+    (:func:`_segment_starts`) times a periodic Hann window; returns ``(spectra [n_seg, bins], window)``."""
+    win = 0.5 - 0.5 * np.cos(TWO_PI * np.arange(nperseg) / nperseg)
+    return np.fft.rfft(_segments(x, nperseg, _segment_starts(x.size, nperseg)) * win, axis=1), win
+
+
 def default_nperseg(n: int, dt_s: float, f_min_hz: float) -> int:
     """A power of two giving ~4 bins below ``f_min_hz`` (the Hann lobe spans 2), at most half the record."""
     want = 2 ** math.ceil(math.log2(max(4.0 / (f_min_hz * dt_s), 16.0)))
@@ -216,11 +223,7 @@ def estimate_frf(
     nper = nperseg or default_nperseg(n, dt_s, f_min_hz)
     if nper < 16 or nper > n:
         raise ValueError(f"nperseg {nper} does not fit {n} samples")
-    starts = _segment_starts(n, nper)
-    win = 0.5 - 0.5 * np.cos(TWO_PI * np.arange(nper) / nper)  # periodic Hann
-    spec = {
-        name: np.fft.rfft(_segments(x, nper, starts) * win, axis=1) for name, x in (("r", rr), ("u", uu), ("y", yy))
-    }
+    spec = {name: windowed_spectra(x, nper)[0] for name, x in (("r", rr), ("u", uu), ("y", yy))}
     n_seg = spec["r"].shape[0]
 
     def cross(a: str, b: str) -> np.ndarray:

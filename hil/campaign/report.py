@@ -441,15 +441,16 @@ def render_html(doc: list[Block]) -> str:
 
 
 def welch(x: np.ndarray, fs: float, nperseg: int = PSD_SEGMENT) -> tuple[np.ndarray, np.ndarray]:
-    """One-sided power spectral density (unit²/Hz): Hann-windowed segments, 50 % overlap, each segment's
-    mean removed, periodograms averaged (as scipy.signal.welch's defaults)."""
+    """One-sided power spectral density (unit²/Hz): the segments and window of hil.ident's FRF (Hann, >= 50 %
+    overlap, each segment detrended), periodograms averaged."""
+    from hil.ident import windowed_spectra
+
     x = np.asarray(x, dtype=float)
     n = min(nperseg, x.size)
     if n < 8:
         return np.zeros(0), np.zeros(0)
-    w = np.hanning(n)
-    segs = np.stack([x[s : s + n] for s in range(0, x.size - n + 1, n // 2)])
-    spec = np.abs(np.fft.rfft((segs - segs.mean(axis=1, keepdims=True)) * w, axis=1)) ** 2 / (fs * np.sum(w**2))
+    spectra, w = windowed_spectra(x, n)
+    spec = np.abs(spectra) ** 2 / (fs * np.sum(w**2))
     spec[:, 1 : None if n % 2 else -1] *= 2  # one-sided: fold the negative frequencies (not DC, not Nyquist)
     return np.fft.rfftfreq(n, 1.0 / fs), spec.mean(axis=0)
 
