@@ -14,7 +14,7 @@ import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from hil.campaign.metrics import METRICS
 from hil.config import _resolve
@@ -115,7 +115,7 @@ class CampaignConfig(Strict):
 
     @field_validator("metrics")
     @classmethod
-    def _known_metrics(cls, names: list[str], info: ValidationInfo) -> list[str]:
+    def _known_metrics(cls, names: list[str]) -> list[str]:
         for name in names:
             if name not in METRICS:
                 raise ValueError(f"unknown metric {name!r} (metrics: {', '.join(METRICS)})")

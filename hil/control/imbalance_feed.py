@@ -68,7 +68,7 @@ from collections.abc import Sequence
 
 from hil.control.controller import ImbalanceCompensation
 from hil.control.ukf_imbalance import STANDARD_GRAVITY_M_S2
-from hil.protocol.swing import Segment
+from hil.protocol.swing import Segment, evaluate
 
 __all__ = ["RHO_WALK_STD_M", "ImbalanceFeed", "ProfileClock", "specific_force_body"]
 
@@ -134,13 +134,7 @@ class ImbalanceFeed:
         if rho_walk_std_m is not None:
             q = imbalance.ukf.filter.Q
             q[0, 0] = q[1, 1] = rho_walk_std_m**2
-        # segments as plain tuples (axis, start, end, amplitude, w, phase_rad, ramp)
-        self._segs = tuple(
-            (int(s.axis), s.start_s, s.end_s, s.amplitude, 2.0 * math.pi * s.frequency_hz,
-             math.radians(s.phase_deg), min(s.ramp_s, s.duration_s / 2.0))
-            for s in segments
-        )
-        self._rotates = any(s[0] >= 3 for s in self._segs)
+        self.segments = tuple(segments)
         # outputs
         self.ff_counts = 0.0
         self.identified = False
@@ -182,33 +176,9 @@ class ImbalanceFeed:
     # -- profile ---------------------------------------------------------------------------------------------------
 
     def carrier_specific_force(self, t_s: float) -> tuple[float, float, float]:
-        """The profile's specific force in the body frame (m/s^2) at profile time ``t_s`` (same as
-        ``specific_force_body`` on :func:`hil.protocol.swing.evaluate`, on plain floats)."""
-        acc = [0.0, 0.0, 0.0]
-        ang = [0.0, 0.0, 0.0]
-        sin, cos = math.sin, math.cos
-        for axis, start, end, a, w, ph, ramp in self._segs:
-            if not start <= t_s < end:
-                continue
-            since = t_s - start
-            if ramp > 0.0:
-                until = end - t_s
-                if since < ramp:
-                    r, dr = since / ramp, 1.0 / ramp
-                elif until < ramp:
-                    r, dr = until / ramp, -1.0 / ramp
-                else:
-                    r, dr = 1.0, 0.0
-            else:
-                r, dr = 1.0, 0.0
-            phi = w * since + ph
-            if axis < 3:
-                acc[axis] += a * (2.0 * dr * w * cos(phi) - r * w * w * sin(phi))
-            else:
-                ang[axis - 3] += a * r * sin(phi)
-        if not self._rotates:
-            return (acc[0] * 1e-3, acc[1] * 1e-3, acc[2] * 1e-3 - STANDARD_GRAVITY_M_S2)
-        return specific_force_body((acc[0], acc[1], acc[2]), (ang[0], ang[1], ang[2]))
+        """The profile's specific force in the body frame (m/s^2) at profile time ``t_s``."""
+        pose, _, acc = evaluate(self.segments, t_s)
+        return specific_force_body((acc[0], acc[1], acc[2]), (pose[3], pose[4], pose[5]))
 
     # -- the 1 kHz path --------------------------------------------------------------------------------------------
 
