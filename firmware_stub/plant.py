@@ -412,7 +412,8 @@ _ROUND = 6755399441055744.0  # 1.5 * 2^52: (x + _ROUND) - _ROUND is x rounded to
 _I_A, _W_A, _TH_A, _I_E, _W_E, _TH_E = range(6)
 _GX, _GY, _GZ, _XO, _YO, _ZO, _RING_J, _TICK = range(6, 14)
 _MX, _MY, _MZ, _NOISE_K, _V_A, _V_E = range(14, 20)
-_STATE_LEN = 20
+_SIN_A, _COS_A, _SIN_E, _COS_E = range(20, 24)  # of the angles at the tick end (the next tick rotates them)
+_STATE_LEN = 24
 
 
 class Plant:
@@ -462,8 +463,14 @@ class Plant:
         s[_RING_J] = s[_TICK] = 0
         s[_NOISE_K] = -_NOISE_PER_TICK  # no noise drawn before the first tick
         s[_MX], s[_MY], s[_MZ] = bias
+        s[_SIN_A], s[_COS_A] = math.sin(s[_TH_A]), math.cos(s[_TH_A])
+        s[_SIN_E], s[_COS_E] = math.sin(s[_TH_E]), math.cos(s[_TH_E])
         self._box[0] = tuple(s)
-        self.t_s = 0.0
+
+    @property
+    def t_s(self) -> float:
+        """Simulated time reached, s."""
+        return self._box[0][_TICK] * TICK_S
 
     def _refill_noise(self) -> None:
         """The next block of noise, five values per tick: gyro x, y, z (bias + std * N(0, 1), deg/s) and camera x, y
@@ -476,7 +483,9 @@ class Plant:
         z = list(map(self._table.__getitem__, raw))
         g = self.config.gyro
         sn = self.config.camera.centroid_noise_std_px
-        offsets, scales = (*g.bias_dps, 0.0, 0.0), (*g.noise_std_dps, sn, sn)
+        unit = g.quantisation_lsb_dps or 1.0  # the hot path works in gyro LSBs (see _build)
+        offsets = (*(b / unit for b in g.bias_dps), 0.0, 0.0)
+        scales = (*(x / unit for x in g.noise_std_dps), sn, sn)
         block = self._noise
         block[:] = z
         for k in range(_NOISE_PER_TICK):
@@ -498,7 +507,7 @@ class Plant:
     def _build(self) -> Any:
         cfg = self.config
         h = cfg.internal_step_s
-        n_sub = self.n_sub
+        n_sub = (None,) * self.n_sub  # iterated by the sub-step loop (cheaper than a new range each tick)
         half_tick = 0.5 * TICK_S
         sin, cos, tanh = math.sin, math.cos, math.tanh
 
@@ -525,8 +534,11 @@ class Plant:
         ea, c1a, c0a = _foh(wc, alpha, g.scale_factor)
         fa = alpha / TICK_S  # the input at t0 + alpha, linearly interpolated
         d1, d0 = c1a * fa, c1a * (1.0 - fa) + c0a  # y(alpha) = ea y0 + d1 x1 + d0 x0
+        # the filter, the delay ring and the noise work in the output's unit: gyro LSBs (deg/s if not quantised)
         lsb = g.quantisation_lsb_dps
         inv_lsb = 1.0 / lsb if lsb > 0 else 0.0
+        per_rad_s = R2D * inv_lsb if lsb > 0 else R2D
+        c1, c0, d1, d0 = c1 * per_rad_s, c0 * per_rad_s, d1 * per_rad_s, d0 * per_rad_s
         rnd = _ROUND
         ring = self._ring
         noise = self._noise
@@ -534,11 +546,10 @@ class Plant:
         refill = self._refill_noise
         cache = self._cache
         box = self._box
-        plant = self
 
         # carrier, derived once per distinct CarrierMotion (nonlocal cache)
         last_carrier: Any = None
-        p = q = r = pe = qe = re = fbx = fby = 0.0
+        p = q = r = pe = qe = fbx = fby = 0.0
         fbz = -G0_M_S2
 
         def step_tick(  # noqa: PLR0917 (the constants ride as defaults)
@@ -546,17 +557,18 @@ class Plant:
             u_el_counts: float,
             carrier: CarrierMotion,
             # constants as positional defaults: fast locals in the hot path (copied from a tuple at the call)
-            sin=sin, cos=cos, tanh=tanh, n_sub=n_sub, half_tick=half_tick, h=h, pa11=pa11, pa12=pa12, pa21=pa21,
+            sin=sin, cos=cos, tanh=tanh, n_sub=n_sub, half_tick=half_tick, hd=D2R * half_tick, h=h, pa11=pa11,
+            pa12=pa12, pa21=pa21,
             pa22=pa22, ga1v=ga1v, ga1c=ga1c, ga1t=ga1t, ga2v=ga2v, ga2c=ga2c, ga2t=ga2t, pe11=pe11, pe12=pe12,
             pe21=pe21, pe22=pe22, ge1v=ge1v, ge1c=ge1c, ge1t=ge1t, ge2v=ge2v, ge2c=ge2c, ge2t=ge2t, vpc_a=vpc_a,
             vmax_a=vmax_a, vpc_e=vpc_e, vmax_e=vmax_e, iws_a=iws_a, iws_e=iws_e, ka1=ka1, ka2=ka2, ke1=ke1, ke2=ke2,
             mrx=mrx, mry=mry, mrz=mrz, has_imbalance=has_imbalance, ef=ef, c1=c1, c0=c0, ea=ea, d1=d1, d0=d0,
             delay_ticks=delay_ticks, lsb=lsb, inv_lsb=inv_lsb,
             rnd=rnd, ring=ring, noise=noise, noise_len=noise_len, refill=refill, cache=cache, box=box,
-            plant=plant, D2R=D2R, R2D=R2D, TICK_S=TICK_S, G0_M_S2=G0_M_S2
+            D2R=D2R, R2D=R2D, TICK_S=TICK_S, G0_M_S2=G0_M_S2
         ) -> None:
-            nonlocal last_carrier, p, q, r, pe, qe, re, fbx, fby, fbz
-            if carrier != last_carrier:
+            nonlocal last_carrier, p, q, r, pe, qe, fbx, fby, fbz
+            if carrier is not last_carrier:
                 last_carrier = cache[0] = carrier
                 pose, rate, acc = carrier
                 _, _, _, ph, th, ps = pose
@@ -573,16 +585,11 @@ class Plant:
                 p = phd - psd * s_t
                 q = thd * cf + pc * sf
                 r = pc * cf - thd * sf
-                # d/dt of the above, rearranged: dp = phdd - psdd st - thd psd ct,
-                # dq = thdd cf + (psdd ct - psd thd st) sf + phd r, dr = -thdd sf + (psdd ct - psd thd st) cf - phd q
-                phdd *= D2R
-                thdd *= D2R
-                psdd *= D2R
-                ab = (psdd * ct - psd * thd * s_t) * half_tick
-                thdd *= half_tick
-                pe = p + (phdd - psdd * s_t - thd * pc) * half_tick  # body rates at the tick end
-                qe = q + thdd * cf + ab * sf + phd * r * half_tick
-                re = r - thdd * sf + ab * cf - phd * q * half_tick
+                # p and q at the tick end, by their time derivatives (rearranged): dp/dt = phdd - psdd st - thd pc,
+                # dq/dt = thdd cf + psdd ct sf + phd r - psd thd st sf (the gyro needs no r: the azimuth axis's own
+                # rate w_a carries it); accelerations in deg/s^2, hence hd = D2R half_tick
+                pe = p + (phdd - psdd * s_t) * hd - thd * pc * half_tick
+                qe = q + (thdd * cf + psdd * ct * sf) * hd + (phd * r - psd * thd * s_t * sf) * half_tick
                 # specific force (a - g) in the body frame: C_lab^body (a_lab - (0, 0, g))
                 fz = azz * 1e-3 - G0_M_S2
                 if axx or ayy:
@@ -594,14 +601,16 @@ class Plant:
                     fbz = (cf * s_t * cp + sf * sp) * fx + (cf * s_t * sp - sf * cp) * fy + cf * ct * fz
                 else:
                     fbx, fby, fbz = -s_t * fz, sf * ct * fz, cf * ct * fz
-            (i_a, w_a, th_a, i_e, w_e, th_e, gx, gy, gz, xo, yo, zo, ring_j, tick, _, _, _, nk, _, _) = box[0]
-            # gimbal angles predicted at mid-tick: the kinematics are held over the tick (midpoint rule)
-            a_mid = th_a + (w_a - r) * half_tick
-            sa, ca = sin(a_mid), cos(a_mid)
+            (i_a, w_a, th_a, i_e, w_e, th_e, gx, gy, gz, xo, yo, zo, ring_j, tick, _, _, _, nk, _, _,
+             sa, ca, se, ce) = box[0]
+            # gimbal angles predicted at mid-tick: the kinematics are held over the tick (midpoint rule); their sin
+            # and cos by rotating the tick end's through the half-tick angle d (first order: error d^2/2 < 2e-6)
+            d = (w_a - r) * half_tick
+            sa, ca = sa + ca * d, ca - sa * d
             c_a = r  # carrier rate on the azimuth axis (z_o = z_b)
             c_e = ca * q - sa * p  # carrier rate on the elevation axis (y_o)
-            e_mid = th_e + (w_e - c_e) * half_tick
-            se, ce = sin(e_mid), cos(e_mid)
+            d = (w_e - c_e) * half_tick
+            se, ce = se + ce * d, ce - se * d
             if has_imbalance:  # -m rho x f, f in the elevation frame (seed 001 eqs 3-4)
                 hxy = ca * fbx + sa * fby
                 fx = hxy * ce - fbz * se
@@ -631,7 +640,7 @@ class Plant:
             ce_w = c_e * iws_e
             w_a0, w_e0 = w_a, w_e
             sum_a = sum_e = 0.0
-            for _ in range(n_sub):
+            for _ in n_sub:
                 t = tanh(w_a * iws_a - ca_w)
                 i_a, w_a = pa11 * i_a + pa12 * w_a + ea1 - ka1 * t, pa21 * i_a + pa22 * w_a + ea2 - ka2 * t
                 t = tanh(w_e * iws_e - ce_w)
@@ -666,17 +675,16 @@ class Plant:
             if nk == noise_len:
                 refill()
                 nk = 0
-            mx = mx * R2D + noise[nk]  # bias + noise, precomputed per block
-            my = my * R2D + noise[nk + 1]
-            mz = mz * R2D + noise[nk + 2]
-            if inv_lsb:  # round to the LSB: adding and removing 1.5 * 2^52 rounds a float to an integer
-                mx = ((mx * inv_lsb + rnd) - rnd) * lsb
-                my = ((my * inv_lsb + rnd) - rnd) * lsb
-                mz = ((mz * inv_lsb + rnd) - rnd) * lsb
+            mx += noise[nk]  # bias + noise, precomputed per block
+            my += noise[nk + 1]
+            mz += noise[nk + 2]
+            if inv_lsb:  # LSBs to deg/s, rounded: adding and removing 1.5 * 2^52 rounds a float to an integer
+                mx = ((mx + rnd) - rnd) * lsb
+                my = ((my + rnd) - rnd) * lsb
+                mz = ((mz + rnd) - rnd) * lsb
             tick += 1
             box[0] = (i_a, w_a, th_a, i_e, w_e, th_e, gx, gy, gz, xn, w_e, zn, ring_j, tick,
-                     mx, my, mz, nk, v_a, v_e)
-            plant.t_s = tick * TICK_S
+                     mx, my, mz, nk, v_a, v_e, sa, ca, se, ce)
 
         return step_tick
 
