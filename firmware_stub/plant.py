@@ -19,17 +19,23 @@ the internal step; drive, carrier rate and imbalance torque held over the tick (
 the Coulomb torque over each sub-step; trapezoidal rule for the angle. The gyro filter is discretised exactly at the
 tick for an input linear between tick ends (first-order hold), the delay evaluated exactly inside the tick plus whole
 ticks from a ring. The hot path (:meth:`Plant.step_tick`) runs on plain floats and ``math``; it is a closure whose
-constants are locals (positional defaults).
+constants are positional defaults, then specialised by :func:`specialise` (numeric constants folded into the code,
+the sub-step loop unrolled): the same source, about 3 % faster (docs/performance.md).
 
 This module imports nothing from ``hil`` (``firmware_stub`` may only use ``hil.protocol``).
 """
 
 from __future__ import annotations
 
+import ast
+import inspect
 import math
 import random
 import sys
+import textwrap
+import types
 from array import array
+from collections.abc import Callable
 from pathlib import Path
 from statistics import NormalDist
 from typing import Any, Literal, NamedTuple
@@ -392,6 +398,67 @@ def normal_table() -> array[float]:
     return _NORMAL_TABLE
 
 
+# --- specialising the hot path ----------------------------------------------------------------------------------
+
+
+def specialise(fn: Callable[..., Any], unroll: dict[str, int]) -> Callable[..., Any]:
+    """``fn`` recompiled from its own source with its numeric defaults folded into the code as constants (no default
+    copied per call, constant branches dropped by the compiler) and each ``for _ in NAME:`` loop with ``NAME`` in
+    ``unroll`` written out that many times. The closure's free variables keep working (``nonlocal`` included):
+    the recompiled function closes over the same cells. Returns ``fn`` itself if its source is unavailable.
+
+    A partial evaluation, not a different algorithm: the result computes the same floats in the same order.
+    """
+    try:
+        source = textwrap.dedent(inspect.getsource(fn))
+    except (OSError, TypeError):  # pragma: no cover (no source, e.g. a frozen build)
+        return fn
+    fdef = ast.parse(source).body[0]
+    assert isinstance(fdef, ast.FunctionDef)
+    args = fdef.args.args
+    defaults = fn.__defaults__ or ()
+    names = [a.arg for a in args[len(args) - len(defaults):]]
+    folded = {n: v for n, v in zip(names, defaults, strict=True) if type(v) in (int, float, bool) and n not in unroll}
+    kept = [(a, v) for a, v in zip(args[len(args) - len(defaults):], defaults, strict=True)
+            if a.arg not in folded and a.arg not in unroll]
+    fdef.args.args = args[: len(args) - len(defaults)] + [a for a, _ in kept]
+    fdef.args.defaults = [ast.Constant(None) for _ in kept]  # the values are passed below, as objects
+
+    class Fold(ast.NodeTransformer):
+        def visit_Name(self, node: ast.Name) -> ast.AST:
+            if isinstance(node.ctx, ast.Load) and node.id in folded:
+                return ast.copy_location(ast.Constant(folded[node.id]), node)
+            return node
+
+        def visit_For(self, node: ast.For) -> Any:
+            self.generic_visit(node)
+            if isinstance(node.iter, ast.Name) and node.iter.id in unroll and not node.orelse:
+                return [stmt for _ in range(unroll[node.iter.id]) for stmt in node.body]
+            return node
+
+    fdef = Fold().visit(fdef)
+    fdef.decorator_list = []
+    ast.increment_lineno(fdef, fn.__code__.co_firstlineno - 1)  # tracebacks name the lines of the real source
+    free = fn.__code__.co_freevars
+    # a factory whose locals are the closure's free variables, so that the inner function closes over cells
+    factory = ast.FunctionDef(
+        name="_factory", args=ast.arguments(posonlyargs=[], args=[], kwonlyargs=[], kw_defaults=[], defaults=[]),
+        body=[*(ast.Assign(targets=[ast.Name(v, ast.Store())], value=ast.Constant(None)) for v in free), fdef,
+              ast.Return(ast.Name(fdef.name, ast.Load()))],
+        decorator_list=[], returns=None,
+    )
+    module = ast.fix_missing_locations(ast.Module(body=[factory], type_ignores=[]))
+    namespace = dict(fn.__globals__)
+    exec(compile(module, inspect.getsourcefile(fn) or "<specialised>", "exec"), namespace)
+    code = namespace["_factory"]().__code__
+    if code.co_freevars != fn.__code__.co_freevars:  # pragma: no cover (the compiler orders both alike)
+        return fn
+    # bound to the original cells: the specialised function shares the closure of ``fn``
+    out = types.FunctionType(code, fn.__globals__, fn.__name__, tuple(v for _, v in kept), fn.__closure__)
+    out.__doc__, out.__qualname__ = fn.__doc__, fn.__qualname__
+    return out
+
+
 # --- the plant -----------------------------------------------------------------------------------------------------
 
 
@@ -556,7 +623,7 @@ class Plant:
             u_az_counts: float,
             u_el_counts: float,
             carrier: CarrierMotion,
-            # constants as positional defaults: fast locals in the hot path (copied from a tuple at the call)
+            # constants as positional defaults; specialise() then folds the numeric ones into the code
             sin=sin, cos=cos, tanh=tanh, n_sub=n_sub, half_tick=half_tick, hd=D2R * half_tick, h=h, pa11=pa11,
             pa12=pa12, pa21=pa21,
             pa22=pa22, ga1v=ga1v, ga1c=ga1c, ga1t=ga1t, ga2v=ga2v, ga2c=ga2c, ga2t=ga2t, pe11=pe11, pe12=pe12,
@@ -686,7 +753,7 @@ class Plant:
             box[0] = (i_a, w_a, th_a, i_e, w_e, th_e, gx, gy, gz, xn, w_e, zn, ring_j, tick,
                      mx, my, mz, nk, v_a, v_e, sa, ca, se, ce)
 
-        return step_tick
+        return specialise(step_tick, unroll={"n_sub": self.n_sub})
 
     # -- outputs --
 

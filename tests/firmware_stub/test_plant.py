@@ -20,6 +20,7 @@ from firmware_stub.plant import (
     carrier_state,
     imbalance_torques,
     load_plant_config,
+    specialise,
 )
 from hil.control.pos_kinematics import azel_los_inertial_rate, azel_rot_body_to_el, rot_x, rot_y, rot_z
 from tests.firmware_stub.closed_loop import (
@@ -249,6 +250,39 @@ def test_gyro_is_read_once_per_tick_and_deterministic(default: PlantConfig) -> N
     plant.reset()
     assert plant.t_s == 0.0
     assert run(plant, False) == a
+
+
+def test_specialised_hot_path_computes_the_same_floats(default: PlantConfig, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The specialised step_tick (constants folded, sub-steps unrolled) against the plain closure it came from,
+    bit for bit, through sticking (weak drive) and sliding (strong drive) and a reversal, with a swing."""
+    fast = Plant(default, seed=5)
+    monkeypatch.setattr("firmware_stub.plant.specialise", lambda fn, unroll: fn)
+    plain = Plant(default, seed=5)
+    assert fast.step_tick.__code__ is not plain.step_tick.__code__
+    assert len(fast.step_tick.__defaults__ or ()) < 15 < len(plain.step_tick.__defaults__ or ())
+    for k in range(3000):
+        carrier = swing_carrier((k + 0.5) * 1e-3, 1.0, 1.0, True, True)
+        u = 300.0 if k < 1000 else 20000.0 * math.sin(2.0 * math.pi * k * 1e-3)
+        fast.step_tick(u, -u, carrier)
+        plain.step_tick(u, -u, carrier)
+        assert fast._box[0] == plain._box[0], k
+
+
+def test_specialise_folds_constants_unrolls_and_keeps_the_closure() -> None:
+    count = 0
+
+    def f(x: float, k=2.0, n=(None,) * 3, sink=None) -> float:
+        nonlocal count
+        for _ in n:
+            x = x * k + 1.0
+        count += 1
+        return x
+
+    g = specialise(f, unroll={"n": 3})
+    assert g(1.0) == f(1.0) == 15.0
+    assert count == 2  # the same cell
+    assert g.__defaults__ == (None,)  # k folded, n unrolled, sink kept
+    assert 2.0 in g.__code__.co_consts
 
 
 # --- carrier coupling and kinematics -------------------------------------------------------------------------------
