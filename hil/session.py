@@ -46,7 +46,7 @@ from hil.protocol import (
     LoopTiming,
     MissDistance,
 )
-from hil.telemetry import Telemetry
+from hil.telemetry import Telemetry, TelemetryProcess
 from hil.transport import LinkError, SerialLink
 
 LINKS = ("servo", "driver", "image", "hexapod")
@@ -473,7 +473,8 @@ class Session:
             assert self.log is not None
             self._raise_priority()
             if self.config.mqtt is not None:
-                self.telemetry = Telemetry(self.config.mqtt, self.log_path.stem if self.log_path else "session")
+                self.telemetry = TelemetryProcess(self.config.mqtt,
+                                                  self.log_path.stem if self.log_path else "session")
                 await self.telemetry.start()
             self.loop_ = ControlLoop(self.config, self.driver, self.log, telemetry=self.telemetry,
                                      duration_ticks=round(self.config.duration_s * 1000),

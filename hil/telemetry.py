@@ -23,11 +23,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import math
+import os
 import re
 import secrets
+import signal
+import subprocess
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -39,12 +43,15 @@ import aiomqtt
 import paho.mqtt.client as paho
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from hil import ipc
+
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
 
 __all__ = [
     "MqttConfig",
     "Telemetry",
+    "TelemetryProcess",
     "TelemetryStats",
     "meta_topic",
     "session_topic",
@@ -56,7 +63,9 @@ log = logging.getLogger(__name__)
 
 TOPIC_ROOT = "hil"
 STOP_TIMEOUT_S = 2.0  # stop() returns within this, broker or not
+FIRST_REPORT_TIMEOUT_S = 5.0  # TelemetryProcess.start() waits this long at most for the first connection attempt
 EVENT_QOS = 1  # status, meta, state and events: rare and worth an acknowledgement
+_CHILD_NICE = 5  # the publisher child must not preempt the 1 kHz loop or the log writer
 _BURST = 25  # telemetry messages handed to paho per loop step when a backlog has built up
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")
 _NAME_RULE = "1-64 characters from A-Z a-z 0-9 _ . - starting with a letter or digit (topic-safe: no / + # or spaces)"
@@ -273,6 +282,9 @@ class Telemetry:
             self.stats.dropped += 1
             self.stats.last_error = f"sample(): {type(exc).__name__}: {exc}"
             return
+        self._enqueue_sample(t_s, data)
+
+    def _enqueue_sample(self, t_s: float, data: dict[str, float]) -> None:
         self._telemetry.append((t_s, data))
         if not self._wake.is_set():
             self._wake.set()
@@ -286,9 +298,14 @@ class Telemetry:
     def state(self, state: str, /, **detail: Any) -> None:
         """Set the session state: retained on ``.../state`` (latest wins) and also sent as a ``state`` event."""
         body = {"state": str(state), "t": time.time(), "session": self.session_id}
-        self._state_payload = _safe_dumps(body, detail)
-        self._state_dirty = True
+        self._set_state_payload(_safe_dumps(body, detail))
         self.event("state", **{**detail, "state": str(state)})
+
+    def _set_state_payload(self, payload: str) -> None:
+        self._state_payload = payload
+        self._state_dirty = True
+        if not self._wake.is_set():
+            self._wake.set()
 
     def set_units(self, units: Mapping[str, str]) -> None:
         """Channel -> unit, published retained on ``.../meta`` (again now if connected)."""
@@ -550,6 +567,217 @@ class Telemetry:
                 raise aiomqtt.MqttCodeError(info.rc, "Could not publish message")
             backlog.append(info)
             stats.published += 1
+
+
+class TelemetryProcess(Telemetry):
+    """A Telemetry whose MQTT client runs in a child process: what the bench session uses.
+
+    The decimation and the snapshot of a due sample happen here, in the loop's thread, as in
+    :class:`Telemetry`; the JSON encoding, paho, aiomqtt, the socket and the reconnections run in
+    a child process (a plain :class:`Telemetry` there). The loop's share of a published sample is
+    one pickle of ~10 floats and one non-blocking write to a pipe (a few us); in the loop's own
+    thread, a publish cost ~0.4 ms of event-loop time and delayed one cycle in twenty
+    (docs/performance.md). Nothing blocks: a message the pipe cannot take at once (the child is
+    behind) is dropped and counted; ``stats`` is the child's, reported a few times a second and at
+    stop, plus the drops counted here. If the bench dies the child sees EOF, publishes the
+    retained ``offline`` status and exits (the broker's last will covers a lost child).
+    """
+
+    STATS_PERIOD_S: ClassVar[float] = 0.25
+
+    def __init__(self, config: MqttConfig, session_id: str, *, units: Mapping[str, str] | None = None) -> None:
+        super().__init__(config, session_id, units=units)
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._wfd = self._rfd = -1
+        self._frames = ipc.FrameBuffer()
+        self._child_dropped = 0  # the child's own count, last reported
+        self._final: asyncio.Future[None] | None = None
+        self._pending: list[Any] = []  # events and state before start(), sent by start()
+        self._first_report: asyncio.Future[None] | None = None
+
+    async def start(self) -> None:
+        """Start the child process (it connects, and reconnects, on its own); returns at once."""
+        if self._proc is not None:
+            return
+        self._proc = ipc.spawn_helper(ipc.helper_argv("hil.telemetry:_child_main"))
+        assert self._proc.stdin is not None and self._proc.stdout is not None
+        self._wfd, self._rfd = self._proc.stdin.fileno(), self._proc.stdout.fileno()
+        ipc.send(self._wfd, ("open", self.config.model_dump(), self.session_id, self._units, self._client_id))
+        os.set_blocking(self._wfd, False)
+        os.set_blocking(self._rfd, False)
+        loop = asyncio.get_running_loop()
+        self._final = loop.create_future()
+        self._first_report = loop.create_future()
+        loop.add_reader(self._rfd, self._on_child_output)
+        pending, self._pending = self._pending, []
+        for msg in pending:
+            self._post(msg)
+        # the child reports after its first connection attempt (~0.5 s: it imports aiomqtt first)
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(asyncio.shield(self._first_report), FIRST_REPORT_TIMEOUT_S)
+
+    def _on_child_output(self) -> None:
+        try:
+            data = os.read(self._rfd, 65536)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:  # the child is gone
+            asyncio.get_running_loop().remove_reader(self._rfd)
+            self.stats.connected = False
+            if self._first_report is not None and not self._first_report.done():
+                self._first_report.set_result(None)
+            if self._final is not None and not self._final.done():
+                self._final.set_result(None)
+            return
+        for msg in self._frames.feed(data):
+            kind, child = msg
+            if self._first_report is not None and not self._first_report.done():
+                self._first_report.set_result(None)
+            self.stats.published = child["published"]
+            self.stats.reconnects = child["reconnects"]
+            self.stats.connected = child["connected"]
+            self.stats.last_error = child["last_error"] or self.stats.last_error
+            self.stats.dropped += child["dropped"] - self._child_dropped
+            self._child_dropped = child["dropped"]
+            if kind == "final" and self._final is not None and not self._final.done():
+                self._final.set_result(None)
+
+    def _post(self, msg: Any) -> bool:
+        """One message to the child, now or never (counted as dropped)."""
+        if self._wfd < 0:
+            if self._proc is None and msg[0] != "sample" and len(self._pending) < self.config.queue_size:
+                self._pending.append(msg)  # not started yet: kept, as Telemetry keeps events
+                return True
+            self.stats.dropped += 1
+            return False
+        data = ipc.frame(msg)
+        try:
+            if len(data) > ipc.ATOMIC_BYTES:  # could be written in part: it would break the framing
+                raise ValueError(f"message of {len(data)} bytes")
+            os.write(self._wfd, data)
+        except (OSError, ValueError) as exc:  # BlockingIOError: the child is behind
+            self.stats.dropped += 1
+            if not isinstance(exc, BlockingIOError):
+                self.stats.last_error = f"telemetry child: {type(exc).__name__}: {exc}"
+            return False
+        return True
+
+    def _enqueue_sample(self, t_s: float, data: dict[str, float]) -> None:
+        self._post(("sample", t_s, data))
+
+    def _push_event(self, payload: str, kind: str) -> None:
+        self._post(("event", payload, kind))
+
+    def _set_state_payload(self, payload: str) -> None:
+        self._state_payload = payload
+        self._post(("state", payload))
+
+    def set_units(self, units: Mapping[str, str]) -> None:
+        self._units.update(units)
+        self._post(("units", dict(units)))
+
+    async def stop(self) -> None:
+        """The child publishes the retained offline status and disconnects; returns within ~2 s."""
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        self._post(("stop",))
+        if self._final is not None:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(self._final), STOP_TIMEOUT_S + 0.5)
+        with contextlib.suppress(Exception):
+            asyncio.get_running_loop().remove_reader(self._rfd)
+        for f in (proc.stdin, proc.stdout):
+            if f is not None:
+                f.close()
+        self._wfd = self._rfd = -1
+        try:
+            await asyncio.to_thread(proc.wait, 2.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            await asyncio.to_thread(proc.wait)
+        self.stats.connected = False
+
+
+def _child_main() -> None:
+    """The telemetry child: messages in on stdin, stats out on the original stdout."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the process group: the bench stops us
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # we stop at EOF on stdin, after the offline status
+    with contextlib.suppress(OSError):
+        os.nice(_CHILD_NICE)
+    out_fd = os.dup(1)
+    os.dup2(2, 1)  # a stray print must not corrupt the stats
+    msg = ipc.recv(0)
+    if msg is None or msg[0] != "open":
+        return
+    _, config, session_id, units, client_id = msg
+    asyncio.run(_child_run(MqttConfig.model_validate(config), session_id, units, client_id, out_fd))
+
+
+async def _child_run(config: MqttConfig, session_id: str, units: dict[str, str], client_id: str,
+                     out_fd: int) -> None:
+    tm = Telemetry(config, session_id, units=units)
+    tm._client_id = client_id  # the name the bench reported
+    loop = asyncio.get_running_loop()
+    done = loop.create_future()
+    frames = ipc.FrameBuffer()
+
+    def on_input() -> None:
+        try:
+            data = os.read(0, 65536)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:  # the bench is gone
+            if not done.done():
+                done.set_result(None)
+            return
+        for m in frames.feed(data):
+            kind = m[0]
+            if kind == "sample":
+                tm._sample_due(m[1], m[2])
+            elif kind == "event":
+                tm._push_event(m[1], m[2])
+            elif kind == "state":
+                tm._set_state_payload(m[1])
+            elif kind == "units":
+                tm.set_units(m[1])
+            elif kind == "stop" and not done.done():
+                done.set_result(None)
+
+    def report(kind: str) -> None:
+        with contextlib.suppress(OSError):
+            ipc.send(out_fd, (kind, dataclasses.asdict(tm.stats)))
+
+    on_connected, on_disconnected, on_error = tm._on_connected, tm._on_disconnected, tm._on_error
+
+    def error(exc: BaseException, was_connected: bool) -> None:
+        on_error(exc, was_connected)
+        report("stats")
+
+    def connected(is_reconnect: bool) -> None:  # tell the bench at once: it only sends samples while connected
+        on_connected(is_reconnect)
+        report("stats")
+
+    def disconnected() -> None:
+        on_disconnected()
+        report("stats")
+
+    tm._on_connected, tm._on_disconnected, tm._on_error = connected, disconnected, error  # type: ignore[method-assign]
+    os.set_blocking(0, False)
+    await tm.start()
+    loop.add_reader(0, on_input)
+    try:
+        while not done.done():
+            await asyncio.wait({done}, timeout=TelemetryProcess.STATS_PERIOD_S)
+            report("stats")
+    finally:
+        loop.remove_reader(0)
+        await tm.stop()
+        report("final")
 
 
 def _paho_of(client: aiomqtt.Client) -> paho.Client | None:

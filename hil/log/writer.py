@@ -54,6 +54,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from hil.ipc import helper_argv, recv, send, send_bytes, spawn_helper
 from hil.log.schema import (
     DETAIL_LEN,
     KIND_LEN,
@@ -82,46 +83,14 @@ _WRITER_OWNED = (
 _STARTUP_TIMEOUT_S = 60.0  # the child imports numpy and h5py: ~0.3 s, much more on a loaded machine
 _CLOSE_TIMEOUT_S = 60.0
 _WRITER_NICE = 10  # the writer needs ~4 % of a core; it must not preempt the 1 kHz loop
+# After each dataset append (64 per flush) the writer yields the CPU: on an EEVDF kernel a fair task
+# may finish its 1.4 ms slice before a waking task runs, so one ~2 ms flush burst delayed the loop or
+# the emulator sharing its core; 64 short bursts do not (docs/performance.md, issue 5).
+_yield_cpu = getattr(os, "sched_yield", lambda: None)
 
 
 class LogError(Exception):
     """A session log cannot be created, read or recovered. The message is one line naming the file."""
-
-
-# --- framing over the pipes: 4-byte little-endian length + pickle -----------------------------
-
-_LEN = struct.Struct("<I")
-
-
-def _send_bytes(fd: int, data: bytes) -> None:
-    view = memoryview(_LEN.pack(len(data)) + data)
-    while view:
-        n = os.write(fd, view)
-        view = view[n:]
-
-
-def _send(fd: int, obj: Any) -> None:
-    _send_bytes(fd, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
-
-
-def _read_exactly(fd: int, n: int) -> bytes | None:
-    parts = []
-    while n:
-        chunk = os.read(fd, n)
-        if not chunk:
-            return None
-        parts.append(chunk)
-        n -= len(chunk)
-    return b"".join(parts)
-
-
-def _recv(fd: int) -> Any:
-    """The next message, or None at EOF (the other side is gone or closed its end)."""
-    head = _read_exactly(fd, _LEN.size)
-    if head is None:
-        return None
-    body = _read_exactly(fd, _LEN.unpack(head)[0])
-    return None if body is None else pickle.loads(body)
 
 
 def describe_error(exc: BaseException) -> str:
@@ -435,6 +404,7 @@ class H5Sink:
                 n0 = self.rows[gi]
                 for ds, col in zip(self.dsets[gi], gcols, strict=True):
                     self._append(ds, n0, col[a:b])
+                    _yield_cpu()
                 wrote = True
             if not wrote:
                 break
@@ -509,9 +479,9 @@ def _child_main() -> None:
 
     def reply(obj: Any) -> None:
         with contextlib.suppress(OSError):  # the bench is gone: carry on to EOF and close the file
-            _send(out_fd, obj)
+            send(out_fd, obj)
 
-    msg = _recv(in_fd)
+    msg = recv(in_fd)
     if msg is None or msg[0] != "open":
         return
     _, path, attrs, json_attrs, schema_text, fsync, overwrite = msg
@@ -523,7 +493,7 @@ def _child_main() -> None:
     reply(("ready", os.getpid()))
     failed: str | None = None
     while True:
-        msg = _recv(in_fd)
+        msg = recv(in_fd)
         if msg is None or msg[0] == "close":
             break
         if msg[0] == "batch":
@@ -557,7 +527,7 @@ def _child_main() -> None:
 
 def _writer_argv() -> list[str]:
     """The command that starts the writer child (tests wrap it to limit the file size)."""
-    return [sys.executable, "-c", "from hil.log.writer import _child_main; _child_main()"]
+    return helper_argv("hil.log.writer:_child_main")
 
 
 # --- the bench side -------------------------------------------------------------------------
@@ -623,22 +593,17 @@ class SessionLog:
             raise LogError(f"{where}: directory {self.path.parent} does not exist")
         if self.path.exists() and not overwrite:
             raise LogError(f"{where}: the file already exists")
-        env = dict(os.environ)
-        root = str(Path(__file__).resolve().parents[2])
-        env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
         try:
-            self._proc = subprocess.Popen(
-                _writer_argv(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env, close_fds=True
-            )
+            self._proc = spawn_helper(_writer_argv())
         except OSError as exc:
             raise LogError(f"{where}: cannot start the writer process: {describe_error(exc)}") from None
         assert self._proc.stdin is not None and self._proc.stdout is not None
         self._wfd = self._proc.stdin.fileno()
         self._rfd = self._proc.stdout.fileno()
         try:
-            _send(self._wfd, ("open", str(self.path), prepared, json_names, schema_to_json(schema), fsync, overwrite))
+            send(self._wfd, ("open", str(self.path), prepared, json_names, schema_to_json(schema), fsync, overwrite))
             ready, _, _ = select.select([self._rfd], [], [], _STARTUP_TIMEOUT_S)
-            reply = _recv(self._rfd) if ready else None
+            reply = recv(self._rfd) if ready else None
         except OSError:
             reply = None
         if reply is None or reply[0] != "ready":
@@ -739,8 +704,8 @@ class SessionLog:
         data = pickle.dumps(("batch", batches, sync), protocol=pickle.HIGHEST_PROTOCOL)
         t1 = time.perf_counter()
         try:
-            _send_bytes(self._wfd, data)
-            reply = _recv(self._rfd)
+            send_bytes(self._wfd, data)
+            reply = recv(self._rfd)
         except OSError:
             reply = None
         t2 = time.perf_counter()
@@ -806,8 +771,8 @@ class SessionLog:
                 self._ship(sync=True)
             reply = None
             try:
-                _send(self._wfd, ("close",))
-                reply = _recv(self._rfd)
+                send(self._wfd, ("close",))
+                reply = recv(self._rfd)
             except OSError:
                 pass
             if self.error is None:

@@ -12,6 +12,7 @@ import itertools
 import json
 import math
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -26,7 +27,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from pydantic import ValidationError
 from rich.console import Console
 
-from hil.telemetry import MqttConfig, Telemetry, TelemetryStats, dumps, watch
+from hil.telemetry import MqttConfig, Telemetry, TelemetryProcess, TelemetryStats, dumps, watch
 from tests.telemetry.broker import MqttBroker, free_port
 
 UNITS = {"gyro_x": "rad/s", "drive": "V", "temp": "degC"}
@@ -508,3 +509,51 @@ def test_loop_cost_of_sample_and_publish(mqtt_broker: MqttBroker, monkeypatch: p
 def test_stats_is_a_plain_dataclass() -> None:
     s = TelemetryStats()
     assert (s.published, s.dropped, s.reconnects, s.connected, s.last_error) == (0, 0, 0, False, None)
+
+
+# --- the child-process publisher the bench uses -----------------------------------------------
+
+
+def test_process_publisher_never_blocks_counts_drops_and_says_offline_at_eof(mqtt_broker: MqttBroker) -> None:
+    """TelemetryProcess: samples reach the broker from the child; a frozen child (SIGSTOP) fills the pipe and
+    the bench's sample() keeps returning at once, every refused sample counted; when the bench's end of the
+    pipe closes without stop() (the bench died) the child publishes the retained offline status and exits."""
+
+    async def main() -> None:
+        with Subscriber(mqtt_broker.port, "hil/rig-proc/#") as sub:
+            tm = TelemetryProcess(config(mqtt_broker, bench_id="rig-proc", telemetry_hz=1000), "s-proc", units=UNITS)
+            await tm.start()  # returns after the child's first connection attempt
+            assert tm.stats.connected
+            tm.state("running")
+            for k in range(200):
+                tm.sample(k * 1e-3, values_at(k * 1e-3))
+                await asyncio.sleep(0)
+            await until(lambda: len(sub.on("/telemetry")) == 200, 5, "200 samples via the child")
+            got = [p for p, _, _ in sub.on("/telemetry")]
+            assert [m["t_s"] for m in got] == [k * 1e-3 for k in range(200)]
+            assert got[123] == {"t_s": 0.123, **values_at(0.123)}
+            await until(lambda: tm.stats.published >= 200, 3, "the child's count")
+
+            assert tm._proc is not None
+            tm._proc.send_signal(signal.SIGSTOP)
+            try:
+                worst = 0.0
+                for k in range(200, 20200):  # ~20k samples of ~150 bytes: more than a pipe holds
+                    t0 = time.perf_counter()
+                    tm.sample(k * 1e-3, values_at(k * 1e-3))
+                    worst = max(worst, time.perf_counter() - t0)
+                assert tm.stats.dropped > 1000  # the pipe (64 kB) filled: refused, counted
+                assert worst < 0.05  # never blocked (a blocking write would hang here for good)
+            finally:
+                tm._proc.send_signal(signal.SIGCONT)
+            dropped_here = tm.stats.dropped
+            proc = tm._proc
+            assert proc.stdin is not None
+            proc.stdin.close()  # the bench dies: EOF for the child, no stop message
+            await asyncio.to_thread(proc.wait, 10)
+            assert proc.returncode == 0
+            await until(lambda: sub.on("/status") and sub.on("/status")[-1][0]["status"] == "offline", 5, "offline")
+            assert sub.on("/status")[-1][0]["reason"] == "stopped"
+            assert dropped_here + len(sub.on("/telemetry")) >= 20000 - 100  # every sample published or counted
+
+    run(main(), timeout=60)
