@@ -418,7 +418,9 @@ def specialise(fn: Callable[..., Any], unroll: dict[str, int]) -> Callable[..., 
     args = fdef.args.args
     defaults = fn.__defaults__ or ()
     names = [a.arg for a in args[len(args) - len(defaults):]]
-    folded = {n: v for n, v in zip(names, defaults, strict=True) if type(v) in (int, float, bool) and n not in unroll}
+    stored = {n.id for n in ast.walk(fdef) if isinstance(n, ast.Name) and not isinstance(n.ctx, ast.Load)}
+    folded = {n: v for n, v in zip(names, defaults, strict=True)
+              if type(v) in (int, float, bool) and n not in unroll and n not in stored}  # never reassigned
     kept = [(a, v) for a, v in zip(args[len(args) - len(defaults):], defaults, strict=True)
             if a.arg not in folded and a.arg not in unroll]
     fdef.args.args = args[: len(args) - len(defaults)] + [a for a, _ in kept]

@@ -284,6 +284,12 @@ def test_specialise_folds_constants_unrolls_and_keeps_the_closure() -> None:
     assert g.__defaults__ == (None,)  # k folded, n unrolled, sink kept
     assert 2.0 in g.__code__.co_consts
 
+    def r(x: float, k=2.0) -> float:
+        k += x  # reassigned: must stay a variable
+        return k
+
+    assert specialise(r, unroll={})(1.0) == 3.0
+
 
 # --- carrier coupling and kinematics -------------------------------------------------------------------------------
 
