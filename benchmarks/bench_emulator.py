@@ -38,6 +38,7 @@ class TrivialHost:
         self.fds = {name: os.open(ports[name], os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK) for name in ("servo", "driver")}
         self.enc = {name: Encoder(Board.HOST) for name in self.fds}
         self.dec = {name: Decoder() for name in self.fds}
+        self.early: list[GyroSample] = []  # samples that arrived while waiting for an ACK: answered first
 
     def send(self, name: str, msg: object, dst: int) -> None:
         os.write(self.fds[name], self.enc[name].encode(msg, dst))
@@ -51,6 +52,7 @@ class TrivialHost:
                 frames = self.dec[name].feed(os.read(self.fds[name], 65536))
             except BlockingIOError:
                 continue
+            self.early += [f.message for f in frames if type(f.message) is GyroSample]
             if any(isinstance(f.message, Ack) for f in frames):
                 return
         raise TimeoutError(f"{name}: no ACK to {msg!r}")
@@ -60,19 +62,21 @@ class TrivialHost:
         self.command("driver", DriveEnable(AxisMask.BOTH, True), Board.DRIVER)
         self.command("servo", ServoMode(StreamMode.STREAM), Board.SERVO)
         servo, got, t0 = self.fds["servo"], 0, time.perf_counter()
+        # a lockstep emulator waits (up to its 1 s timeout) for the command of a sample that came with the ACK
+        pending, self.early = self.early, []
         while got < n_samples:
+            for g in pending:
+                u_el = max(-30000, min(30000, int(-3000 * g.rate_y_dps)))
+                u_az = max(-30000, min(30000, int(-3000 * g.rate_z_dps)))
+                self.send("driver", DriveCmd(g.tick, u_az, u_el), Board.DRIVER)
+                got += 1
             select.select([servo], [], [], 0.1)
             try:
                 data = os.read(servo, 65536)
             except BlockingIOError:
+                pending = []
                 continue
-            for frame in self.dec["servo"].feed(data):
-                if type(frame.message) is GyroSample:
-                    g = frame.message
-                    u_el = max(-30000, min(30000, int(-3000 * g.rate_y_dps)))
-                    u_az = max(-30000, min(30000, int(-3000 * g.rate_z_dps)))
-                    self.send("driver", DriveCmd(g.tick, u_az, u_el), Board.DRIVER)
-                    got += 1
+            pending = [f.message for f in self.dec["servo"].feed(data) if type(f.message) is GyroSample]
         return got, time.perf_counter() - t0
 
     def close(self) -> None:
