@@ -522,8 +522,8 @@ def test_process_publisher_never_blocks_counts_drops_and_says_offline_at_eof(mqt
     async def main() -> None:
         with Subscriber(mqtt_broker.port, "hil/rig-proc/#") as sub:
             tm = TelemetryProcess(config(mqtt_broker, bench_id="rig-proc", telemetry_hz=1000), "s-proc", units=UNITS)
-            await tm.start()  # returns after the child's first connection attempt
-            assert tm.stats.connected
+            await tm.start()  # returns after the child's first connection attempt (or 5 s)
+            await until(lambda: tm.stats.connected, 10, "the child connected")
             tm.state("running")
             for k in range(200):
                 tm.sample(k * 1e-3, values_at(k * 1e-3))
@@ -543,7 +543,7 @@ def test_process_publisher_never_blocks_counts_drops_and_says_offline_at_eof(mqt
                     tm.sample(k * 1e-3, values_at(k * 1e-3))
                     worst = max(worst, time.perf_counter() - t0)
                 assert tm.stats.dropped > 1000  # the pipe (64 kB) filled: refused, counted
-                assert worst < 0.05  # never blocked (a blocking write would hang here for good)
+                assert worst < 0.5  # never blocked (a blocking write would hang here for good)
             finally:
                 tm._proc.send_signal(signal.SIGCONT)
             dropped_here = tm.stats.dropped
