@@ -64,6 +64,17 @@ class FrameBuffer:
     def __init__(self) -> None:
         self._buf = bytearray()
 
+    def read(self, fd: int) -> list[Any] | None:
+        """Read what a non-blocking ``fd`` has and return the messages it completes; None at EOF (or a read
+        error: the other side is gone)."""
+        try:
+            data = os.read(fd, 65536)
+        except BlockingIOError:
+            return []
+        except OSError:
+            return None
+        return self.feed(data) if data else None
+
     def feed(self, data: bytes) -> list[Any]:
         buf = self._buf
         buf += data

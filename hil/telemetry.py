@@ -617,32 +617,23 @@ class TelemetryProcess(Telemetry):
             await asyncio.wait_for(asyncio.shield(self._first_report), FIRST_REPORT_TIMEOUT_S)
 
     def _on_child_output(self) -> None:
-        try:
-            data = os.read(self._rfd, 65536)
-        except BlockingIOError:
-            return
-        except OSError:
-            data = b""
-        if not data:  # the child is gone
+        messages = self._frames.read(self._rfd)
+        if messages is None:  # the child is gone
             asyncio.get_running_loop().remove_reader(self._rfd)
             self.stats.connected = False
-            if self._first_report is not None and not self._first_report.done():
-                self._first_report.set_result(None)
-            if self._final is not None and not self._final.done():
-                self._final.set_result(None)
+            _settle(self._first_report)
+            _settle(self._final)
             return
-        for msg in self._frames.feed(data):
-            kind, child = msg
-            if self._first_report is not None and not self._first_report.done():
-                self._first_report.set_result(None)
+        for kind, child in messages:
+            _settle(self._first_report)
             self.stats.published = child["published"]
             self.stats.reconnects = child["reconnects"]
             self.stats.connected = child["connected"]
             self.stats.last_error = child["last_error"] or self.stats.last_error
             self.stats.dropped += child["dropped"] - self._child_dropped
             self._child_dropped = child["dropped"]
-            if kind == "final" and self._final is not None and not self._final.done():
-                self._final.set_result(None)
+            if kind == "final":
+                _settle(self._final)
 
     def _post(self, msg: Any) -> bool:
         """One message to the child, now or never (counted as dropped)."""
@@ -701,6 +692,11 @@ class TelemetryProcess(Telemetry):
         self.stats.connected = False
 
 
+def _settle(future: asyncio.Future[None] | None) -> None:
+    if future is not None and not future.done():
+        future.set_result(None)
+
+
 def _child_main() -> None:
     """The telemetry child: messages in on stdin, stats out on the original stdout."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the process group: the bench stops us
@@ -725,17 +721,11 @@ async def _child_run(config: MqttConfig, session_id: str, units: dict[str, str],
     frames = ipc.FrameBuffer()
 
     def on_input() -> None:
-        try:
-            data = os.read(0, 65536)
-        except BlockingIOError:
+        messages = frames.read(0)
+        if messages is None:  # the bench is gone
+            _settle(done)
             return
-        except OSError:
-            data = b""
-        if not data:  # the bench is gone
-            if not done.done():
-                done.set_result(None)
-            return
-        for m in frames.feed(data):
+        for m in messages:
             kind = m[0]
             if kind == "sample":
                 tm._sample_due(m[1], m[2])
@@ -745,8 +735,8 @@ async def _child_run(config: MqttConfig, session_id: str, units: dict[str, str],
                 tm._set_state_payload(m[1])
             elif kind == "units":
                 tm.set_units(m[1])
-            elif kind == "stop" and not done.done():
-                done.set_result(None)
+            elif kind == "stop":
+                _settle(done)
 
     def report(kind: str) -> None:
         with contextlib.suppress(OSError):
