@@ -30,13 +30,26 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--seconds", type=float, default=None, help="stop after this much simulated time")
     ap.add_argument("--rt-priority", type=int, default=0,
                     help="run the board clock SCHED_FIFO at this priority (1-99; 0 = normal scheduling)")
+    ap.add_argument("--cpu", type=int, default=None,
+                    help="pin the emulator to this CPU, an index into the CPUs it may use (-1 = the last)")
     ap.add_argument("--fingerprint", type=lambda s: int(s, 0), default=CATALOGUE.fingerprint,
                     help="catalogue fingerprint the boards claim (emulates firmware built from another catalogue)")
     return ap.parse_args(argv)
 
 
+def pin_to_cpu(index: int) -> None:
+    """Pin this process (before it starts any thread) to the CPU ``index`` names among those it may use."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if not -len(cpus) <= index < len(cpus):
+        print(f"warning: --cpu {index}: this process may use CPUs {cpus}; running unpinned", file=sys.stderr)
+        return
+    os.sched_setaffinity(0, {cpus[index]})
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.cpu is not None:
+        pin_to_cpu(args.cpu)
     try:
         config = load_emulator_config(args.config, clock=args.clock, seed=args.seed)
         emulator = Emulator(config, fault_log=args.fault_log, fingerprint=args.fingerprint)

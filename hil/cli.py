@@ -151,7 +151,7 @@ def _run_session(config, out: Path | None, loopback: bool, clock: str | None, js
     if loopback:
         clock = clock or config.emulator.clock
         emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed,
-                                   extra_args=["--rt-priority", str(config.emulator.rt_priority)])
+                                   extra_args=config.emulator.process_args())
         try:
             ports = {name: PortConfig(port=path) for name, path in emulator.start().items() if name != "control"}
         except LinkError as exc:

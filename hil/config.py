@@ -155,6 +155,11 @@ class HostConfig(Strict):
         0, ge=0, le=99,
         description="run the 1 kHz loop thread SCHED_FIFO at this priority (needs root or CAP_SYS_NICE; "
         "0 = normal scheduling). The log writer and other children keep normal scheduling")
+    loop_cpu: int | None = Field(
+        None, ge=-1024, le=1023,
+        description="pin the 1 kHz loop thread to this CPU, as an index into the CPUs the bench may use "
+        "(-1 = the last), and keep the log writer and telemetry processes off it; none = the OS places "
+        "them. Needs two CPUs; otherwise the session runs unpinned and logs why")
 
 
 class LoggingConfig(Strict):
@@ -169,6 +174,15 @@ class EmulatorRef(Strict):
     config: Path = PROFILES / "emulator" / "default.yaml"
     clock: Literal["realtime", "lockstep"] = "lockstep"
     rt_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority of the emulator's clock, 0 = normal")
+    cpu: int | None = Field(
+        None, ge=-1024, le=1023,
+        description="pin the emulator to this CPU index (-1 = the last); the same CPU as host.loop_cpu keeps "
+        "the sample/command round trip on one core (docs/performance.md)")
+
+    def process_args(self) -> list[str]:
+        """Its scheduling options on the emulator's command line (``python -m firmware_stub ...``)."""
+        args = ["--rt-priority", str(self.rt_priority)]
+        return args if self.cpu is None else [*args, "--cpu", str(self.cpu)]
 
     _rel = field_validator("config", mode="before")(_resolve)
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import os
 import signal
 import threading
 import time
@@ -27,7 +26,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from hil import __version__
+from hil import __version__, host
 from hil.boards import DriverBoard, ImageBoard, ProtocolHexapod, ServoBoard
 from hil.config import PortConfig, SessionConfig
 from hil.control.controller import RateController
@@ -298,6 +297,7 @@ class Session:
         self.log_path: Path | None = None
         self._finished: asyncio.Future[str] | None = None
         self._recovering = False
+        self._placement_before: host.Placement | None = None
 
     # --- frames from the boards ---------------------------------------------------------------------
 
@@ -365,15 +365,31 @@ class Session:
         self.log = SessionLog(self.log_path, attrs=attrs, flush_interval_s=self.config.logging.flush_interval_s,
                               fsync=self.config.logging.fsync)
 
-    def _raise_priority(self) -> None:
-        prio = self.config.host.rt_priority
-        if not prio:
-            return
-        try:  # this thread (the event loop) only; threads started later inherit it, children do not
-            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(prio))
-            self.event("info", rt_priority=prio)
-        except OSError as exc:
-            self.event("info", rt_priority=0, warning=f"SCHED_FIFO {prio} refused: {exc.strerror or exc}")
+    def _place(self) -> None:
+        """The loop thread's CPU and scheduling class from ``config.host`` (hil.host); the helpers are already
+        running and are moved off the loop's CPU. Refusals are logged, never fatal."""
+        host_cfg = self.config.host
+        self._placement_before = host.current_placement()
+        if host_cfg.loop_cpu is not None:
+            helpers = [p for p in (self.log.writer_pid if self.log else None,
+                                   self.telemetry.pid if self.telemetry else None) if p is not None]
+            try:
+                cpus = host.allowed_cpus()
+                cpu = host.resolve_cpu(host_cfg.loop_cpu, cpus)
+                host.pin_this_thread(cpu)  # the watchdog thread, started later, inherits it
+                for pid in helpers:
+                    host.pin_process(pid, set(cpus) - {cpu})
+                self.event("info", loop_cpu=cpu, helper_cpus=sorted(set(cpus) - {cpu}), helper_pids=helpers)
+            except (OSError, ValueError) as exc:
+                self.event("info", loop_cpu=None, warning=f"host.loop_cpu {host_cfg.loop_cpu} not applied: "
+                           f"{getattr(exc, 'strerror', None) or exc}")
+        prio = host_cfg.rt_priority
+        if prio:
+            try:  # this thread (the event loop) only; threads started later inherit it, children do not
+                host.set_fifo(prio)
+                self.event("info", rt_priority=prio)
+            except OSError as exc:
+                self.event("info", rt_priority=0, warning=f"SCHED_FIFO {prio} refused: {exc.strerror or exc}")
 
     def event(self, kind: str, **detail: Any) -> None:
         tick = (self.loop_.last_tick or 0) if self.loop_ else 0
@@ -471,11 +487,11 @@ class Session:
             await self.image.track(self.config.tracking.enabled, self.config.tracking.gate_px)
             self._open_log()
             assert self.log is not None
-            self._raise_priority()
             if self.config.mqtt is not None:
                 self.telemetry = TelemetryProcess(self.config.mqtt,
                                                   self.log_path.stem if self.log_path else "session")
                 await self.telemetry.start()
+            self._place()
             self.loop_ = ControlLoop(self.config, self.driver, self.log, telemetry=self.telemetry,
                                      duration_ticks=round(self.config.duration_s * 1000),
                                      on_done=lambda: self.finish("completed"))
@@ -550,6 +566,9 @@ class Session:
             self.log.close()
         for link in self.links.values():
             link.close()
+        if self._placement_before is not None:  # the process may go on (a test, a script): give the thread back
+            with contextlib.suppress(OSError):
+                host.restore_placement(self._placement_before)
 
     async def _disarm(self) -> None:
         if self.driver is not None and self.driver.link.transport is not None:

@@ -595,6 +595,11 @@ class TelemetryProcess(Telemetry):
         self._pending: list[Any] = []  # events and state before start(), sent by start()
         self._first_report: asyncio.Future[None] | None = None
 
+    @property
+    def pid(self) -> int | None:
+        """The publishing child process (None before start())."""
+        return self._proc.pid if self._proc is not None else None
+
     async def start(self) -> None:
         """Start the child process (it connects, and reconnects, on its own); returns at once."""
         if self._proc is not None:

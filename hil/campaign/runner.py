@@ -62,8 +62,9 @@ def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardwar
                 profile=str(spec.profile.path), logging={**data.get("logging", {}), "dir": str(cell_dir)})
     if config.duration_s is not None:
         data["duration_s"] = config.duration_s
-    if not hardware:
-        data["emulator"] = {**data.get("emulator", {}), "clock": "lockstep"}
+    if not hardware:  # lockstep cells run side by side (--jobs): CPU placement is for one realtime loop
+        data["emulator"] = {**data.get("emulator", {}), "clock": "lockstep", "cpu": None}
+        data["host"] = {**data.get("host", {}), "loop_cpu": None}
     try:
         SessionConfig.model_validate(data)
     except ValidationError as exc:

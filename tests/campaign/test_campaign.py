@@ -13,6 +13,7 @@ import pytest
 import yaml
 
 from hil.campaign import CampaignError, load_campaign, load_results, run_campaign
+from hil.campaign.runner import cell_session
 from hil.config import PROFILES
 
 CAMPAIGNS = PROFILES / "campaigns"
@@ -66,6 +67,15 @@ def test_cells_run_in_parallel_keep_their_logs_and_resume(tmp_path: Path) -> Non
         k: v for k, v in old.items() if k != "latency_p99_us"
     }
     assert rerun.count(first) == 1 and len(rerun) == 2  # the done one is reported, not run
+
+
+def test_lockstep_cells_drop_cpu_placement_so_parallel_jobs_do_not_share_one_cpu(tmp_path: Path) -> None:
+    config = load_campaign(write_campaign(tmp_path, session=str(PROFILES / "sessions" / "demo.yaml")))
+    spec = config.cells()[0]
+    emulated = cell_session(config, spec, tmp_path)
+    assert emulated["host"]["loop_cpu"] is None and emulated["emulator"]["cpu"] is None
+    lab = cell_session(config, spec, tmp_path, hardware=True)  # one cell at a time: the session's own placement
+    assert lab["host"]["loop_cpu"] == -1
 
 
 @pytest.mark.parametrize(

@@ -43,7 +43,7 @@ During = Callable[[EmulatorProcess, Session], Awaitable[None]]
 def run_session(config: SessionConfig, out: Path, *, clock: str = "lockstep", emulator_args: list[str] | None = None,
                 during: During | None = None, watchdog_ms: float | None = None) -> Run:
     fault_log = out / "emulator-records.jsonl"
-    args = [*(emulator_args or []), "--fault-log", str(fault_log)]
+    args = [*config.emulator.process_args(), *(emulator_args or []), "--fault-log", str(fault_log)]
     if watchdog_ms is None and clock == "lockstep":
         watchdog_ms = 1000.0
     emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed, extra_args=args)

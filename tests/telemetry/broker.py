@@ -112,6 +112,10 @@ class MqttBroker:
         )
         return [sys.executable, "-m", "amqtt.scripts.broker_script", "-c", str(conf)]
 
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
     def start(self) -> MqttBroker:
         """Start the process and wait until the port accepts connections."""
         if self.running:
