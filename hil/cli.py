@@ -228,6 +228,14 @@ def _print_summary(s: dict) -> None:  # type: ignore[type-arg]
     t.add_row("link errors", " ".join(f"{k} {v}" for k, v in s["link_errors"].items()), "CRC + bad + lost frames")
     t.add_row("faults", str(s["faults"]), "events")
     console.print(t)
+    reasons = s.get("fault_reasons", [])
+    if reasons:
+        note = (f"{len(reasons)} fault{'s' if len(reasons) > 1 else ''}, the first: {reasons[0]}. The loop was "
+                "disarmed while it recovered; the figures above include those windows.")
+        if any(r.startswith("watchdog") for r in reasons):
+            note += (" A watchdog trip is a gap in the servo board's samples; against the emulator on a busy or "
+                     "virtual machine, the emulator not being scheduled (docs/performance.md).")
+        console.print(f"[yellow]{note}[/]", highlight=False)
 
 
 @app.command()

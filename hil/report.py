@@ -10,6 +10,7 @@ controllers converge).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -83,4 +84,14 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     events = data.groups.get("events", {})
     kinds = [k.decode() if isinstance(k, bytes) else str(k) for k in events.get("kind", [])]
     out["faults"] = kinds.count("fault")
+    out["fault_reasons"] = [_reason(d) for k, d in zip(kinds, events.get("detail", []), strict=False) if k == "fault"]
     return out
+
+
+def _reason(detail: object) -> str:
+    """A fault event's reason (its detail is JSON, ``{"reason": ...}``)."""
+    text = detail.decode(errors="replace") if isinstance(detail, bytes) else str(detail)
+    try:
+        return str(json.loads(text).get("reason", text))
+    except (ValueError, AttributeError):
+        return text

@@ -12,6 +12,7 @@ import pytest
 from firmware_stub.control import ControlClient
 from hil.log import read_log
 from hil.loopback import EmulatorProcess
+from hil.report import summarize_log
 from hil.session import Session
 from tests.session.helpers import run_session, session_config, wait_cycles
 
@@ -95,6 +96,8 @@ def test_watchdog_zeroes_the_drive_within_5_ms_of_a_stall(tmp_path) -> None:
     assert disable["detail"]["cause"] == "host"
     kinds = [str(k) for k in read_log(run.result.log_path).groups["events"]["kind"]]
     assert "fault" in kinds and "recovered" in kinds
+    reasons = summarize_log(run.result.log_path)["fault_reasons"]  # what `hil run` prints under its table
+    assert reasons == run.result.stats.faults and any(r.startswith("watchdog: no GYRO_SAMPLE for") for r in reasons)
 
 
 def test_disconnect_mid_session_is_recovered(tmp_path) -> None:
