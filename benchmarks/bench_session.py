@@ -114,15 +114,15 @@ def main() -> None:
           f"MQTT {'off' if broker is None else broker.kind}, SCHED_FIFO {args.rt_priority or 'off'} "
           f"({os.cpu_count()} CPUs, "
           f"load {os.getloadavg()[0]:.2f}); loop CPU index {loop_cpu}, emulator CPU index {emulator_cpu}")
+    loop_cpu_number = None if loop_cpu is None else host.resolve_cpu(loop_cpu)
     if args.floor_seconds > 0:
-        floor_cpu = None if emulator_cpu is None or loop_cpu != emulator_cpu else host.resolve_cpu(loop_cpu)
+        floor_cpu = loop_cpu_number if emulator_cpu is not None and emulator_cpu == loop_cpu else None
         f = pty_floor(args.floor_seconds, floor_cpu)
         q = np.percentile(f, [50, 99, 99.9])
         print(f"floor: bare pty round trip, {f.size} at 1 kHz, {'on one CPU' if floor_cpu is not None else 'unpinned'}"
               f", us: p50 {q[0]:.0f}  p99 {q[1]:.0f}  p99.9 {q[2]:.0f}  max {f.max():.0f}")
-    if broker is not None and loop_cpu is not None:
-        cpu = host.resolve_cpu(loop_cpu)
-        host.pin_process(broker.pid, set(host.allowed_cpus()) - {cpu})
+    if broker is not None and broker.pid is not None and loop_cpu_number is not None:
+        host.pin_process(broker.pid, set(host.allowed_cpus()) - {loop_cpu_number})
     cpu_self0, cpu_kids0, wall0 = cpu_s(resource.RUSAGE_SELF), cpu_s(resource.RUSAGE_CHILDREN), time.monotonic()
     emulator = EmulatorProcess(config.emulator.config, clock="realtime", seed=config.seed,
                                extra_args=config.emulator.process_args())

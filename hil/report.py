@@ -84,7 +84,7 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     events = data.groups.get("events", {})
     kinds = [k.decode() if isinstance(k, bytes) else str(k) for k in events.get("kind", [])]
     out["faults"] = kinds.count("fault")
-    out["fault_reasons"] = [_reason(d) for k, d in zip(kinds, events.get("detail", []), strict=False) if k == "fault"]
+    out["fault_reasons"] = [_reason(d) for k, d in zip(kinds, events.get("detail", []), strict=True) if k == "fault"]
     return out
 
 
