@@ -145,7 +145,8 @@ def percentiles_us(values: array | list[float]) -> dict[str, float]:
 
 
 class ServoBoard(EmulatedBoard):
-    """The clock master: GYRO_SAMPLE every tick while streaming, LOOP_TIMING every 10 ticks.
+    """The clock master: GYRO_SAMPLE every tick while streaming, LOOP_TIMING every 10 ticks (after that
+    tick's sample, so the host reads the sample first).
 
     Loop timing is the ground truth for the bench's 1 kHz claims: for each sample k, the time from
     the board writing GYRO_SAMPLE k to the driver receiving DRIVE_CMD k (one clock: both boards
@@ -226,8 +227,6 @@ class ServoBoard(EmulatedBoard):
         if not self.streaming:
             return
         k = self.stream_tick
-        if k >= 20 and k % 10 == 0:
-            self._report_timing(k - 20)
         rx, ry, rz = self._gyro()
         az, el = self.world.plant.encoders_deg()
         slot = k % self.WINDOW
@@ -239,6 +238,8 @@ class ServoBoard(EmulatedBoard):
         self.last_delivered = k if delivered else None
         self.samples_sent += 1
         self.stream_tick = k + 1
+        if k >= 20 and k % 10 == 0:  # after the sample: the time-critical frame is first on the wire
+            self._report_timing(k - 20)
 
     def on_written(self, t_perf: float) -> None:
         """The tick's output has been written to the pty (realtime: at the deadline)."""

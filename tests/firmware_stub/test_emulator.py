@@ -31,6 +31,7 @@ from hil.protocol import (
     HexAxis,
     Ident,
     IdentRequest,
+    LoopTiming,
     MissDistance,
     Nack,
     Pose,
@@ -144,6 +145,27 @@ def lockstep_run(seed: int, n: int = 800) -> dict[str, str]:
         assert all(len(port.raw) > 1000 for port in host.ports.values())
         host.close()
         return digests
+
+
+def test_realtime_writes_the_sample_first_and_the_other_boards_frames_answered_or_not() -> None:
+    with running_emulator(clock="realtime") as emu:
+        host = Host(emu.ports())
+        start_session(host, [PITCH_SWING])
+        stream(host, 300)
+        frames = [f.message for f in host["servo"].frames]
+        timing = [i for i, m in enumerate(frames) if isinstance(m, LoopTiming)]
+        assert len(timing) >= 25
+        for i in timing:  # LOOP_TIMING for ticks k-20..k-11 follows GYRO_SAMPLE k on the wire
+            before = frames[i - 1]
+            assert isinstance(before, GyroSample) and before.tick == frames[i].first_tick + 20
+        # the image, driver and hexapod frames of a tick wait for its DRIVE_CMD, or for the wait to give up
+        counts = [len(of_type(host, "image", MissDistance)), len(of_type(host, "hexapod", Pose)),
+                  len(of_type(host, "driver", DriveStatus))]
+        stream(host, 300, controller=None)
+        grown = [len(of_type(host, "image", MissDistance)), len(of_type(host, "hexapod", Pose)),
+                 len(of_type(host, "driver", DriveStatus))]
+        assert all(27 <= b - a <= 33 for a, b in zip(counts, grown, strict=True)), (counts, grown)  # 100 Hz
+        host.close()
 
 
 def test_lockstep_is_byte_identical_for_the_same_seed_and_commands() -> None:
