@@ -143,7 +143,8 @@ def main() -> None:
     loop = log.groups["loop"]
     n = loop["tick"].size
     print(f"status {result.status} {result.message}; {n} cycles in {wall:.1f} s wall; "
-          f"watchdog faults recovered: {result.stats.recoveries} {sorted(set(result.stats.faults))[:3]}")
+          f"watchdog faults recovered: {result.stats.recoveries} {sorted(set(result.stats.faults))[:3]}; "
+          f"host stalls (the watchdog woke late and looked again): {result.stats.host_stalls}")
     q = np.percentile(answered, [50, 99, 99.9]) if answered.size else [np.nan] * 3
     print(f"board-measured GYRO k -> DRIVE_CMD k, us: p50 {q[0]:.0f}  p99 {q[1]:.0f}  p99.9 {q[2]:.0f}  "
           f"max {answered.max():.0f}  (target p99 <= 300)")

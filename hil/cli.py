@@ -227,6 +227,9 @@ def _print_summary(s: dict) -> None:  # type: ignore[type-arg]
     t.add_row("cycles / late / missed", f"{s['cycles']} / {s['late_cycles']} / {s['missed_cycles']}", "late: > 1 ms")
     t.add_row("link errors", " ".join(f"{k} {v}" for k, v in s["link_errors"].items()), "CRC + bad + lost frames")
     t.add_row("faults", str(s["faults"]), "events")
+    if s.get("host_stalls"):
+        t.add_row("host stalls: count / longest silence", f"{s['host_stalls']} / {_fmt(s['host_stall_max_ms'], 1)}",
+                  "ms; the watchdog woke late and looked again")
     console.print(t)
     reasons = s.get("fault_reasons", [])
     if reasons:

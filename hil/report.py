@@ -84,14 +84,27 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     events = data.groups.get("events", {})
     kinds = [k.decode() if isinstance(k, bytes) else str(k) for k in events.get("kind", [])]
     out["faults"] = kinds.count("fault")
-    out["fault_reasons"] = [_reason(d) for k, d in zip(kinds, events.get("detail", []), strict=True) if k == "fault"]
+    details = list(events.get("detail", []))
+    out["fault_reasons"] = [_reason(d) for k, d in zip(kinds, details, strict=True) if k == "fault"]
+    stalls = [_detail(d) for k, d in zip(kinds, details, strict=True) if k == "host_stall"]
+    out["host_stalls"] = len(stalls)
+    out["host_stall_max_ms"] = max((float(d.get("silent_ms", 0.0)) for d in stalls), default=0.0)
     return out
+
+
+def _detail(detail: object) -> dict[str, Any]:
+    """An event's detail (JSON) as a dict; ``{"text": ...}`` when it is not a JSON object."""
+    text = detail.decode(errors="replace") if isinstance(detail, bytes) else str(detail)
+    try:
+        parsed = json.loads(text)
+    except ValueError:
+        parsed = None
+    return parsed if isinstance(parsed, dict) else {"text": text}
 
 
 def _reason(detail: object) -> str:
     """A fault event's reason (its detail is JSON, ``{"reason": ...}``)."""
-    text = detail.decode(errors="replace") if isinstance(detail, bytes) else str(detail)
-    try:
-        return str(json.loads(text).get("reason", text))
-    except (ValueError, AttributeError):
-        return text
+    d = _detail(detail)
+    if "reason" in d:
+        return str(d["reason"])
+    return d["text"] if set(d) == {"text"} else json.dumps(d)

@@ -59,40 +59,73 @@ class Watchdog:
     A thread sleeps until the deadline (the last feed + timeout; pthread timed waits are precise to
     ~0.1 ms, where an asyncio timer rounds up to the next millisecond), re-checks, and on a trip hands
     ``on_trip`` to the event loop with ``call_soon_threadsafe``. ``feed`` is one float store per sample.
+
+    A trip needs the silence to be seen by a watchdog that was itself running. When this thread wakes
+    more than ``LATE_S`` after it meant to, the host did not run it, nor (on the same CPU) the loop or
+    an emulator: samples may be queued unread or on their way. It then reports ``on_host_stall(late_s,
+    silent_s)`` and gives the board one timeout from now, so it trips on the first on-time look that
+    still finds the silence, and at ``GIVE_UP`` x timeout of silence whatever its own timing. The
+    bench could not act during such a stall anyway; a real trip comes at most one timeout after it.
     """
 
-    def __init__(self, timeout_s: float, on_trip: Callable[[float], None]) -> None:
+    LATE_S = 1e-3
+    GIVE_UP = 10.0
+
+    def __init__(self, timeout_s: float, on_trip: Callable[[float], None],
+                 on_host_stall: Callable[[float, float], None] | None = None, *,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.timeout_s = timeout_s
         self.on_trip = on_trip
+        self.on_host_stall = on_host_stall
+        self.clock = clock
         self.loop = asyncio.get_running_loop()
-        self.last = time.monotonic()
+        self.last = clock()
         self.armed = False
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._watch, name="hil-watchdog", daemon=True)
 
     def feed(self) -> None:
-        self.last = time.monotonic()
+        self.last = self.clock()
 
     def start(self) -> None:
-        self.last = time.monotonic()
+        self.last = self.clock()
         self.armed = True
         if not self._thread.is_alive():
             self._thread.start()
 
+    def look(self, now: float, due: float | None) -> float | None:
+        """One look at ``now`` by a thread that meant to wake at ``due`` (None: its first look).
+
+        Returns how long to wait before the next look, or None: trip."""
+        silent = now - self.last
+        if silent < self.timeout_s:
+            return min(self.timeout_s - silent, 0.05)
+        late = 0.0 if due is None else now - due
+        if late > self.LATE_S and silent < self.GIVE_UP * self.timeout_s:
+            if self.on_host_stall is not None:
+                self.loop.call_soon_threadsafe(self.on_host_stall, late, silent)
+            return self.timeout_s
+        return None
+
     def _watch(self) -> None:
+        due: float | None = None
         while not self._closed.is_set():
             if not self.armed:
+                due = None
                 self._closed.wait(0.01)
                 continue
-            silent = time.monotonic() - self.last
-            if silent < self.timeout_s:
-                self._closed.wait(min(self.timeout_s - silent, 0.05))
+            now = self.clock()
+            wait = self.look(now, due)
+            if wait is None:
+                self.armed = False
+                due = None
+                self.loop.call_soon_threadsafe(self._trip)
                 continue
-            self.armed = False
-            self.loop.call_soon_threadsafe(self._trip)
+            due = now + wait
+            self._closed.wait(wait)
 
     def _trip(self) -> None:
-        silent = time.monotonic() - self.last
+        silent = self.clock() - self.last
         if silent >= self.timeout_s:
             self.on_trip(silent)
         else:  # a sample came in while the trip was on its way to the loop
@@ -114,6 +147,7 @@ class LoopStats:
     latency_us: array = field(default_factory=lambda: array("f"))
     faults: list[str] = field(default_factory=list)
     recoveries: int = 0
+    host_stalls: int = 0  # the watchdog woke late and looked again instead of tripping (Watchdog)
 
 
 class ControlLoop:
@@ -418,6 +452,12 @@ class Session:
         else:
             self.finish("fault", reason)
 
+    def _on_host_stall(self, late_s: float, silent_s: float) -> None:
+        """The watchdog woke ``late_s`` late to ``silent_s`` without a sample and looks again (Watchdog)."""
+        if self.loop_ is not None:
+            self.loop_.stats.host_stalls += 1
+        self.event("host_stall", watchdog_late_ms=round(late_s * 1000, 2), silent_ms=round(silent_s * 1000, 2))
+
     async def _recover(self) -> None:
         """Wait, reopen what was lost, restart the stream, re-arm with fresh controller states."""
         assert self.loop_ is not None
@@ -509,7 +549,7 @@ class Session:
             if self.telemetry:
                 self.telemetry.state("running", controller=self.config.controller.name)
             self.loop_.watchdog = Watchdog(self.watchdog_s, lambda s: self.fault(
-                f"watchdog: no GYRO_SAMPLE for {s * 1000:.1f} ms"))
+                f"watchdog: no GYRO_SAMPLE for {s * 1000:.1f} ms"), self._on_host_stall)
             await self.servo.start_stream()
             self.loop_.watchdog.start()
             progress = aloop.create_task(self._progress_task())
@@ -591,4 +631,5 @@ class Session:
         pick = (lambda q: round(lat[min(len(lat) - 1, int(q * len(lat)))], 1)) if lat else (lambda q: None)
         return {"cycles": st.cycles, "late": st.late, "missed": st.missed, "latency_us_p50": pick(0.5),
                 "latency_us_p99": pick(0.99), "faults": st.faults, "recoveries": st.recoveries,
+                "host_stalls": st.host_stalls,
                 "link_errors": {n: link.decoder.counters.errors() for n, link in self.links.items()}}
