@@ -148,7 +148,7 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "events",
         "irregular",
-        "State changes, faults, watchdogs, link errors and notes, one row per event.",
+        "State changes, faults, host stalls, recoveries and notes, one row per event.",
         (
             Channel("t_host_ns", "i8", "ns", "host monotonic time of the event"),
             Channel("tick", "u4", "1", "the last loop tick when the event was logged"),
@@ -156,7 +156,7 @@ SCHEMA: tuple[Group, ...] = (
                 "kind",
                 f"S{KIND_LEN}",
                 "1",
-                "event kind, ASCII: 'state', 'fault', 'watchdog', 'link_error', 'info', ...",
+                "event kind, ASCII: 'state', 'fault', 'recovered', 'host_stall', 'signal', 'info', 'summary', ...",
             ),
             Channel(
                 "detail",
