@@ -92,19 +92,20 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     return out
 
 
+def _text(detail: object) -> str:
+    return detail.decode(errors="replace") if isinstance(detail, bytes) else str(detail)
+
+
 def _detail(detail: object) -> dict[str, Any]:
-    """An event's detail (JSON) as a dict; ``{"text": ...}`` when it is not a JSON object."""
-    text = detail.decode(errors="replace") if isinstance(detail, bytes) else str(detail)
+    """An event's detail (JSON) as a dict; empty when it is not a JSON object."""
     try:
-        parsed = json.loads(text)
+        parsed = json.loads(_text(detail))
     except ValueError:
-        parsed = None
-    return parsed if isinstance(parsed, dict) else {"text": text}
+        return {}
+    return parsed if isinstance(parsed, dict) else {}
 
 
 def _reason(detail: object) -> str:
-    """A fault event's reason (its detail is JSON, ``{"reason": ...}``)."""
+    """A fault event's reason (its detail is JSON, ``{"reason": ...}``); the whole text otherwise."""
     d = _detail(detail)
-    if "reason" in d:
-        return str(d["reason"])
-    return d["text"] if set(d) == {"text"} else json.dumps(d)
+    return str(d["reason"]) if "reason" in d else _text(detail)
