@@ -151,6 +151,14 @@ class Nack(NamedTuple):
     limit: Annotated[float, f32(doc="the limit it broke")]
 
 
+@CATALOGUE.message(0x06, sender=Board.HOST, receiver=None, rate="10 Hz on a link the host is otherwise quiet on")
+class HostAlive(NamedTuple):
+    """The host is alive. No reply. Any frame from the host resets a board's host timer; a board that hears
+    nothing from the host for its host timeout protects itself (docs/protocol.md, "Host liveness")."""
+
+    uptime_ms: Annotated[int, u32("ms", "time since the host's session started (wraps after 49.7 days)")]
+
+
 # --- servo-control board --------------------------------------------------------------------
 
 
@@ -330,6 +338,7 @@ __all__ = [
     "ErrorCode",
     "GyroSample",
     "Heartbeat",
+    "HostAlive",
     "HexAxis",
     "HexapodStart",
     "HexapodState",
