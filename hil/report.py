@@ -43,6 +43,22 @@ def _pct(x: np.ndarray, q: float) -> float:
     return float(np.percentile(x, q)) if x.size else float("nan")
 
 
+# the links columns (hil.log.schema.LINK_COUNTERS) a link's error figure sums: every frame lost, refused or
+# out of order; not duplicates or restarts (a resend or a board reset loses nothing)
+LINK_ERROR_COUNTERS = ("crc_errors", "bad_frames", "frames_lost", "reordered", "rejected")
+
+
+def missed_cycles(loop: dict[str, np.ndarray]) -> int:
+    """Samples that never arrived: the sum of ``tick_gap``. Logs that stored it as u1 (capped at 255)
+    take a saturated row's gap from the ticks instead."""
+    gap = loop.get("tick_gap", np.zeros(0, dtype="u4")).astype(np.int64)
+    if loop.get("tick_gap", gap).dtype == np.uint8 and gap.size > 1:
+        tick = loop["tick"].astype(np.int64)
+        capped = np.flatnonzero(gap[1:] == 255) + 1
+        gap[capped] = np.maximum(255, tick[capped] - tick[capped - 1] - 1)
+    return int(gap.sum())
+
+
 def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     data = read_log(path)
     loop, image, timing, links = (data.groups.get(g, {}) for g in ("loop", "image", "timing", "links"))
@@ -72,13 +88,13 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     lat = loop.get("latency_us", np.zeros(0))
     out["latency_us"] = {"p50": _pct(lat, 50), "p99": _pct(lat, 99), "max": float(np.max(lat)) if lat.size else 0.0}
     out["late_cycles"] = int(np.sum(lat > 1000.0))
-    out["missed_cycles"] = int(np.sum(loop.get("tick_gap", np.zeros(0))))
+    out["missed_cycles"] = missed_cycles(loop)
     board = timing.get("board_latency_us", np.zeros(0))
     out["board_latency_us"] = {"p50": _pct(board, 50), "p99": _pct(board, 99), "p99.9": _pct(board, 99.9),
                                "missing": int(np.sum(~np.isfinite(board)))}
     errors = {}
     for name in ("servo", "driver", "image", "hexapod"):
-        cols = [f"{name}_crc_errors", f"{name}_bad_frames", f"{name}_frames_lost"]
+        cols = [f"{name}_{c}" for c in LINK_ERROR_COUNTERS]
         errors[name] = int(sum(int(links[c][-1]) for c in cols if c in links and links[c].size))
     out["link_errors"] = errors
     events = data.groups.get("events", {})
@@ -89,7 +105,14 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     stalls = [_detail(d) for k, d in zip(kinds, details, strict=True) if k == "host_stall"]
     out["host_stalls"] = len(stalls)
     out["host_stall_max_ms"] = max((float(d.get("silent_ms", 0.0)) for d in stalls), default=0.0)
+    # a session writes its summary event last, on every exit path it controls: without one, the bench died
+    out["complete"] = "summary" in kinds
+    if not out["complete"]:
+        out["incomplete"] = INCOMPLETE
     return out
+
+
+INCOMPLETE = "the bench stopped without a summary (killed or crashed): the figures cover what was logged"
 
 
 def _text(detail: object) -> str:

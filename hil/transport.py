@@ -17,20 +17,38 @@ import serial_asyncio_fast
 from hil.protocol import CATALOGUE, Ack, Board, Decoder, Encoder, Frame, Nack
 
 DEFAULT_BAUD = 921_600
+RETRY_INTERVAL_S = 0.05  # docs/protocol.md section 6: resend after 50 ms without a reply ...
+MAX_RESENDS = 3  # ... at most 3 times
 
 
 class LinkError(RuntimeError):
     """A link could not be opened, or a request got no good answer."""
 
 
-class SerialLink(asyncio.Protocol):
-    """One board's link. Open with :meth:`open`; frames go to ``on_frame`` as they decode."""
+def board_of(name: str) -> Board | None:
+    """The board a link name designates ("servo" -> Board.SERVO), None for any other name."""
+    board = Board.__members__.get(name.upper())
+    return None if board is None or board is Board.HOST else board
 
-    def __init__(self, name: str, on_frame: Callable[[Frame], None] | None = None, src: int = Board.HOST) -> None:
+
+class SerialLink(asyncio.Protocol):
+    """One board's link. Open with :meth:`open`; frames go to ``on_frame`` as they decode.
+
+    The link knows its board (``board``, by default from the link name: "servo", "driver",
+    "image", "hexapod"), so its decoder delivers only what that board may send the host
+    (:meth:`Decoder.for_link`); a link of another name decodes everything. ``retry_interval_s``
+    and ``max_resends`` govern :meth:`request`'s resends (lockstep emulation sets a longer interval).
+    """
+
+    def __init__(self, name: str, on_frame: Callable[[Frame], None] | None = None, src: int = Board.HOST,
+                 board: int | None = None) -> None:
         self.name = name
         self.on_frame = on_frame
         self.encoder = Encoder(src)
-        self.decoder = Decoder()
+        self.board = board_of(name) if board is None else Board(board)
+        self.decoder = Decoder() if self.board is None else Decoder.for_link(self.board, "host")
+        self.retry_interval_s = RETRY_INTERVAL_S
+        self.max_resends = MAX_RESENDS
         self.transport: asyncio.Transport | None = None
         self.port = ""
         self.closed = asyncio.get_running_loop().create_future()
@@ -38,13 +56,15 @@ class SerialLink(asyncio.Protocol):
 
     @classmethod
     async def open(
-        cls, name: str, port: str, baudrate: int = DEFAULT_BAUD, on_frame: Callable[[Frame], None] | None = None
+        cls, name: str, port: str, baudrate: int = DEFAULT_BAUD, on_frame: Callable[[Frame], None] | None = None,
+        *, board: int | None = None,
     ) -> SerialLink:
-        """Open ``port`` (a device such as /dev/ttyUSB0, or an emulator's pty)."""
+        """Open ``port`` (a device such as /dev/ttyUSB0, or an emulator's pty) to ``board``
+        (default: the board the link name designates)."""
         loop = asyncio.get_running_loop()
         try:
             _, link = await serial_asyncio_fast.create_serial_connection(
-                loop, lambda: cls(name, on_frame), port, baudrate=baudrate
+                loop, lambda: cls(name, on_frame, board=board), port, baudrate=baudrate
             )
         except (serial.SerialException, OSError) as exc:
             raise LinkError(f"{name}: cannot open {port}: {exc}") from None
@@ -115,21 +135,50 @@ class SerialLink(asyncio.Protocol):
     async def request(self, message: Any, dst: int, reply: type, timeout_s: float = 0.5) -> Any:
         """Send ``message`` and return the ``reply`` message that answers it.
 
+        Without an answer the same frame (same sequence number, so the board can tell a resend
+        and re-send its stored reply instead of acting twice) goes out again every
+        ``retry_interval_s``, at most ``max_resends`` times (docs/protocol.md section 6).
+        ``timeout_s`` is the most the call waits in all, from the first try; it is stretched to
+        ``(max_resends + 1) * retry_interval_s`` when shorter, so every try gets its interval.
+        A late answer to any try completes the request. Then LinkError, naming the tries.
+
         For commands answered with ACK/NACK, a NACK for this frame raises LinkError naming the
         error code, axis, value and limit.
         """
         spec = CATALOGUE.spec(message)
-        answered: list[int] = []
+        if self.transport is None:
+            raise LinkError(f"{self.name}: link is closed")
+        seq = self.encoder.next_seq
+        data = self.encoder.encode(message, dst)
 
         def matches(frame: Frame) -> bool:
             msg = frame.message
             if isinstance(msg, Ack | Nack):
-                return msg.msg_id == spec.msg_id and msg.seq == answered[0]
+                return msg.msg_id == spec.msg_id and msg.seq == seq
             return isinstance(msg, reply)
 
         fut = self.expect(matches)
-        answered.append(self.send(message, dst))
-        frame = await self._within(fut, timeout_s)
+        misaddressed_before = self.decoder.counters.misaddressed
+        loop = asyncio.get_running_loop()
+        interval_s = self.retry_interval_s
+        total_s = max(timeout_s, (self.max_resends + 1) * interval_s)
+        t0 = loop.time()
+        try:
+            for k in range(self.max_resends + 1):
+                if fut.done():
+                    break
+                if self.transport is None:
+                    raise LinkError(f"{self.name}: link is closed")
+                self.transport.write(data)
+                until = t0 + (total_s if k == self.max_resends else (k + 1) * interval_s)
+                await asyncio.wait((fut,), timeout=max(0.0, until - loop.time()))
+            if not fut.done():
+                raise LinkError(f"{self.name}: {spec.name} got no answer after {self.max_resends + 1} tries "
+                                f"({(loop.time() - t0) * 1e3:.0f} ms){self._misaddressed_hint(misaddressed_before)}")
+        finally:
+            if not fut.done():
+                fut.cancel()
+        frame = fut.result()
         if isinstance(frame.message, Nack):
             n = frame.message
             raise LinkError(
@@ -137,6 +186,15 @@ class SerialLink(asyncio.Protocol):
                 f" (axis {n.axis}, value {n.value:g}, limit {n.limit:g})"
             )
         return frame.message
+
+    def _misaddressed_hint(self, misaddressed_before: int) -> str:
+        """What to add to a no-answer error when frames for or from other nodes came in meanwhile."""
+        n = self.decoder.counters.misaddressed - misaddressed_before
+        last = self.decoder.last_misaddressed
+        if n <= 0 or last is None:
+            return ""
+        return (f"; meanwhile {n} frame(s) from node {last[0]:#04x} to node {last[1]:#04x} were dropped as "
+                f"misaddressed: is the right board on {self.port or 'this port'}?")
 
     def close(self) -> None:
         if self.transport is not None:

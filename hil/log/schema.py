@@ -43,16 +43,28 @@ class AttrSpec(NamedTuple):
     doc: str
 
 
+# The links group's columns per link, in order: name -> meaning. Cumulative counts of the bench's
+# decoder for that link since the session connected (hil.protocol.LinkCounters.totals(), same names;
+# docs/protocol.md, "Receiving").
+LINK_COUNTER_DOCS: dict[str, str] = {
+    "frames_ok": "frames delivered (good CRC, right addressing)",
+    "crc_errors": "frame candidates rejected for a bad CRC",
+    "bad_frames": "frame candidates rejected at the header: wrong version, unknown id or wrong length",
+    "bytes_discarded": "bytes skipped while hunting for a frame",
+    "frames_lost": "frames never seen: the sum of the forward gaps in the board's sequence numbers",
+    "duplicates": "frames received twice (same sequence number again: a resend); delivered, not an error",
+    "reordered": "frames that arrived after a later one (sequence number stepped back)",
+    "restarts": "times the board's sequence number restarted at 0 (board reset); no frame counted lost",
+    "rejected": "good frames refused by addressing: wrong source or destination node, or a message "
+    "this link does not carry",
+}
+LINK_COUNTERS = tuple(LINK_COUNTER_DOCS)
+
+
 def _links_channels() -> tuple[Channel, ...]:
     out = [Channel("t_host_ns", "i8", "ns", "host monotonic time when the counters were read")]
     for link in LINKS:
-        out += [
-            Channel(f"{link}_frames_ok", "u4", "1", f"{link} link: frames decoded with a good CRC"),
-            Channel(f"{link}_crc_errors", "u4", "1", f"{link} link: frames rejected for a bad CRC"),
-            Channel(f"{link}_bad_frames", "u4", "1", f"{link} link: frames rejected for a bad header or length"),
-            Channel(f"{link}_bytes_discarded", "u4", "1", f"{link} link: bytes skipped while hunting for a frame"),
-            Channel(f"{link}_frames_lost", "u4", "1", f"{link} link: gaps in the sequence numbers (frames never seen)"),
-        ]
+        out += [Channel(f"{link}_{name}", "u4", "1", f"{link} link: {doc}") for name, doc in LINK_COUNTER_DOCS.items()]
     return tuple(out)
 
 
@@ -93,7 +105,12 @@ SCHEMA: tuple[Group, ...] = (
             Channel("drive_az_counts", "i4", "counts", "azimuth drive command written (DRIVE_CMD)"),
             Channel("drive_el_counts", "i4", "counts", "elevation drive command written (DRIVE_CMD)"),
             Channel("latency_us", "f4", "us", "bench side: sample decoded -> DRIVE_CMD written"),
-            Channel("tick_gap", "u1", "1", "samples missed before this one (0 normally; 255 means 255 or more)"),
+            Channel(
+                "tick_gap",
+                "u4",
+                "1",
+                "samples missed before this one (0 normally); older logs store it as u1, 255 meaning 255 or more",
+            ),
         ),
     ),
     Group(

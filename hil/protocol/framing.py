@@ -19,10 +19,11 @@ from __future__ import annotations
 import dataclasses
 import struct
 from binascii import crc_hqx
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
-from hil.protocol.messages import CATALOGUE, PROTOCOL_VERSION
+from hil.protocol.messages import CATALOGUE, PROTOCOL_VERSION, Board
 from hil.protocol.wire import Catalogue, EncodeError
 
 SYNC = b"\xeb\x90"
@@ -76,25 +77,84 @@ class Encoder:
 
 @dataclass
 class LinkCounters:
-    """What a decoder saw on one link. Invariant: bytes = bytes_in_frames + bytes_discarded + pending."""
+    """What a decoder saw on one link (docs/protocol.md, "Receiving"); all counts since the last reset.
+
+    Invariant: bytes = bytes_in_frames + bytes_discarded + pending. ``frames_ok`` counts the frames
+    delivered; a frame with a good CRC that addressing refuses (``misaddressed``, ``wrong_link``)
+    is consumed whole (its bytes are in ``bytes_in_frames``) but not delivered. The per-source
+    sequence counters (dicts keyed by source node id) see every frame with a good CRC.
+    """
 
     bytes: int = 0
-    frames_ok: int = 0
-    bytes_in_frames: int = 0
+    frames_ok: int = 0  # frames delivered
+    bytes_in_frames: int = 0  # bytes of every frame with a good CRC, delivered or refused by addressing
     crc_errors: int = 0
+    bad_versions: int = 0  # headers whose version byte is not the catalogue's (rejected at the header)
     bad_lengths: int = 0  # claimed length > MAX_PAYLOAD, or not the catalogue's length for the id
     unknown_ids: int = 0  # headers with an id this catalogue does not define (rejected at the header)
+    misaddressed: int = 0  # good frames from another source node, or for another destination node
+    wrong_link: int = 0  # good frames of a message that this link does not carry (e.g. DRIVE_STATUS on servo)
     resyncs: int = 0  # times the decoder lost frame alignment and had to hunt for a sync word
     bytes_discarded: int = 0
-    seq_gaps: dict[int, int] = field(default_factory=dict)  # per source id: gaps seen
+    seq_gaps: dict[int, int] = field(default_factory=dict)  # per source id: forward jumps in the sequence
     frames_lost: dict[int, int] = field(default_factory=dict)  # per source id: frames the gaps skipped
+    duplicates: dict[int, int] = field(default_factory=dict)  # per source id: same seq again (a resend)
+    reordered: dict[int, int] = field(default_factory=dict)  # per source id: steps back (late frames)
+    restarts: dict[int, int] = field(default_factory=dict)  # per source id: count restarted at 0 (board reset)
 
     def errors(self) -> int:
-        """Sum of every error counter (a clean link reads 0)."""
-        return self.crc_errors + self.bad_lengths + self.unknown_ids + sum(self.seq_gaps.values())
+        """Sum of every error counter (a clean link reads 0).
+
+        Counts each rejected frame, each sequence gap (not the frames it skipped) and each
+        reordered frame. Duplicates and restarts are left out: a resend and a board reset lose no
+        data and are expected (retries, power cycles); they have their own counters.
+        """
+        return (
+            self.crc_errors + self.bad_versions + self.bad_lengths + self.unknown_ids + self.rejected()
+            + sum(self.seq_gaps.values()) + sum(self.reordered.values())
+        )
+
+    def rejected(self) -> int:
+        """Frames with a good CRC refused by addressing: misaddressed plus wrong_link."""
+        return self.misaddressed + self.wrong_link
+
+    def bad_frames(self) -> int:
+        """Candidates refused at the header: bad version, bad length or unknown id."""
+        return self.bad_versions + self.bad_lengths + self.unknown_ids
+
+    def totals(self) -> dict[str, int]:
+        """Whole-link totals, per-source counters summed: the session log's links columns
+        (hil.log.schema.LINK_COUNTERS, same names and order)."""
+        return {
+            "frames_ok": self.frames_ok,
+            "crc_errors": self.crc_errors,
+            "bad_frames": self.bad_frames(),
+            "bytes_discarded": self.bytes_discarded,
+            "frames_lost": sum(self.frames_lost.values()),
+            "duplicates": sum(self.duplicates.values()),
+            "reordered": sum(self.reordered.values()),
+            "restarts": sum(self.restarts.values()),
+            "rejected": self.rejected(),
+        }
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+
+Side = Literal["host", "board"]
+
+
+def link_message_ids(board: int, side: Side = "host", catalogue: Catalogue = CATALOGUE) -> frozenset[int]:
+    """Ids of the messages ``side`` may receive on ``board``'s link, from the catalogue's sender/receiver.
+
+    On the host's side: messages whose sender is ``board`` or any board (None) and whose receiver
+    is the host (or None). On the board's side, the mirror: sender the host (or None), receiver
+    ``board`` or any board.
+    """
+    if side not in ("host", "board"):
+        raise ValueError(f"side {side!r}: expected 'host' or 'board'")
+    near, far = (Board.HOST, board) if side == "host" else (board, Board.HOST)
+    return frozenset(s.msg_id for s in catalogue if s.sender in (far, None) and s.receiver in (near, None))
 
 
 class Decoder:
@@ -106,12 +166,27 @@ class Decoder:
       id is not in the catalogue, or the claimed length is not that message's length (so a
       claimed length beyond MAX_PAYLOAD is always dropped at once);
     - on a bad header or CRC, discard only the first sync byte and rescan from the next byte,
-      so a false sync never swallows a real frame that starts inside its claimed span.
+      so a false sync never swallows a real frame that starts inside its claimed span;
+    - track the sequence number per source (``_track_seq``) for every frame with a good CRC;
+    - when the decoder knows its link (``src``, ``dst``, ``msg_ids``, or :meth:`for_link`), drop
+      a good frame from another source or for another destination (``misaddressed``) or of a
+      message the link does not carry (``wrong_link``): consumed, counted, never delivered.
     A false sync therefore holds back the next real frame by at most ``max_frame`` bytes (the
     catalogue's longest frame), and that is also the most memory kept between calls.
+
+    ``Decoder()`` accepts any source, destination and catalogue message (a capture tool).
     """
 
-    def __init__(self, catalogue: Catalogue = CATALOGUE) -> None:
+    def __init__(
+        self,
+        catalogue: Catalogue = CATALOGUE,
+        *,
+        src: int | None = None,
+        dst: int | None = None,
+        msg_ids: Iterable[int] | None = None,
+    ) -> None:
+        """``src``/``dst``: the only source and destination node ids accepted (None: any);
+        ``msg_ids``: the only message ids accepted (None: every id of the catalogue)."""
         self.catalogue = catalogue
         self.counters = LinkCounters()
         self._buf = bytearray()
@@ -123,6 +198,24 @@ class Decoder:
         for spec in catalogue:
             self._size_of[spec.msg_id] = spec.payload_size
             self._decoder_of[spec.msg_id] = spec.payload_decoder
+        # addressing: checked only when something is restricted (one boolean test per frame otherwise)
+        self.src = src
+        self.dst = dst
+        self.msg_ids = None if msg_ids is None else frozenset(msg_ids)
+        self._on_link = [self.msg_ids is None or i in self.msg_ids for i in range(256)]
+        self._src_ok = [src is None or i == src for i in range(256)]
+        self._dst_ok = [dst is None or i == dst for i in range(256)]
+        self._check_address = src is not None or dst is not None or self.msg_ids is not None
+        self.last_misaddressed: tuple[int, int] | None = None  # (src, dst) of the latest misaddressed frame
+
+    @classmethod
+    def for_link(cls, board: int, side: Side = "host", catalogue: Catalogue = CATALOGUE) -> Decoder:
+        """The decoder of one end of ``board``'s link: ``side="host"`` receives what the board sends
+        (src = board, dst = host), ``side="board"`` what the host sends (src = host, dst = board);
+        only the messages the catalogue routes that way (:func:`link_message_ids`) are delivered."""
+        board = int(board)
+        src, dst = (board, int(Board.HOST)) if side == "host" else (int(Board.HOST), board)
+        return cls(catalogue, src=src, dst=dst, msg_ids=link_message_ids(board, side, catalogue))
 
     @property
     def max_frame(self) -> int:
@@ -139,6 +232,31 @@ class Decoder:
         self._discard(len(self._buf))
         self._buf.clear()
         self._last_seq = [-1] * 256
+
+    def note_restart(self, src: int) -> None:
+        """``src`` restarted its count (it announced IDENT at boot): its next frame starts afresh,
+        without counting loss, reordering or a restart."""
+        self._last_seq[src] = -1
+
+    def _track_seq(self, src: int, seq: int, last: int) -> int:
+        """Count an out-of-step sequence number (``seq`` is not ``last + 1``); returns the new last.
+
+        With d = (seq - last) mod 65536: d == 0 a duplicate; seq == 0 a restart (no loss); a step
+        back (d >= 32768) a reordered frame (last stays); otherwise a gap of d - 1 lost frames."""
+        c = self.counters
+        d = (seq - last) & 0xFFFF
+        if d == 0:
+            c.duplicates[src] = c.duplicates.get(src, 0) + 1
+            return last
+        if seq == 0:
+            c.restarts[src] = c.restarts.get(src, 0) + 1
+            return 0
+        if d >= 0x8000:
+            c.reordered[src] = c.reordered.get(src, 0) + 1
+            return last
+        c.seq_gaps[src] = c.seq_gaps.get(src, 0) + 1
+        c.frames_lost[src] = c.frames_lost.get(src, 0) + d - 1
+        return seq
 
     def _discard(self, n: int) -> None:
         if n:
@@ -157,6 +275,7 @@ class Decoder:
         decoder_of = self._decoder_of
         version = self.catalogue.protocol_version
         last_seq = self._last_seq
+        check_address, src_ok, dst_ok, on_link = self._check_address, self._src_ok, self._dst_ok, self._on_link
         unpack_header = _HEADER.unpack_from
         new_frame = tuple.__new__
         out: list[Frame] = []
@@ -179,11 +298,12 @@ class Decoder:
             ver, src, dst, msg_id, seq, length = unpack_header(buf, pos + 2)
             size = size_of[msg_id]  # -1 for an id this catalogue does not define
             if length != size or ver != version:
-                if ver == version:
-                    if size < 0 and length <= MAX_PAYLOAD:
-                        c.unknown_ids += 1
-                    else:
-                        c.bad_lengths += 1
+                if ver != version:
+                    c.bad_versions += 1
+                elif size < 0 and length <= MAX_PAYLOAD:
+                    c.unknown_ids += 1
+                else:
+                    c.bad_lengths += 1
                 self._discard(1)
                 pos += 1
                 continue
@@ -197,13 +317,18 @@ class Decoder:
                 continue
             self._aligned = True
             last = last_seq[src]
-            if last >= 0 and seq != (last + 1) & 0xFFFF:
-                c.seq_gaps[src] = c.seq_gaps.get(src, 0) + 1
-                c.frames_lost[src] = c.frames_lost.get(src, 0) + ((seq - last - 1) & 0xFFFF)
-            last_seq[src] = seq
+            last_seq[src] = seq if last < 0 or seq == (last + 1) & 0xFFFF else self._track_seq(src, seq, last)
+            bytes_ok += end - pos
+            if check_address and not (src_ok[src] and dst_ok[dst] and on_link[msg_id]):
+                if not (src_ok[src] and dst_ok[dst]):
+                    c.misaddressed += 1
+                    self.last_misaddressed = (src, dst)
+                else:
+                    c.wrong_link += 1
+                pos = end
+                continue
             out.append(new_frame(Frame, (src, dst, seq, decoder_of[msg_id](buf, pos + HEADER_SIZE))))
             frames_ok += 1
-            bytes_ok += end - pos
             pos = end
         c.frames_ok += frames_ok
         c.bytes_in_frames += bytes_ok
@@ -225,4 +350,5 @@ __all__ = [
     "LinkCounters",
     "crc16",
     "encode_frame",
+    "link_message_ids",
 ]

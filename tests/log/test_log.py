@@ -141,7 +141,7 @@ def test_bad_values_are_coerced_counted_and_never_raise(tmp_path):
     row[0] = math.nan  # tick u4 <- NaN
     row[3] = None  # gyro_x f4 <- None
     row[18] = 12.7  # drive_az_counts i4 <- float: truncated, not bad
-    row[21] = 300  # tick_gap u1 <- out of range
+    row[21] = -5  # tick_gap u4 <- out of range
     with make_log(p) as log:
         log.append("loop", row)
         log.append("loop", pattern_row(G["loop"], 1))
@@ -153,7 +153,7 @@ def test_bad_values_are_coerced_counted_and_never_raise(tmp_path):
     assert log.bad_values["loop"] == 3 and log.bad_values["image"] == 1
     loop = read_log(p).groups["loop"]
     assert loop["tick"][0] == 0 and math.isnan(loop["gyro_x_dps"][0])
-    assert loop["drive_az_counts"][0] == 12 and loop["tick_gap"][0] == 255
+    assert loop["drive_az_counts"][0] == 12 and loop["tick_gap"][0] == 0
     assert loop["tick"][1] == 1
     img = read_log(p).groups["image"]
     assert img["t_exposure_s"][0] == 1e40 and np.isinf(img["miss_x_px"][0]) and img["miss_y_px"][0] < 0
@@ -515,10 +515,10 @@ def test_schema_has_the_specified_channels_and_units():
     assert len(loop) == 22
     assert loop["tick"] == ("u4", "1") and loop["t_host_ns"] == ("i8", "ns") and loop["t_s"] == ("f8", "s")
     assert loop["gyro_z_dps"] == ("f4", "deg/s") and loop["el_deg"] == ("f8", "deg")
-    assert loop["drive_el_counts"] == ("i4", "counts") and loop["tick_gap"] == ("u1", "1")
+    assert loop["drive_el_counts"] == ("i4", "counts") and loop["tick_gap"] == ("u4", "1")
     assert loop["dist_az_counts"] == ("f4", "counts") and loop["latency_us"] == ("f4", "us")
     links = [c.name for c in G["links"].channels]
-    assert len(links) == 21 and links[1] == "servo_frames_ok" and links[-1] == "hexapod_frames_lost"
+    assert len(links) == 37 and links[1] == "servo_frames_ok" and links[-1] == "hexapod_rejected"
     assert {c.name: c.dtype for c in G["events"].channels} == {
         "t_host_ns": "i8",
         "tick": "u4",

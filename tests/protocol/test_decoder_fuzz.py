@@ -14,6 +14,7 @@ come, and the flush (more than enough) stands in for them.
 
 from __future__ import annotations
 
+import itertools
 import random
 import struct
 from binascii import crc_hqx
@@ -316,6 +317,7 @@ def test_wrong_version_is_rejected_without_waiting() -> None:
     assert decoder.feed(bad + good) == [Frame(0x20, 0x01, 9, good_msg)]
     c = decoder.counters
     assert (c.bad_lengths, c.crc_errors, c.bytes_discarded, decoder.pending) == (0, 0, len(bad), 0)
+    assert c.bad_versions == 1 and c.errors() == 1
 
 
 no_sync = st.integers(0, 255).filter(lambda b: b != 0xEB)
@@ -609,14 +611,18 @@ def test_memory_stays_bounded_on_sync_rich_garbage() -> None:
     assert decoder.counters.unknown_ids > 500  # ~200000 / 6**3 headers with version 1, nearly all unknown
 
 
-def _gaps(dropped: Sequence[bool]) -> tuple[int, int]:
-    """(gaps, frames lost) a receiver can see: dropped runs between the first and last kept frame."""
-    kept = [i for i, d in enumerate(dropped) if not d]
-    if not kept:
-        return 0, 0
-    inner = dropped[kept[0] : kept[-1] + 1]
-    runs = sum(1 for i, d in enumerate(inner) if d and (i == 0 or not inner[i - 1]))
-    return runs, sum(inner)
+def _gaps(start: int, dropped: Sequence[bool]) -> tuple[int, int, int]:
+    """(gaps, frames lost, restarts) a receiver can see: dropped runs between the first and last kept
+    frame, except that a kept seq 0 after a run that ended before 65535 reads as a restart (no loss)."""
+    kept = [(start + i) & 0xFFFF for i, d in enumerate(dropped) if not d]
+    gaps = lost = restarts = 0
+    for last, seq in itertools.pairwise(kept):
+        skipped = (seq - last - 1) & 0xFFFF
+        if skipped and seq == 0:
+            restarts += 1
+        elif skipped:
+            gaps, lost = gaps + 1, lost + skipped
+    return gaps, lost, restarts
 
 
 @given(
@@ -645,11 +651,12 @@ def test_sequence_gaps_are_counted_per_source(
     decoder = Decoder()
     assert feed_in_chunks(decoder, stream, sizes, expected) == expected
     c = decoder.counters
-    for src, dropped in zip(sources, drops, strict=True):
-        gaps, lost = _gaps(dropped)
+    seen = [_gaps(start, dropped) for start, dropped in zip(starts, drops, strict=True)]
+    for src, (gaps, lost, restarts) in zip(sources, seen, strict=True):
         assert c.seq_gaps.get(src, 0) == gaps
         assert c.frames_lost.get(src, 0) == lost
-    assert c.errors() == sum(_gaps(d)[0] for d in drops)
+        assert c.restarts.get(src, 0) == restarts
+    assert c.errors() == sum(gaps for gaps, _, _ in seen)
 
 
 def test_sequence_gaps_across_the_wrap() -> None:
