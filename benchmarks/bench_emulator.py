@@ -28,13 +28,17 @@ from hil.protocol import (
     DriveEnable,
     Encoder,
     GyroSample,
+    HostAlive,
     ServoMode,
     StreamMode,
 )
 
 
 class TrivialHost:
-    def __init__(self, ports: dict[str, str]) -> None:
+    def __init__(self, ports: dict[str, str], host_alive: bool) -> None:
+        """``host_alive``: HOST_ALIVE on the servo link every 100 ms (realtime: the board's host timeout would stop
+        the stream; lockstep: the world's own wait judges the host, and HOST_ALIVE would only add bytes)."""
+        self.host_alive = host_alive
         self.fds = {name: os.open(ports[name], os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK) for name in ("servo", "driver")}
         self.enc = {name: Encoder(Board.HOST) for name in self.fds}
         self.dec = {name: Decoder() for name in self.fds}
@@ -64,7 +68,11 @@ class TrivialHost:
         servo, got, t0 = self.fds["servo"], 0, time.perf_counter()
         # a lockstep emulator waits (up to its 1 s timeout) for the command of a sample that came with the ACK
         pending, self.early = self.early, []
+        next_alive = time.monotonic()
         while got < n_samples:
+            if self.host_alive and time.monotonic() >= next_alive:
+                next_alive += 0.1
+                self.send("servo", HostAlive(0), Board.SERVO)
             for g in pending:
                 u_el = max(-30000, min(30000, int(-3000 * g.rate_y_dps)))
                 u_az = max(-30000, min(30000, int(-3000 * g.rate_z_dps)))
@@ -89,7 +97,7 @@ def run_emulator(clock: str, n_samples: int) -> tuple[dict, float]:
                             text=True)
     assert proc.stdout is not None
     ports = json.loads(proc.stdout.readline())
-    host = TrivialHost(ports)
+    host = TrivialHost(ports, host_alive=clock == "realtime")
     try:
         _, wall = host.serve(n_samples)
     finally:

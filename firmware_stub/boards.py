@@ -4,6 +4,13 @@ Every board answers IDENT_REQ with IDENT (firmware version, catalogue fingerprin
 it boots, a HEARTBEAT every second, ACK/NACK to commands, and its periodic messages on the world's
 1 ms tick. The boards read and drive one shared :class:`~firmware_stub.plant.Plant` through the
 :class:`World` they live in (the emulator).
+
+What every board does with a frame from its link (:meth:`EmulatedBoard.receive`): drop and count
+what is not from the host, not addressed to it, or not a message the host sends on its link; note
+that the host is alive (the host timer, docs/protocol.md "Host liveness"); answer a resent command
+(same id and sequence number as the last one) with the stored reply without acting again; else
+handle it. When the host timer expires the board records ``host_timeout`` and puts itself in its
+safe state (:meth:`EmulatedBoard.protect`, one small override per board).
 """
 
 from __future__ import annotations
@@ -12,9 +19,10 @@ import math
 from array import array
 from collections import deque
 from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
-from firmware_stub.config import EmulatorConfig
+from firmware_stub.config import ClockMode, EmulatorConfig
 from firmware_stub.link import BoardLink, FaultRecorder
 from hil.protocol import (
     CATALOGUE,
@@ -37,9 +45,11 @@ from hil.protocol import (
     HexapodState,
     HexapodStatus,
     HexapodStop,
+    HostAlive,
     Ident,
     IdentRequest,
     LoopTiming,
+    MessageSpec,
     MissDistance,
     Nack,
     Pose,
@@ -60,6 +70,20 @@ TICKS_PER_S = 1000
 U32 = 0xFFFFFFFF
 
 
+def host_messages(board: Board) -> dict[type, MessageSpec]:
+    """The messages the host sends on ``board``'s link, by type (the catalogue's sender and receiver)."""
+    return {spec.cls: spec for spec in CATALOGUE if spec.sender == Board.HOST and spec.receiver in (None, board)}
+
+
+@dataclass
+class DroppedFrames:
+    """Frames with a good CRC that a board drops unanswered (docs/protocol.md section 4, step 6; counted
+    since the emulator started)."""
+
+    misaddressed: int = 0  # the source is not the host (0x01), or the destination is not this board
+    wrong_link: int = 0  # a message the host does not send to this board (e.g. DRIVE_CMD on the servo link)
+
+
 class World(Protocol):
     """What the boards see of the emulator that hosts them."""
 
@@ -73,7 +97,8 @@ class World(Protocol):
 
 
 class EmulatedBoard:
-    """Common behaviour; a board adds ``handlers`` for its commands and overrides ``power_on``/``on_tick``."""
+    """Common behaviour; a board adds ``handlers`` for its commands, overrides ``power_on``/``on_tick``,
+    and ``protect`` (its safe state when the host falls silent)."""
 
     board_id: Board
     state: BoardState = BoardState.BOOT
@@ -84,14 +109,29 @@ class EmulatedBoard:
         self.fingerprint = fingerprint
         self.serial_number = world.config.boards.serial_base + int(self.board_id)
         self.boot_tick = 0
-        self.handlers: dict[type, Callable[[Frame, float], None]] = {IdentRequest: self._on_ident_request}
+        self.handlers: dict[type, Callable[[Frame, float], None]] = {
+            IdentRequest: self._on_ident_request, HostAlive: self._on_host_alive}
+        self.accepted = host_messages(self.board_id)
+        timeout_ms = world.config.boards.host_timeout_ms
+        self.host_timeout_ticks = max(1, round(timeout_ms)) if timeout_ms > 0 else 0  # 0: never
+        self.dropped = DroppedFrames()
+        self.resent_replies = 0  # resent commands answered from memory
+        self.host_timeouts = 0
+        self.uncounted_rx_frames = 0  # lockstep: HOST_ALIVE frames, kept out of HEARTBEAT.rx_frames
+        self._count_host_alive = world.config.clock is not ClockMode.LOCKSTEP
         self.power_on()
 
     # --- life cycle ----------------------------------------------------------------------------------
 
     def power_on(self) -> None:
-        """State at power-on (and after a reset)."""
+        """State at power-on (and after a reset): the host timer unarmed, no command remembered."""
         self.state = BoardState.READY
+        self.host_heard_tick: int | None = None  # world tick of the last host frame; None: timer not armed
+        self._forget_command()
+
+    def _forget_command(self) -> None:
+        self._last_command: tuple[int, int] | None = None  # (msg_id, seq) of the last command handled
+        self._last_reply: Any = None  # its ACK/NACK (IDENT for IDENT_REQ)
 
     def reboot(self) -> None:
         self.link.reset_codec()
@@ -108,11 +148,44 @@ class EmulatedBoard:
     def send(self, message: Any) -> bool:
         return self.link.send(message, Board.HOST, self.world.tick)
 
+    def reply(self, frame: Frame, message: Any) -> None:
+        """Send the reply to ``frame``; kept for a resend when ``frame`` is the command being handled."""
+        if (CATALOGUE.spec(frame.message).msg_id, frame.seq) == self._last_command:
+            self._last_reply = message
+        self.send(message)
+
     def ack(self, frame: Frame) -> None:
-        self.send(Ack(CATALOGUE.spec(frame.message).msg_id, frame.seq))
+        self.reply(frame, Ack(CATALOGUE.spec(frame.message).msg_id, frame.seq))
 
     def nack(self, frame: Frame, error: ErrorCode, axis: int = NO_AXIS, value: float = 0.0, limit: float = 0.0) -> None:
-        self.send(Nack(CATALOGUE.spec(frame.message).msg_id, frame.seq, error, axis, value, limit))
+        self.reply(frame, Nack(CATALOGUE.spec(frame.message).msg_id, frame.seq, error, axis, value, limit))
+
+    def receive(self, frame: Frame, t_rx: float) -> bool:
+        """One frame from the link. False when dropped (counted): not for this board, not from the host,
+        or not a message the host sends on this link. Otherwise the host timer restarts, and a resent
+        command (same msg_id and seq as the last one) gets the stored reply again instead of a second
+        action; any other frame is handled."""
+        message = frame.message
+        if not self._count_host_alive and type(message) is HostAlive:
+            self.uncounted_rx_frames += 1
+        if frame.dst != self.board_id or frame.src != Board.HOST:
+            self.dropped.misaddressed += 1
+            return False
+        spec = self.accepted.get(type(message))
+        if spec is None:
+            self.dropped.wrong_link += 1
+            return False
+        self.host_heard_tick = self.world.tick
+        if spec.reply:  # a command: remember it, or recognise its resend
+            key = (spec.msg_id, frame.seq)
+            if key == self._last_command:
+                if self._last_reply is not None:
+                    self.resent_replies += 1
+                    self.send(self._last_reply)
+                return True
+            self._last_command, self._last_reply = key, None
+        self.handle(frame, t_rx)
+        return True
 
     def handle(self, frame: Frame, t_rx: float) -> None:
         handler = self.handlers.get(type(frame.message))
@@ -122,14 +195,46 @@ class EmulatedBoard:
             handler(frame, t_rx)
 
     def _on_ident_request(self, frame: Frame, t_rx: float) -> None:
-        self.send(self.ident())
+        self.reply(frame, self.ident())
+
+    def _on_host_alive(self, frame: Frame, t_rx: float) -> None:
+        """No reply, no action: receiving it restarted the host timer."""
+
+    # --- host liveness -------------------------------------------------------------------------------
+
+    def check_host_timer(self, tick: int) -> int:
+        """Realtime: protect if the host has been silent for the host timeout at world tick ``tick``;
+        returns the next tick worth checking again."""
+        heard = self.host_heard_tick
+        if heard is None:
+            return tick + self.host_timeout_ticks
+        if tick - heard < self.host_timeout_ticks:
+            return heard + self.host_timeout_ticks
+        self.host_lost(tick - heard, self.host_timeout_ticks)
+        return tick + self.host_timeout_ticks
+
+    def host_lost(self, silence_ms: float, timeout_ms: float) -> None:
+        """The host timer expired: record it, disarm the timer, forget the last command, protect."""
+        self.host_timeouts += 1
+        self.host_heard_tick = None
+        self._forget_command()
+        self.world.recorder.record(self.link.name, "host_timeout", silence_ms=silence_ms, timeout_ms=timeout_ms)
+        self.protect()
+
+    def protect(self) -> None:
+        """The board's safe state when the host is gone (kept until the host commands it again)."""
+
+    def counters(self) -> dict[str, Any]:
+        """For the emulator's summary: frames dropped, resends answered, host timeouts, timer armed."""
+        return {"dropped": asdict(self.dropped), "resent_replies": self.resent_replies,
+                "host_timeouts": self.host_timeouts, "host_armed": self.host_heard_tick is not None}
 
     def on_tick(self, tick: int) -> None:
         """Periodic output after the plant has advanced to ``tick``."""
         if (tick - self.boot_tick) % TICKS_PER_S == 0:
             c = self.link.decoder.counters
-            self.send(Heartbeat((tick - self.boot_tick) & U32, self.state, c.frames_ok, c.crc_errors,
-                                c.bad_lengths + c.unknown_ids, 0, self.link.stats.tx_overflow_bytes))
+            self.send(Heartbeat((tick - self.boot_tick) & U32, self.state, c.frames_ok - self.uncounted_rx_frames,
+                                c.crc_errors, c.bad_lengths + c.unknown_ids, 0, self.link.stats.tx_overflow_bytes))
 
 
 def percentiles_us(values: array | list[float]) -> dict[str, float]:
@@ -183,12 +288,23 @@ class ServoBoard(EmulatedBoard):
 
     def _on_mode(self, frame: Frame, t_rx: float) -> None:
         msg: ServoMode = frame.message
-        self.streaming = msg.mode == StreamMode.STREAM
-        if self.streaming:
+        self._set_stream(msg.mode == StreamMode.STREAM, "host")
+        self.ack(frame)
+
+    def _set_stream(self, on: bool, cause: str) -> None:
+        """Start (tick from 0) or stop the GYRO_SAMPLE stream; recorded when it starts or stops."""
+        if on or self.streaming:
+            self.world.recorder.record(self.link.name, "servo_stream", streaming=on, cause=cause)
+        self.streaming = on
+        if on:
             self.stream_tick = 0
             self._reset_timing()
-        self.state = BoardState.RUNNING if self.streaming else BoardState.READY
-        self.ack(frame)
+        self.state = BoardState.RUNNING if on else BoardState.READY
+
+    def protect(self) -> None:
+        """Host gone: stop streaming, as SERVO_MODE(IDLE) does."""
+        if self.streaming:
+            self._set_stream(False, "host_timeout")
 
     def _on_config(self, frame: Frame, t_rx: float) -> None:
         msg: ServoConfig = frame.message
@@ -355,6 +471,11 @@ class DriverBoard(EmulatedBoard):
         self._disable(AxisMask(msg.axes), "host")
         self.ack(frame)
 
+    def protect(self) -> None:
+        """Host gone: disable both axes (zero output) until DRIVE_ENABLE."""
+        if self.enabled:
+            self._disable(AxisMask.BOTH, "host_timeout")
+
     def _disable(self, axes: AxisMask, cause: str) -> None:
         for i, (mask, _, _) in enumerate(AXES):
             if axes & mask:
@@ -408,6 +529,7 @@ class ImageBoard(EmulatedBoard):
 
     Tracking is off at power-on (track_valid = 0, miss = 0) until TRACK_CMD(TRACK). With tracking on,
     track_valid is 1 while the target is in the field of view and, if ``gate_px`` > 0, inside the gate.
+    It drives nothing, so a host timeout only records the event: tracking stays as the host left it.
     """
 
     board_id = Board.IMAGE
@@ -530,10 +652,18 @@ class HexapodBoard(EmulatedBoard):
         self.ack(frame)
 
     def _on_stop(self, frame: Frame, t_rx: float) -> None:
+        self._stop()
+        self.ack(frame)
+
+    def _stop(self) -> None:
+        """A running profile ramps to zero over ``stop_ramp_s``, then rests at home (LOADED)."""
         if self.hex_state == HexapodState.RUNNING:
             self.stop_tick = self.world.tick
             self._set_state(HexapodState.STOPPING)
-        self.ack(frame)
+
+    def protect(self) -> None:
+        """Host gone: ramp home, as HEXAPOD_STOP does."""
+        self._stop()
 
     def motion(self, tick: int) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
         """Pose, rate, acceleration at the middle of the tick that starts at ``tick`` (before stepping)."""

@@ -10,11 +10,18 @@ Clock modes (docs/emulator.md):
   and commands give the same bytes on every link. While the stream is off the world is frozen (so
   commands sent before STREAM take effect at tick 0); while the servo link is not delivering
   (stall, latency spike, disconnect) time runs in real time, so the host's watchdog sees the gap.
+
+Host liveness (docs/protocol.md, "Host liveness"): in realtime each board's host timer counts world
+ticks, checked in ``step`` only when the earliest expiry is due (one comparison per tick). In lockstep
+the boards share one wall-clock timer (the last host frame on any link), judged only when a wait for
+DRIVE_CMD gives up, against max(host_timeout_ms, lockstep_timeout_ms): a slow but live host never
+changes a lockstep run's bytes, and a frozen world (stream off) is never judged.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import shutil
 import tempfile
 import time
@@ -34,6 +41,7 @@ from hil.protocol import CATALOGUE, Board, DriveCmd, Frame
 from hil.protocol.swing import Envelope
 
 TICK_S = 1e-3
+NEVER = 1 << 62  # a tick that never comes
 BOARD_IDS = {LinkName.SERVO: Board.SERVO, LinkName.DRIVER: Board.DRIVER, LinkName.IMAGE: Board.IMAGE,
              LinkName.HEXAPOD: Board.HEXAPOD}
 
@@ -59,7 +67,6 @@ class Emulator:
         self.deadline: float | None = None
         self.stop_requested = False
         self.lockstep_timeouts = 0
-        self.misaddressed = 0
         self._own_run_dir = run_dir is None
         self.run_dir = Path(tempfile.mkdtemp(prefix="hil-emu-")) if run_dir is None else run_dir
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -78,6 +85,11 @@ class Emulator:
         self.schedule: deque[ScheduledFault] = deque(sorted(config.faults, key=lambda f: f.at_s))
         self.awaiting: int | None = None  # lockstep: the tick whose DRIVE_CMD releases the next step
         self.released = False
+        # host liveness: realtime, the next world tick at which a board's host timer may expire; lockstep,
+        # the perf_counter() time of the last host frame on any link (the boards' shared timer)
+        realtime_timer = config.clock is ClockMode.REALTIME and config.boards.host_timeout_ms > 0
+        self.host_check_tick = self.servo.host_timeout_ticks if realtime_timer else NEVER
+        self.host_heard_s = -math.inf
         self.control = ControlServer(self.run_dir / "control.sock", self.handle_control)
         self.started_wall = time.time()
 
@@ -105,10 +117,9 @@ class Emulator:
         box, board = self.inbox[name], self.boards[name]
         while box and not (name is LinkName.DRIVER and self.released):
             frame, t_rx = box.popleft()
-            if frame.dst != board.board_id:
-                self.misaddressed += 1
-                continue
-            board.handle(frame, t_rx)
+            if not board.receive(frame, t_rx):
+                continue  # dropped and counted by the board
+            self.host_heard_s = max(self.host_heard_s, t_rx)  # held driver frames may be handled after later ones
             if self.awaiting is not None and type(frame.message) is DriveCmd and frame.message.tick == self.awaiting:
                 self.released = True  # lockstep: the rest of the inbox waits for the step
 
@@ -116,13 +127,16 @@ class Emulator:
 
     def step(self) -> None:
         """Advance the world one tick: plant (with the driver's output and the hexapod's motion), faults due,
-        then every board's periodic output (the servo board's GYRO_SAMPLE last)."""
+        then every board's periodic output (the servo board's GYRO_SAMPLE last). A board whose host timer
+        expires at the new tick (realtime) protects itself before its periodic output."""
         u_az, u_el = self.driver.output_counts()
         pose, rate, accel = self.hexapod.motion(self.tick)
         self.hexapod.pose = pose
         self.plant.step_tick(u_az, u_el, CarrierMotion(pose, rate, accel))
         self.tick += 1
         self.recorder.now_tick = self.tick
+        if self.tick >= self.host_check_tick:
+            self.host_check_tick = min(board.check_host_timer(self.tick) for board in self.boards.values())
         while self.schedule and round(self.schedule[0].at_s * 1000) <= self.tick:
             f = self.schedule.popleft()
             self.inject(f.link, f.kind, f.duration_ms, f.n_bytes)
@@ -220,12 +234,26 @@ class Emulator:
                                     self.readers(), lambda: self.stop_requested)
                 if not answered and self.servo.streaming:
                     self.lockstep_timeouts += 1
+                    self._judge_host_lockstep()
                 self.awaiting = None
                 self.released = False
                 self._drain(LinkName.DRIVER)
             elif self.servo.streaming:  # the sample did not reach the host: let real time pass
                 paced_next = paced_next + TICK_S if paced_next else time.perf_counter() + TICK_S
                 wait_until(paced_next, self.readers())
+
+    def _judge_host_lockstep(self) -> None:
+        """Lockstep, after a wait for DRIVE_CMD gave up: if no host frame came on any link for
+        max(host_timeout_ms, lockstep_timeout_ms) of wall time, every board the host had talked to protects itself."""
+        host_timeout_ms = self.config.boards.host_timeout_ms
+        if not host_timeout_ms:
+            return
+        timeout_ms = max(host_timeout_ms, self.config.lockstep_timeout_ms)
+        silence_ms = (time.perf_counter() - self.host_heard_s) * 1000
+        if silence_ms >= timeout_ms:
+            for board in self.boards.values():
+                if board.host_heard_tick is not None:
+                    board.host_lost(round(silence_ms), timeout_ms)
 
     def request_stop(self) -> None:
         self.stop_requested = True
@@ -269,8 +297,12 @@ class Emulator:
                        "stale_commands": self.driver.stale_commands},
             "hexapod": {"state": self.hexapod.hex_state.name, "segments": len(self.hexapod.segments)},
             "lockstep_timeouts": self.lockstep_timeouts,
-            "misaddressed_frames": self.misaddressed,
-            "links": {name.value: {**asdict(link.stats), "rx": link.decoder.counters.as_dict()}
+            "host_timeout_ms": self.config.boards.host_timeout_ms,
+            "host_timeouts": sum(board.host_timeouts for board in self.boards.values()),
+            "misaddressed_frames": sum(board.dropped.misaddressed for board in self.boards.values()),
+            "wrong_link_frames": sum(board.dropped.wrong_link for board in self.boards.values()),
+            "links": {name.value: {**asdict(link.stats), "rx": link.decoder.counters.as_dict(),
+                                   "board": self.boards[name].counters()}
                       for name, link in self.links.items()},
             "fault_records": len(self.recorder.records) + self.recorder.dropped,
         }

@@ -17,7 +17,7 @@ from typing import Any
 
 from firmware_stub.config import EmulatorConfig, load_emulator_config
 from firmware_stub.emulator import Emulator
-from hil.protocol import Ack, Board, Decoder, Encoder, Frame, Nack
+from hil.protocol import Ack, Board, Decoder, Encoder, Frame, HostAlive, Nack
 
 BOARD_OF = {"servo": Board.SERVO, "driver": Board.DRIVER, "image": Board.IMAGE, "hexapod": Board.HEXAPOD}
 
@@ -72,13 +72,23 @@ class HostPort:
 class Host:
     """All four ports; ``wait`` pumps every port until a predicate on one port's new frames holds."""
 
-    def __init__(self, ports: dict[str, str]) -> None:
+    def __init__(self, ports: dict[str, str], host_alive_period_s: float | None = None) -> None:
+        """``host_alive_period_s``: send HOST_ALIVE on every port this often while pumping (realtime runs that
+        last longer than the boards' host timeout); keep it None in lockstep, where it would shift the host's
+        sequence numbers and so the bytes of the ACKs."""
         self.ports = {name: HostPort(name, path) for name, path in ports.items() if name in BOARD_OF}
+        self.host_alive_period_s = host_alive_period_s
+        self._next_alive = time.monotonic()
 
     def __getitem__(self, name: str) -> HostPort:
         return self.ports[name]
 
     def pump_all(self, timeout_s: float = 0.0) -> None:
+        if self.host_alive_period_s is not None and time.monotonic() >= self._next_alive:
+            self._next_alive = time.monotonic() + self.host_alive_period_s
+            for p in self.ports.values():
+                with contextlib.suppress(OSError):  # a port the test closed
+                    p.send(HostAlive(0))
         fds = [p.fd for p in self.ports.values()]
         with contextlib.suppress(OSError, ValueError):
             select.select(fds, [], [], timeout_s)

@@ -149,7 +149,7 @@ def lockstep_run(seed: int, n: int = 800) -> dict[str, str]:
 
 def test_realtime_writes_the_sample_first_and_the_other_boards_frames_answered_or_not() -> None:
     with running_emulator(clock="realtime") as emu:
-        host = Host(emu.ports())
+        host = Host(emu.ports(), host_alive_period_s=0.1)
         start_session(host, [PITCH_SWING])
         stream(host, 300)
         frames = [f.message for f in host["servo"].frames]
@@ -319,7 +319,7 @@ def test_stall_silences_the_board_for_its_duration() -> None:
 
 def test_latency_spike_delays_samples_without_losing_them() -> None:
     with running_emulator(clock="realtime") as emu:
-        host = Host(emu.ports())
+        host = Host(emu.ports(), host_alive_period_s=0.1)
         start_session(host)
         stream(host, 100)
         from firmware_stub.control import ControlClient
@@ -369,7 +369,7 @@ def test_disconnect_hangs_up_and_the_same_path_serves_again() -> None:
 
 def test_a_host_that_reconnects_is_served_again() -> None:
     with running_emulator(clock="realtime") as emu:
-        host = Host(emu.ports())
+        host = Host(emu.ports(), host_alive_period_s=0.1)
         start_session(host)
         stream(host, 100)
         host["servo"].close()

@@ -34,7 +34,7 @@ def test_realtime_emulator_serves_a_host_and_leaves_nothing_behind(tmp_path: Pat
     try:
         assert set(ports) == {"servo", "driver", "image", "hexapod", "control"}
         assert json.loads(ports_file.read_text()) == ports
-        host = Host(ports)
+        host = Host(ports, host_alive_period_s=0.1)
         assert isinstance(host.request("driver", DriveEnable(AxisMask.BOTH, True)), Ack)
         assert isinstance(host.request("servo", ServoMode(Mode.STREAM)), Ack)
         samples: list[GyroSample] = []
