@@ -10,18 +10,36 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import shutil
 import signal
 import sys
+import tempfile
 from pathlib import Path
+from typing import NoReturn
 
-from firmware_stub.config import ConfigError, load_emulator_config
+from firmware_stub.config import ConfigError, EmulatorConfig, load_emulator_config
 from firmware_stub.emulator import Emulator
+from firmware_stub.plant import PlantConfigError, load_plant_config
 from hil.protocol import CATALOGUE
+
+MAX_SECONDS = 24 * 3600.0  # --seconds: the longest run in simulated time
+
+
+class BadInput(ValueError):
+    """A bad option or config: one line on stderr, exit 2, nothing created."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        """A bad option is one line (no usage block), exit 2."""
+        print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m firmware_stub", description=__doc__.splitlines()[0])
+    ap = _Parser(prog="python -m firmware_stub", description=__doc__.splitlines()[0])
     ap.add_argument("--config", type=Path, default=None, help="emulator YAML (default profiles/emulator/default.yaml)")
     ap.add_argument("--clock", choices=["realtime", "lockstep"], default=None, help="override the config's clock")
     ap.add_argument("--seed", type=int, default=None, help="override the config's seed")
@@ -46,16 +64,54 @@ def pin_to_cpu(index: int) -> None:
     os.sched_setaffinity(0, {cpus[index]})
 
 
+def _writable_file(path: Path, option: str) -> None:
+    """``path`` can be created or replaced: its directory exists and is writable, and it is not a directory."""
+    if path.exists() and not path.is_file():
+        raise BadInput(f"{option} {path}: exists and is not a regular file")
+    parent = path.absolute().parent
+    if not parent.is_dir():
+        raise BadInput(f"{option} {path}: no directory {parent}")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise BadInput(f"{option} {path}: {parent} is not writable")
+
+
+def check_inputs(args: argparse.Namespace) -> EmulatorConfig:
+    """Validate every option, the config and the plant file it names, before anything is created (the
+    Emulator makes its run directory and ptys at once): BadInput or ConfigError (one line) if one is bad."""
+    if args.seconds is not None and not (math.isfinite(args.seconds) and 0 < args.seconds <= MAX_SECONDS):
+        raise BadInput(f"--seconds: {args.seconds!r} is not in (0, {MAX_SECONDS:g}]")
+    if args.seed is not None and not 0 <= args.seed < 2**32:
+        raise BadInput(f"--seed: {args.seed} is not in 0..{2**32 - 1}")
+    if not 0 <= args.rt_priority <= 99:
+        raise BadInput(f"--rt-priority: {args.rt_priority} is not in 0..99")
+    if not 0 <= args.fingerprint < 2**32:
+        raise BadInput(f"--fingerprint: {args.fingerprint:#x} is not a 32-bit number")
+    for option, path in (("--ports-file", args.ports_file), ("--fault-log", args.fault_log)):
+        if path is not None:
+            _writable_file(path, option)
+    config = load_emulator_config(args.config, clock=args.clock, seed=args.seed)
+    try:
+        load_plant_config(config.plant)
+    except PlantConfigError as exc:
+        raise ConfigError(f"{args.config or 'the emulator config'}: plant: {exc}") from None
+    return config
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    if args.cpu is not None:
-        pin_to_cpu(args.cpu)
     try:
-        config = load_emulator_config(args.config, clock=args.clock, seed=args.seed)
-        emulator = Emulator(config, fault_log=args.fault_log, fingerprint=args.fingerprint)
-    except ConfigError as exc:
+        config = check_inputs(args)
+    except (BadInput, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.cpu is not None:
+        pin_to_cpu(args.cpu)
+    run_dir = Path(tempfile.mkdtemp(prefix="hil-emu-"))  # ours, so it goes whatever happens below
+    try:
+        emulator = Emulator(config, run_dir=run_dir, fault_log=args.fault_log, fingerprint=args.fingerprint)
+    except BaseException:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        raise
 
     def on_signal(signum: int, _frame: object) -> None:
         emulator.request_stop()
@@ -79,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(emulator.summary()), flush=True)
     finally:
         emulator.close()
+        shutil.rmtree(run_dir, ignore_errors=True)
         if ports_file:
             ports_file.unlink(missing_ok=True)
         for sig, handler in previous.items():

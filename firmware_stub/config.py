@@ -6,9 +6,11 @@ profiles/emulator/default.yaml documents every field; the plant's physics live i
 
 from __future__ import annotations
 
+import os
+import stat
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -37,7 +39,9 @@ class ClockMode(StrEnum):
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Base of every emulator config model: unknown fields refused, immutable, NaN and infinities refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
@@ -67,10 +71,10 @@ class ScheduledFault(Strict):
     garbage: n_bytes random bytes (with a false sync word) on the link.
     """
 
-    at_s: float = Field(ge=0.0, description="simulated time of the fault, s")
+    at_s: float = Field(ge=0.0, le=86400.0, description="simulated time of the fault, s")
     link: LinkName
     kind: FaultKind
-    duration_ms: float = Field(0.0, ge=0.0, description="stall / latency_spike / disconnect length, ms")
+    duration_ms: float = Field(0.0, ge=0.0, le=600000.0, description="stall / latency_spike / disconnect length, ms")
     n_bytes: int = Field(64, ge=1, le=65536, description="garbage length, bytes")
 
 
@@ -78,7 +82,7 @@ class DriverBoardConfig(Strict):
     stale_timeout_ms: float = Field(20.0, gt=0, description="no DRIVE_CMD for this long -> output forced to zero")
     current_limit_a: float = Field(4.0, gt=0, description="|armature current| above this, A ...")
     overcurrent_trip_ms: float = Field(10.0, ge=0, description="... for this long latches an OVERCURRENT fault")
-    bus_voltage_v: float = Field(24.0, gt=0, description="reported in DRIVE_STATUS")
+    bus_voltage_v: float = Field(24.0, gt=0, le=655.35, description="reported in DRIVE_STATUS (u16, 0.01 V)")
 
 
 class HexapodBoardConfig(Strict):
@@ -89,7 +93,10 @@ class HexapodBoardConfig(Strict):
 class BoardsConfig(Strict):
     driver: DriverBoardConfig = DriverBoardConfig()
     hexapod: HexapodBoardConfig = HexapodBoardConfig()
-    serial_base: int = Field(1000, ge=0, description="IDENT serial numbers are serial_base + board id")
+    serial_base: int = Field(1000, ge=0, le=2**32 - 256, description="IDENT serial numbers are serial_base + board id")
+    host_timeout_ms: float = Field(
+        500.0, ge=0, le=60000.0, description="no frame from the host for this long -> every board protects itself "
+        "(driver disabled, hexapod home, stream stopped); 0 = never (docs/protocol.md, Host liveness)")
 
 
 class EmulatorConfig(Strict):
@@ -97,7 +104,8 @@ class EmulatorConfig(Strict):
     seed: int = Field(0, ge=0, description="seeds the plant's noise and every link's fault RNG")
     plant: Path = Field(REPO / "profiles" / "plant" / "default.yaml", description="plant YAML (relative to this file)")
     lockstep_timeout_ms: float = Field(
-        1000.0, gt=0, description="lockstep: wait this long (wall) for DRIVE_CMD k; a timeout breaks byte-identity, "
+        1000.0, gt=0, le=60000.0,
+        description="lockstep: wait this long (wall) for DRIVE_CMD k; a timeout breaks byte-identity, "
         "so keep it far above a loaded host's worst pause")
     realtime_prep_us: float = Field(
         300.0, ge=50, le=900,
@@ -116,21 +124,78 @@ def describe_validation_error(source: str, err: ValidationError) -> str:
     first = err.errors()[0]
     where = ".".join(str(p) for p in first["loc"]) or "(top level)"
     got = first.get("input")
-    shown = "" if isinstance(got, dict | list) or got is None else f" (got {got!r})"
-    return f"{source}: {where}: {first['msg']}{shown}"
+    text = repr(got)
+    text = text if len(text) <= 80 else text[:77] + "..."
+    shown = "" if isinstance(got, dict | list) or got is None else f" (got {text})"
+    return " ".join(f"{source}: {where}: {str(first['msg']).removeprefix('Value error, ')}{shown}".split())
+
+
+MAX_CONFIG_BYTES = 1 << 20  # an emulator or plant file larger than this is refused unread
+MAX_YAML_DEPTH = 64  # nesting levels
+
+
+class _PlainLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` without anchors and aliases (so no alias bomb), nesting at most ``MAX_YAML_DEPTH``."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
+        event = self.peek_event()
+        if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None) is not None:
+            line = event.start_mark.line + 1
+            raise yaml.YAMLError(f"line {line}: anchors and aliases are not used in emulator files")
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise yaml.YAMLError(f"nested deeper than {MAX_YAML_DEPTH} levels")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+def read_yaml_mapping(path: str | Path) -> dict[str, Any]:
+    """The top-level mapping of a YAML file; :class:`ConfigError` (one line naming the file) if it is not a regular
+    file (a FIFO, device or directory is refused unopened), is larger than ``MAX_CONFIG_BYTES``, is not UTF-8 or
+    not YAML. The emulator's own minimal reader: the bench's (``hil.config.read_yaml_mapping``) also bounds aliases."""
+    path = Path(path)
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO, device or directory: refused unopened
+            raise ConfigError(f"{path}: not a regular file")
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise ConfigError(f"{path}: not a regular file")
+            data = os.read(fd, MAX_CONFIG_BYTES + 1)
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: more than the {MAX_CONFIG_BYTES} bytes a config file may have")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {data[exc.start]:#04x} at offset {exc.start})") from None
+    loader = _PlainLoader(text)
+    try:
+        doc = loader.get_single_data()
+    except (yaml.YAMLError, ValueError, RecursionError) as exc:
+        raise ConfigError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
+    finally:
+        loader.dispose()
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(doc).__name__}")
+    return doc
 
 
 def load_yaml_model(model: type[M], path: str | Path, overrides: dict | None = None) -> M:
     """Load a YAML file into a pydantic model; relative paths in it stay relative to the file."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read YAML: {' '.join(str(exc).split())}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    data = read_yaml_mapping(path)
     data.update(overrides or {})
     try:
         return model.model_validate(data, context={"base_dir": path.parent})

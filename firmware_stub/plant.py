@@ -40,8 +40,9 @@ from pathlib import Path
 from statistics import NormalDist
 from typing import Any, Literal, NamedTuple
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from firmware_stub.config import ConfigError, read_yaml_mapping
 
 __all__ = [
     "DEFAULT_PLANT_CONFIG",
@@ -81,7 +82,9 @@ class PlantConfigError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Base of the plant's config sections: unknown fields refused, immutable, NaN and infinities refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class MotorConfig(_Section):
@@ -136,7 +139,7 @@ class GyroConfig(_Section):
 
 
 class EncoderConfig(_Section):
-    counts_per_rev: int = Field(gt=0, description="resolution of both axis encoders")
+    counts_per_rev: int = Field(gt=0, le=1 << 30, description="resolution of both axis encoders")
 
 
 class CameraConfig(_Section):
@@ -148,8 +151,9 @@ class CameraConfig(_Section):
     centroid_noise_std_px: float = Field(ge=0, description="white noise on each miss component")
     target_az_deg: float = Field(ge=-180, le=180, description="target direction in the lab: azimuth (right +)")
     target_el_deg: float = Field(ge=-90, le=90, description="target direction in the lab: elevation (up +)")
-    frame_rate_hz: float = Field(gt=0, description="used by the image-processing board, not by the plant")
-    latency_frames: int = Field(ge=0, description="used by the image-processing board, not by the plant")
+    frame_rate_hz: float = Field(ge=0.1, le=1000, description="used by the image-processing board (at most one "
+                                 "frame per 1 ms tick), not by the plant")
+    latency_frames: int = Field(ge=0, le=100, description="used by the image-processing board, not by the plant")
 
 
 class LinearAxisLimits(_Section):
@@ -241,15 +245,9 @@ def load_plant_config(path: str | Path) -> PlantConfig:
     """Read and validate a plant YAML file; :class:`PlantConfigError` (one line: file, field path, reason) if bad."""
     p = Path(path)
     try:
-        data: Any = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise PlantConfigError(f"{p}: cannot read: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        where = getattr(exc, "problem_mark", None)
-        line = f" line {where.line + 1}" if where is not None else ""
-        raise PlantConfigError(f"{p}:{line} not valid YAML: {getattr(exc, 'problem', None) or exc}") from None
-    if not isinstance(data, dict):
-        raise PlantConfigError(f"{p}: expected a mapping of sections at the top level")
+        data: Any = read_yaml_mapping(p)  # the emulator's bounded reader: regular file, size, UTF-8, YAML
+    except ConfigError as exc:
+        raise PlantConfigError(str(exc)) from None
     try:
         return PlantConfig.model_validate(data)
     except ValidationError as exc:

@@ -6,17 +6,31 @@
     profiles/hexapod/*.yaml       HexapodLimits (the swing table's envelope, checked before upload)
 
 Bad input is a :class:`ConfigError` whose message is one line naming the file, the field and the
-reason; the CLI prints it and exits 2.
+reason; the CLI prints it and exits 2. Every file goes through :func:`read_yaml_mapping` (a regular
+file of at most ``MAX_CONFIG_BYTES``, UTF-8, bounded YAML: docs/reliability.md); every number must be
+finite and lie in its documented range.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import stat
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from hil.control.registry import ControllerConfigError, controller_params
 from hil.ident import SweptSine
@@ -28,13 +42,170 @@ M = TypeVar("M", bound=BaseModel)
 REPO = Path(__file__).resolve().parents[1]
 PROFILES = REPO / "profiles"
 
+MAX_CONFIG_BYTES = 1 << 20  # a config file larger than this is refused unread
+MAX_YAML_DEPTH = 64  # nesting levels of a YAML document, aliases expanded
+MAX_YAML_NODES = 100_000  # values of a YAML document, aliases expanded (an alias bomb stops here)
+MAX_YAML_ALIASES = 64  # alias uses (*name) in one document
+MAX_SESSION_S = 24 * 3600.0  # longest session
+MAX_PROFILE_S = 3600.0  # latest end of a swing segment: the envelope check samples the profile every 1 ms
+MAX_SWING_FREQUENCY_HZ = 100.0  # a fifth of the envelope check's 500 Hz Nyquist
+MAX_SEED = 2**32 - 1
+NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$"  # a file or directory name: no '/', no leading '.'
+Seed = Annotated[int, Field(ge=0, le=MAX_SEED)]
+
 
 class ConfigError(ValueError):
     """A config file that cannot be used: one line, naming the file and the field."""
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Base of every config model: unknown fields refused, immutable, NaN and infinities refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+# --- reading files ---------------------------------------------------------------------------------------------------
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def read_file_bytes(path: str | Path, max_bytes: int = MAX_CONFIG_BYTES) -> bytes:
+    """The bytes of a regular file of at most ``max_bytes``; ValueError (one line naming the file) otherwise.
+
+    A FIFO, a device or a directory is refused before it is opened (so nothing blocks and nothing is read
+    from a device), and at most ``max_bytes + 1`` bytes are ever read."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{path}: {_kind(mode)}, not a regular file")
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):  # replaced since the check above
+            raise ValueError(f"{path}: {_kind(info.st_mode)}, not a regular file")
+        if info.st_size > max_bytes:
+            raise ValueError(f"{path}: {info.st_size} bytes, more than the {max_bytes} a file here may have")
+        chunks, n = [], 0
+        while n <= max_bytes and (chunk := os.read(fd, max_bytes + 1 - n)):
+            chunks.append(chunk)
+            n += len(chunk)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+    if n > max_bytes:
+        raise ValueError(f"{path}: more than the {max_bytes} bytes a file here may have")
+    return b"".join(chunks)
+
+
+def read_text_file(path: str | Path, max_bytes: int = MAX_CONFIG_BYTES) -> str:
+    """:func:`read_file_bytes` decoded as UTF-8; ValueError naming the file if it is not text."""
+    data = read_file_bytes(path, max_bytes)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text (byte {data[exc.start]:#04x} at offset {exc.start})") from None
+
+
+class _YamlLimit(yaml.YAMLError):
+    """A document beyond the reader's bounds."""
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` with bounded nesting and alias uses (the composer recurses per level)."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+        self._aliases = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
+        if self.check_event(yaml.AliasEvent):
+            self._aliases += 1
+            if self._aliases > MAX_YAML_ALIASES:
+                raise _YamlLimit(f"more than {MAX_YAML_ALIASES} aliases")
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise _YamlLimit(f"nested deeper than {MAX_YAML_DEPTH} levels")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+def _children(node: yaml.Node) -> list[yaml.Node]:
+    if isinstance(node, yaml.SequenceNode):
+        return list(node.value)
+    if isinstance(node, yaml.MappingNode):
+        return [n for pair in node.value for n in pair]
+    return []
+
+
+def _check_expansion(root: yaml.Node) -> None:
+    """Refuse a document whose aliases expand it beyond ``MAX_YAML_NODES`` values or ``MAX_YAML_DEPTH`` levels,
+    or refer to themselves; every distinct node is visited once (no expansion happens here)."""
+    size: dict[int, int] = {}
+    depth: dict[int, int] = {}
+    on_path: set[int] = set()
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while stack:
+        node, done = stack.pop()
+        key = id(node)
+        if done:
+            on_path.discard(key)
+            kids = _children(node)
+            size[key] = 1 + sum(size[id(k)] for k in kids)
+            depth[key] = 1 + max((depth[id(k)] for k in kids), default=0)
+            if size[key] > MAX_YAML_NODES:
+                raise _YamlLimit(f"more than {MAX_YAML_NODES} values once its aliases are expanded")
+            if depth[key] > MAX_YAML_DEPTH:
+                raise _YamlLimit(f"nested deeper than {MAX_YAML_DEPTH} levels once its aliases are expanded")
+        elif key not in size:
+            if key in on_path:
+                raise _YamlLimit("an alias refers to a value that contains it")
+            on_path.add(key)
+            stack.append((node, True))
+            stack.extend((k, False) for k in _children(node) if id(k) not in size)
+
+
+def parse_yaml(text: str) -> Any:
+    """Safe YAML with bounded size once expanded; ``yaml.YAMLError`` (or ValueError) if not."""
+    loader = _BoundedLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_expansion(node)
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def read_yaml_mapping(path: str | Path) -> dict[str, Any]:
+    """The top-level mapping of a YAML config file, read through :func:`read_text_file` and
+    :func:`parse_yaml`; ValueError (one line naming the file) if anything is wrong."""
+    text = read_text_file(path)
+    try:
+        data = parse_yaml(text)
+    except (yaml.YAMLError, ValueError, RecursionError) as exc:
+        raise ValueError(f"{path}: cannot read YAML: {' '.join(str(exc).split())}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return data
 
 
 def _resolve(value: Any, info: ValidationInfo) -> Any:
@@ -46,8 +217,9 @@ def _resolve(value: Any, info: ValidationInfo) -> Any:
 
 
 class PortConfig(Strict):
-    port: str = Field(description="serial device, e.g. /dev/ttyUSB0 or /dev/serial/by-id/...")
-    baudrate: int = Field(921600, gt=0)
+    port: str = Field(min_length=1, max_length=4096,
+                      description="serial device, e.g. /dev/ttyUSB0 or /dev/serial/by-id/...")
+    baudrate: int = Field(921600, gt=0, le=12_000_000)
 
 
 class PortsConfig(Strict):
@@ -77,12 +249,19 @@ AxisName = Literal["x", "y", "z", "roll", "pitch", "yaw"]
 
 class SwingSegment(Strict):
     axis: AxisName
-    amplitude: float = Field(description="mm for x/y/z, deg for roll/pitch/yaw")
-    frequency_hz: float = Field(ge=0)
-    start_s: float = Field(0.0, ge=0)
-    duration_s: float = Field(gt=0)
-    phase_deg: float = 0.0
-    ramp_s: float = Field(0.0, ge=0, description="linear ramp in and out")
+    amplitude: float = Field(ge=-1000, le=1000, description="mm for x/y/z, deg for roll/pitch/yaw")
+    frequency_hz: float = Field(ge=0, le=MAX_SWING_FREQUENCY_HZ)
+    start_s: float = Field(0.0, ge=0, le=MAX_PROFILE_S)
+    duration_s: float = Field(gt=0, le=MAX_PROFILE_S)
+    phase_deg: float = Field(0.0, ge=-360, le=360)
+    ramp_s: float = Field(0.0, ge=0, le=MAX_PROFILE_S, description="linear ramp in and out")
+
+    @model_validator(mode="after")
+    def _ends_in_time(self) -> SwingSegment:
+        if self.start_s + self.duration_s > MAX_PROFILE_S:
+            raise ValueError(f"duration_s: the segment ends at {self.start_s + self.duration_s:g} s, after the "
+                             f"{MAX_PROFILE_S:g} s a profile may last")
+        return self
 
     def segment(self) -> Segment:
         return Segment(HexAxis[self.axis.upper()], self.start_s, self.duration_s, self.amplitude,
@@ -101,9 +280,9 @@ class SwingProfile(Strict):
 
 
 class AxisLimits(Strict):
-    position: float = Field(gt=0, description="mm or deg")
-    rate: float = Field(gt=0, description="mm/s or deg/s")
-    accel: float = Field(gt=0, description="mm/s^2 or deg/s^2")
+    position: float = Field(gt=0, le=1e4, description="mm or deg")
+    rate: float = Field(gt=0, le=1e6, description="mm/s or deg/s")
+    accel: float = Field(gt=0, le=1e8, description="mm/s^2 or deg/s^2")
 
 
 class HexapodLimits(Strict):
@@ -126,11 +305,11 @@ class TrackingConfig(Strict):
     """The outer loop: miss distance (px) at camera rate -> rate command (deg/s) per axis."""
 
     enabled: bool = True
-    kp_per_s: float = Field(8.0, ge=0)
-    ki_per_s2: float = Field(0.0, ge=0)
-    ifov_deg_per_px: float = Field(0.002, gt=0, description="the camera's pixel angle")
-    max_rate_dps: float = Field(20.0, gt=0)
-    stale_s: float = Field(0.05, gt=0)
+    kp_per_s: float = Field(8.0, ge=0, le=1000)
+    ki_per_s2: float = Field(0.0, ge=0, le=1e4)
+    ifov_deg_per_px: float = Field(0.002, gt=0, le=1, description="the camera's pixel angle")
+    max_rate_dps: float = Field(20.0, gt=0, le=1000)
+    stale_s: float = Field(0.05, gt=0, le=10)
     gate_px: int = Field(0, ge=0, le=65535, description="TRACK_CMD gate half-size, 0 = the whole field")
     apply_after_ms: float = Field(
         11.0, ge=0, le=100,
@@ -140,10 +319,10 @@ class TrackingConfig(Strict):
 
 
 class SafetyConfig(Strict):
-    watchdog_ms: float = Field(5.0, gt=0, description="no GYRO_SAMPLE for this long -> zero drive, DISABLE")
+    watchdog_ms: float = Field(5.0, gt=0, le=10_000, description="no GYRO_SAMPLE for this long -> zero drive, DISABLE")
     on_fault: Literal["stop", "recover"] = Field("stop", description="after a watchdog/link/driver fault")
-    recover_after_ms: float = Field(200.0, ge=0, description="recover: wait this long, then re-arm")
-    max_recoveries: int = Field(3, ge=0)
+    recover_after_ms: float = Field(200.0, ge=0, le=60_000, description="recover: wait this long, then re-arm")
+    max_recoveries: int = Field(3, ge=0, le=1000)
     max_drive_counts: int = Field(30000, gt=0, le=32767, description="|DRIVE_CMD| saturation")
     max_slew_counts: int = Field(32767, gt=0, le=65535, description="largest change of the drive per tick")
 
@@ -166,6 +345,19 @@ class LoggingConfig(Strict):
     dir: Path = Field(Path("runs"), description="session logs go here (relative to the working directory)")
     flush_interval_s: float = Field(0.1, gt=0, le=0.1)
     fsync: bool = True
+
+
+def require_regular_file(path: Path) -> Path:
+    """``path`` if it names a regular file; ValueError otherwise (checked without opening it)."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise ValueError(f"{path}: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{path}: {_kind(mode)}, not a regular file")
+    return path
 
 
 class EmulatorRef(Strict):
@@ -193,7 +385,7 @@ class SineExcitation(Strict):
     axis: Literal["el", "az"] = "el"
     amplitude_dps: float = Field(gt=0, le=200, description="peak rate added to the command")
     freq_hz: float = Field(gt=0, le=450, description="below the 500 Hz Nyquist of the 1 kHz loop")
-    start_s: float = Field(0.0, ge=0, description="zero before this session time")
+    start_s: float = Field(0.0, ge=0, le=MAX_SESSION_S, description="zero before this session time")
 
     def rate_dps(self, t_s: float) -> float:
         """The added rate command at session time ``t_s`` (plain floats: it runs in the 1 kHz loop)."""
@@ -202,11 +394,26 @@ class SineExcitation(Strict):
         return self.amplitude_dps * math.sin(2.0 * math.pi * self.freq_hz * (t_s - self.start_s))
 
 
+_SECTIONS: dict[str, type[Strict]] = {}  # session fields that may name a file holding them (filled below)
+
+
+def _excitation_kind(value: Any) -> str:
+    """A sine has ``freq_hz`` (or ``start_s``); anything else is a swept sine (all its fields have defaults).
+    Telling them apart first makes an error name the field of the kind that was meant."""
+    if isinstance(value, BaseModel):
+        return "sine" if isinstance(value, SineExcitation) else "sweep"
+    return "sine" if isinstance(value, dict) and ("freq_hz" in value or "start_s" in value) else "sweep"
+
+
+Excitation = Annotated[Annotated[SineExcitation, Tag("sine")] | Annotated[SweptSine, Tag("sweep")],
+                       Discriminator(_excitation_kind)]
+
+
 class SessionConfig(Strict):
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", description="used in the log file name")
+    name: str = Field(pattern=NAME_PATTERN, description="used in the log file name")
     description: str = ""
-    duration_s: float = Field(gt=0, le=24 * 3600, description="run time with the stream on, s")
-    seed: int = Field(0, ge=0, description="emulator seed in loopback; recorded in the log")
+    duration_s: float = Field(gt=0, le=MAX_SESSION_S, description="run time with the stream on, s")
+    seed: Seed = Field(0, description="emulator seed in loopback; recorded in the log")
     ports: PortsConfig | None = Field(None, description="the lab's serial ports (not needed with --loopback)")
     controller: ControllerConfig = ControllerConfig()
     tracking: TrackingConfig = TrackingConfig()
@@ -217,16 +424,17 @@ class SessionConfig(Strict):
     host: HostConfig = HostConfig()
     mqtt: MqttConfig | None = Field(None, description="no broker configured -> no telemetry")
     emulator: EmulatorRef = EmulatorRef()
-    excitation: SineExcitation | SweptSine | None = Field(
+    excitation: Excitation | None = Field(
         None, description="a signal added to one axis's rate command: a sine, or a swept sine (hil ident)")
 
     @field_validator("controller", "profile", "hexapod_limits", mode="before")
     @classmethod
     def _include(cls, value: Any, info: ValidationInfo) -> Any:
-        """A string is a path to a YAML file holding that section (relative to the session file)."""
+        """A string is a path to a YAML file holding that section (relative to the session file); a fault
+        in it names that file."""
         if isinstance(value, str | Path):
-            path = _resolve(value, info)
-            return _read_yaml(Path(path))
+            assert info.field_name is not None
+            return load_model(_SECTIONS[info.field_name], _resolve(value, info))
         return value
 
     @model_validator(mode="after")
@@ -237,32 +445,31 @@ class SessionConfig(Strict):
         return self
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
-    try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such file") from None
-    except (OSError, yaml.YAMLError) as exc:
-        raise ValueError(f"{path}: cannot read YAML: {' '.join(str(exc).split())}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping at the top level")
-    return data
+_SECTIONS.update(controller=ControllerConfig, profile=SwingProfile, hexapod_limits=HexapodLimits)
+
+
+def _shown(value: Any, limit: int = 80) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def one_line(source: str, err: ValidationError) -> str:
+    """The first problem of a pydantic error as one line: ``source: field.path: reason (got value)``."""
     first = err.errors()[0]
     where = ".".join(str(p) for p in first["loc"])
     msg = str(first["msg"]).removeprefix("Value error, ")
     got = first.get("input")
-    shown = "" if isinstance(got, dict | list) or got is None or first["type"].startswith("value_error") \
-        else f" (got {got!r})"
-    return f"{source}: {where + ': ' if where else ''}{msg}{shown}"
+    secret = any("password" in str(p) for p in first["loc"])  # a rejected password is not echoed
+    shown = "" if isinstance(got, dict | list) or got is None or first["type"].startswith("value_error") or secret \
+        else f" (got {_shown(got)})"
+    return " ".join(f"{source}: {where + ': ' if where else ''}{msg}{shown}".split())
 
 
 def load_model(model: type[M], path: str | Path) -> M:
+    """Read a YAML config file into ``model`` (relative paths in it are relative to the file)."""
     path = Path(path)
     try:
-        data = _read_yaml(path)
+        data = read_yaml_mapping(path)
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     try:

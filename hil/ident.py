@@ -63,17 +63,18 @@ class SweptSine(BaseModel):
     like a pole near ``4 T_c k_m / (pi A)``, A the rate amplitude, and biases the identified ``k_m``).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    f_start_hz: float = Field(0.5, gt=0, description="frequency at the start of the sweep")
-    f_stop_hz: float = Field(300.0, gt=0, description="frequency at the end of the sweep")
-    duration_s: float = Field(20.0, gt=0, description="length of the sweep itself")
-    amplitude_dps: float = Field(2.0, gt=0, description="peak of the sweep")
+    f_start_hz: float = Field(0.5, gt=0, le=450, description="frequency at the start of the sweep")
+    f_stop_hz: float = Field(300.0, gt=0, le=450, description="frequency at the end of the sweep (< 500 Hz Nyquist)")
+    duration_s: float = Field(20.0, gt=0, le=3600, description="length of the sweep itself")
+    amplitude_dps: float = Field(2.0, gt=0, le=200, description="peak of the sweep")
     kind: Literal["log", "linear"] = Field("log", description="log: exponential chirp; linear: linear chirp")
     axis: Literal["el", "az"] = Field("el", description="the axis whose rate command gets the sweep")
-    settle_s: float = Field(0.5, ge=0, description="zero before the sweep starts (offset ramp, if any)")
-    taper_s: float = Field(0.1, ge=0, description="raised-cosine fade in and out of the sweep amplitude")
-    offset_dps: float = Field(0.0, description="constant rate during the sweep (keeps friction on one side)")
+    settle_s: float = Field(0.5, ge=0, le=60, description="zero before the sweep starts (offset ramp, if any)")
+    taper_s: float = Field(0.1, ge=0, le=60, description="raised-cosine fade in and out of the sweep amplitude")
+    offset_dps: float = Field(0.0, ge=-200, le=200,
+                              description="constant rate during the sweep (keeps friction on one side)")
 
     _c: tuple[float, ...] = PrivateAttr(default=())
 

@@ -34,18 +34,28 @@ class EmulatorProcess:
         self.proc: subprocess.Popen[str] | None = None
         self.ports: dict[str, str] = {}
         self.summary: dict[str, Any] = {}
+        self.last_stderr = ""  # what the emulator wrote on stderr, once stopped
 
     def start(self) -> dict[str, str]:
         self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      preexec_fn=_die_with_parent)  # noqa: PLW1509 (before any thread)
         assert self.proc.stdout is not None
         line = self.proc.stdout.readline()
-        if not line:
-            err = self.proc.stderr.read().strip() if self.proc.stderr else ""
-            self.proc.wait(5)
-            raise LinkError(f"the emulator did not start: {err.splitlines()[-1] if err else 'no output'}")
-        self.ports = json.loads(line)
+        try:
+            ports = json.loads(line) if line else None
+        except ValueError:
+            ports = None
+        if not isinstance(ports, dict):
+            self.stop()
+            raise LinkError(f"the emulator did not start: {self._why(line)}")
+        self.ports = ports
         return self.ports
+
+    def _why(self, line: str) -> str:
+        """The emulator's own one-line error (a bad config: ``error: FILE: field: reason``), else its last words."""
+        err = self.last_stderr.strip().splitlines()
+        last = err[-1] if err else (line.strip() or "no output")
+        return last.removeprefix("error: ")
 
     def stop(self) -> dict[str, Any]:
         if self.proc is None:
@@ -53,12 +63,16 @@ class EmulatorProcess:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
         try:
-            out, _ = self.proc.communicate(timeout=10)
+            out, err = self.proc.communicate(timeout=10)
         except subprocess.TimeoutExpired:
             self.proc.kill()
-            out, _ = self.proc.communicate()
+            out, err = self.proc.communicate()
+        self.last_stderr = err or ""
         lines = [ln for ln in out.strip().splitlines() if ln.startswith("{")]
-        self.summary = json.loads(lines[-1]) if lines else {}
+        try:
+            self.summary = json.loads(lines[-1]) if lines else {}
+        except ValueError:
+            self.summary = {}
         self.proc = None
         return self.summary
 

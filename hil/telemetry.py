@@ -36,12 +36,22 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Self
 from urllib.parse import parse_qsl, unquote, urlsplit
 
 import aiomqtt
 import paho.mqtt.client as paho
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    SecretStr,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from hil import ipc
 
@@ -97,33 +107,80 @@ def meta_topic(bench_id: str, session_id: str) -> str:
 # --- configuration ----------------------------------------------------------------------------
 
 
+MAX_PASSWORD_FILE_BYTES = 4096
+
+
 class MqttConfig(BaseModel):
-    """Where and how to publish. No config means no MQTT: the session creates no Telemetry."""
+    """Where and how to publish. No config means no MQTT: the session creates no Telemetry.
 
-    model_config = ConfigDict(extra="forbid")
+    The password comes from one of ``password`` (in the file), ``password_env`` (an environment variable)
+    or ``password_file`` (the file's first line); :attr:`password_value` is what the broker gets. No dump of
+    this model holds it: ``password`` is a ``SecretStr`` (``'**********'`` in JSON, in the session log's
+    ``config`` attribute and in ``repr``), the other two name where it is, and the resolved value is private.
+    """
 
-    host: str = Field(min_length=1)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    host: str = Field(min_length=1, max_length=253)
     port: int = Field(1883, ge=1, le=65535)
     bench_id: str = "bench"
     telemetry_hz: float = Field(50.0, gt=0, le=1000)
     queue_size: int = Field(1000, ge=1, le=1_000_000)
     qos: int = Field(0, ge=0, le=1)  # of telemetry; status, meta, state and events always use QoS 1
     keepalive_s: int = Field(10, ge=1, le=65535)
-    reconnect_min_s: float = Field(0.5, gt=0)
-    reconnect_max_s: float = Field(10.0, gt=0)
-    username: str | None = None
-    password: str | None = Field(None, repr=False)
+    reconnect_min_s: float = Field(0.5, gt=0, le=3600)
+    reconnect_max_s: float = Field(10.0, gt=0, le=3600)
+    username: str | None = Field(None, max_length=65535)
+    password: SecretStr | None = Field(None, max_length=65535, description="the broker password (prefer the two below)")
+    password_env: str | None = Field(None, pattern=r"^[A-Za-z_][A-Za-z0-9_]{0,127}$",
+                                     description="the environment variable holding the password")
+    password_file: Path | None = Field(None, description="a file whose first line is the password "
+                                                         "(relative to the session file)")
+    _password: str | None = PrivateAttr(None)
 
     @field_validator("bench_id")
     @classmethod
     def _bench_id_topic_safe(cls, v: str) -> str:
         return _check_name("bench_id", v)
 
+    @field_validator("password_file", mode="before")
+    @classmethod
+    def _relative_to_the_file(cls, value: Any, info: ValidationInfo) -> Any:
+        base = (info.context or {}).get("base_dir")
+        if isinstance(value, str | Path) and base is not None and not Path(value).is_absolute():
+            return (Path(base) / value).resolve()
+        return value
+
     @model_validator(mode="after")
     def _backoff_order(self) -> Self:
         if self.reconnect_min_s > self.reconnect_max_s:
             raise ValueError(f"reconnect_min_s ({self.reconnect_min_s}) > reconnect_max_s ({self.reconnect_max_s})")
         return self
+
+    @model_validator(mode="after")
+    def _resolve_password(self) -> Self:
+        """Read the password from where it is (at validation, so a missing one is bad input, exit 2)."""
+        given = [name for name in ("password", "password_env", "password_file") if getattr(self, name) is not None]
+        if len(given) > 1:
+            raise ValueError(f"{given[1]}: give the password one way only (also given: {given[0]})")
+        if self.password is not None:
+            self._password = self.password.get_secret_value()
+        elif self.password_env is not None:
+            value = os.environ.get(self.password_env)
+            if value is None:
+                raise ValueError(f"password_env: the environment variable {self.password_env} is not set")
+            self._password = value
+        elif self.password_file is not None:
+            from hil.config import read_text_file  # hil.config imports this module
+
+            text = read_text_file(self.password_file, MAX_PASSWORD_FILE_BYTES)  # ValueError naming the file
+            self._password = text.splitlines()[0] if text else ""
+        return self
+
+    @property
+    def password_value(self) -> str | None:
+        """The password to give the broker (None: no password); never dumped, never logged."""
+        return self._password
 
     @classmethod
     def from_url(cls, url: str, **overrides: Any) -> MqttConfig:
@@ -133,6 +190,8 @@ class MqttConfig(BaseModel):
         TCP (``mqtt://`` or ``tcp://``) is supported; raises ValueError on anything else.
         """
         parts = urlsplit(url.strip())
+        if parts.password:  # messages show the URL without its password
+            url = url.replace(f":{parts.password}@", ":***@", 1)
         if parts.scheme not in ("mqtt", "tcp"):
             raise ValueError(f"MQTT URL {url!r}: scheme must be mqtt:// (TLS is not supported)")
         if parts.path not in ("", "/") or parts.fragment:
@@ -409,7 +468,7 @@ class Telemetry:
             cfg.port,
             identifier=self._client_id,
             username=cfg.username,
-            password=cfg.password,
+            password=cfg.password_value,
             will=will,
             keepalive=cfg.keepalive_s,
             timeout=float(max(2, cfg.keepalive_s)),
@@ -948,7 +1007,7 @@ async def watch(config: MqttConfig, *, seconds: float | None, console: Console, 
             config.port,
             identifier=f"hil-watch-{secrets.token_hex(4)}",
             username=config.username,
-            password=config.password,
+            password=config.password_value,
             keepalive=config.keepalive_s,
             timeout=float(max(2, config.keepalive_s)),
             max_queued_incoming_messages=10_000,

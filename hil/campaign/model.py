@@ -14,12 +14,14 @@ import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from hil.campaign.metrics import METRICS
-from hil.config import _resolve
+from hil.config import MAX_SESSION_S, NAME_PATTERN, Seed, Strict, _resolve
 
 _SLUG = re.compile(r"[^A-Za-z0-9]+")
+MAX_AXIS_ENTRIES = 100  # profiles, controllers, seeds: each at most this many
+MAX_CELLS = 1000
 
 
 def slug(text: str) -> str:
@@ -27,19 +29,15 @@ def slug(text: str) -> str:
     return _SLUG.sub("-", text).strip("-").lower()
 
 
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
 class ProfileEntry(Strict):
-    label: str = Field(min_length=1, description="row/section name in the tables, e.g. '1 deg / 1 Hz'")
+    label: str = Field(min_length=1, max_length=64, description="row/section name in the tables, e.g. '1 deg / 1 Hz'")
     path: Path = Field(description="a hexapod swing profile YAML (relative to the campaign file)")
 
     _rel = field_validator("path", mode="before")(_resolve)
 
 
 class ControllerEntry(Strict):
-    label: str = Field(min_length=1, description="as the tables show it, e.g. 'ESO+KF'")
+    label: str = Field(min_length=1, max_length=64, description="as the tables show it, e.g. 'ESO+KF'")
     name: str = Field(description="a hil.control registry name")
     params: dict[str, Any] = Field(default_factory=dict)
 
@@ -92,18 +90,18 @@ Analysis = Literal["control", "static_noise", "filter_lag"]
 
 
 class CampaignConfig(Strict):
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(pattern=NAME_PATTERN, description="the directory under runs/campaigns/: no '/', no leading '.'")
     title: str
     description: str = ""
     source: str = Field("", description="where the paper's numbers come from, e.g. 'seed 000, Table 1'")
     session: Path = Field(description="the base session file every cell starts from")
-    duration_s: float | None = Field(None, gt=0, description="overrides the base session's duration")
+    duration_s: float | None = Field(None, gt=0, le=MAX_SESSION_S, description="overrides the base session's duration")
     overrides: dict[str, Any] = Field(default_factory=dict, description="merged into the base session")
     analysis: Analysis = "control"
     settle_s: float = Field(1.0, ge=0, description="left out of every metric: ramps, convergence (a UKF: seconds)")
-    profiles: list[ProfileEntry] = Field(min_length=1)
-    controllers: list[ControllerEntry] = Field(min_length=1)
-    seeds: list[int] = Field(min_length=1, description="one repetition per seed")
+    profiles: list[ProfileEntry] = Field(min_length=1, max_length=MAX_AXIS_ENTRIES)
+    controllers: list[ControllerEntry] = Field(min_length=1, max_length=MAX_AXIS_ENTRIES)
+    seeds: list[Seed] = Field(min_length=1, max_length=MAX_AXIS_ENTRIES, description="one repetition per seed")
     baseline: str | None = Field(None, description="controller label the improvements are relative to")
     metrics: list[str] = Field(min_length=1, description="the table's columns")
     thresholds: dict[str, Threshold] = Field(default_factory=dict)
@@ -129,8 +127,19 @@ class CampaignConfig(Strict):
             dup = {n for n in names if names.count(n) > 1}
             if dup:
                 raise ValueError(f"{what}: duplicate label {sorted(dup)[0]!r}")
+            slugs = [slug(n) for n in names]  # the cells' directory names
+            for name, s in zip(names, slugs, strict=True):
+                if not s:
+                    raise ValueError(f"{what}: label {name!r} has no letter or digit (cell directories are named "
+                                     "after labels)")
+                if slugs.count(s) > 1:
+                    raise ValueError(f"{what}: labels {[n for n in names if slug(n) == s]} would share the cell "
+                                     f"directory name {s!r}")
         if len(set(self.seeds)) != len(self.seeds):
             raise ValueError("seeds: a seed appears twice")
+        n_cells = len(self.profiles) * len(self.controllers) * len(self.seeds)
+        if n_cells > MAX_CELLS:
+            raise ValueError(f"seeds: {n_cells} cells (profiles x controllers x seeds), more than {MAX_CELLS}")
         if self.baseline is not None and self.baseline not in labels:
             raise ValueError(f"baseline: {self.baseline!r} is not a controller label ({', '.join(labels)})")
         for name in self.thresholds:

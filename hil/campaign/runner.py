@@ -25,10 +25,11 @@ from pydantic import ValidationError
 
 from hil.campaign.metrics import METRICS, compute_metrics
 from hil.campaign.model import CampaignConfig, CampaignResult, CellResult, CellSpec, RuleResult
-from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line
+from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line, read_file_bytes
 
 RESULT = "result.json"
 CAMPAIGN_JSON = "campaign.json"
+MAX_RESULTS_BYTES = 64 << 20  # campaign.json and result.json are read only up to this size
 
 
 class CampaignError(ValueError):
@@ -49,13 +50,21 @@ def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardware: bool = False) -> dict[str, Any]:
-    """The session file of one cell: the base session with the campaign's overrides and the cell's
-    profile, controller and seed (paths absolute, so the file stands on its own)."""
+def _base_session(config: CampaignConfig) -> SessionConfig:
     try:
-        base = load_session(config.session)
+        return load_session(config.session)
     except ConfigError as exc:
         raise CampaignError(f"session: {exc}") from None
+
+
+def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardware: bool = False,
+                 base: SessionConfig | None = None) -> dict[str, Any]:
+    """The session file of one cell: the base session with the campaign's overrides and the cell's
+    profile, controller and seed (paths absolute, so the file stands on its own), validated.
+
+    A password written in the session file is refused (the cell's file would hold it in clear text:
+    give it as ``mqtt.password_env`` or ``mqtt.password_file``)."""
+    base = base if base is not None else _base_session(config)
     data = _merge(base.model_dump(mode="json", exclude_none=True), config.overrides)
     data.update(name=spec.cell_id, seed=spec.seed, controller={"name": spec.controller.name,
                                                                "params": spec.controller.params},
@@ -66,9 +75,12 @@ def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardwar
         data["emulator"] = {**data.get("emulator", {}), "clock": "lockstep", "cpu": None}
         data["host"] = {**data.get("host", {}), "loop_cpu": None}
     try:
-        SessionConfig.model_validate(data)
+        session = SessionConfig.model_validate(data)
     except ValidationError as exc:
         raise CampaignError(one_line(f"cell {spec.cell_id}", exc)) from None
+    if session.mqtt is not None and session.mqtt.password is not None:
+        raise CampaignError(f"cell {spec.cell_id}: mqtt.password: each cell's session file would hold it in clear "
+                            "text; give it as mqtt.password_env or mqtt.password_file")
     return data
 
 
@@ -81,14 +93,15 @@ def _check(config: CampaignConfig, spec: CellSpec, result: CellResult) -> CellRe
 
 
 def run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware: bool = False,
-             timeout_s: float | None = None) -> CellResult:
-    """Run one cell in its own process; its log, session file and result.json go to ``out_dir/cells/ID``."""
+             timeout_s: float | None = None, session: dict[str, Any] | None = None) -> CellResult:
+    """Run one cell in its own process; its log, session file and result.json go to ``out_dir/cells/ID``.
+    ``session``: the cell's session from :func:`cell_session` (built here if not given)."""
     cell_dir = out_dir / "cells" / spec.cell_id
+    data = session if session is not None else cell_session(config, spec, cell_dir, hardware)
     if cell_dir.exists():
         shutil.rmtree(cell_dir)  # a cell that did not finish starts again from nothing
     cell_dir.mkdir(parents=True)
     session_file = cell_dir / "session.yaml"
-    data = cell_session(config, spec, cell_dir, hardware)
     session_file.write_text(yaml.safe_dump(data, sort_keys=False))
     cmd = [sys.executable, "-m", "hil", "run", str(session_file), "--json", "--out", str(cell_dir)]
     if not hardware:
@@ -166,22 +179,34 @@ def _write_json(path: Path, text: str) -> None:
 
 def load_results(out_dir: Path) -> CampaignResult:
     path = out_dir / CAMPAIGN_JSON
+    if not path.exists():
+        raise CampaignError(f"{out_dir}: no {CAMPAIGN_JSON} (not a campaign directory)")
     try:
-        return CampaignResult.model_validate_json(path.read_text())
-    except FileNotFoundError:
-        raise CampaignError(f"{out_dir}: no {CAMPAIGN_JSON} (not a campaign directory)") from None
-    except ValidationError as exc:
-        raise CampaignError(one_line(str(path), exc)) from None
+        return CampaignResult.model_validate_json(read_file_bytes(path, MAX_RESULTS_BYTES))
+    except ValueError as exc:  # not a regular file, too large, not UTF-8 (ValidationError is a ValueError too)
+        raise CampaignError(one_line(str(path), exc) if isinstance(exc, ValidationError) else str(exc)) from None
+
+
+def cell_sessions(config: CampaignConfig, out_dir: Path, hardware: bool = False) -> dict[str, dict[str, Any]]:
+    """Every cell's session (:func:`cell_session`), by cell id: all of them validated, nothing written."""
+    base = _base_session(config)
+    return {spec.cell_id: cell_session(config, spec, out_dir / "cells" / spec.cell_id, hardware, base)
+            for spec in config.cells()}
 
 
 def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume: bool = False,
-                 hardware: bool = False, on_cell: Callable[[CellResult], None] | None = None) -> CampaignResult:
-    """Run (or finish) every cell; returns the campaign's result, also written to ``out_dir/campaign.json``."""
+                 hardware: bool = False, on_cell: Callable[[CellResult], None] | None = None,
+                 sessions: dict[str, dict[str, Any]] | None = None) -> CampaignResult:
+    """Run (or finish) every cell; returns the campaign's result, also written to ``out_dir/campaign.json``.
+    Every cell is validated before anything is written (``sessions``: from :func:`cell_sessions`, if the
+    caller already built them), so a campaign with a bad cell leaves nothing behind."""
     if jobs < 1:
         raise CampaignError(f"--jobs: {jobs} (need at least 1)")
     if hardware:
         jobs = 1  # one lab
     specs = config.cells()
+    if sessions is None:
+        sessions = cell_sessions(config, out_dir, hardware)
     done: dict[str, CellResult] = {}
     if (out_dir / CAMPAIGN_JSON).exists() or (out_dir / "cells").exists():
         if not resume:
@@ -191,16 +216,14 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
             path = out_dir / "cells" / spec.cell_id / RESULT
             if path.exists():
                 try:
-                    cell = CellResult.model_validate_json(path.read_text())
-                except ValidationError:
+                    cell = CellResult.model_validate_json(read_file_bytes(path, MAX_RESULTS_BYTES))
+                except ValueError:  # unreadable or not a result: the cell runs again
                     continue
                 if cell.status == "completed":
                     run_failures = [f for f in cell.failures if f.split(" ", 1)[0] not in METRICS]
                     done[spec.cell_id] = _check(config, spec, cell.model_copy(update={"failures": run_failures}))
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "campaign.yaml").write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
-    for spec in specs:  # fail early, before any cell runs, on a cell that cannot be built
-        cell_session(config, spec, out_dir / "cells" / spec.cell_id, hardware)
     t0 = time.monotonic()
     results = dict(done)
 
@@ -214,7 +237,8 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
             on_cell(cell)
     todo = [s for s in specs if s.cell_id not in done]
     with ThreadPoolExecutor(max_workers=jobs) as pool:
-        futures = {pool.submit(run_cell, config, spec, out_dir, hardware=hardware): spec for spec in todo}
+        futures = {pool.submit(run_cell, config, spec, out_dir, hardware=hardware, session=sessions[spec.cell_id]): spec
+                   for spec in todo}
         for future in as_completed(futures):
             cell = future.result()
             results[cell.cell_id] = cell

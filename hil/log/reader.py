@@ -30,6 +30,10 @@ from hil.log.writer import LogError, describe_error
 _COPY_ROWS = 1 << 20  # recover copies this many rows per dataset at a time
 
 
+class NotASessionLog(LogError):
+    """An HDF5 file that is not a session log (it has no ``/loop`` group)."""
+
+
 @dataclass
 class LogData:
     """A session log in memory.
@@ -90,6 +94,14 @@ def _open(path: Path) -> tuple[h5py.File, bool]:
         return h5py.File(path, "r", swmr=True), False
     except OSError as exc:
         raise LogError(f"cannot read session log {path}: {describe_error(exc)}") from None
+
+
+def _require_session_log(f: h5py.File, path: Path) -> None:
+    """Every session log has the 1 kHz ``loop`` group from its creation on (the writer makes every group first)."""
+    if not isinstance(f.get("loop"), h5py.Group):
+        groups = [name for name, obj in f.items() if isinstance(obj, h5py.Group)]
+        has = f"it has {', '.join(groups)}" if groups else "it has no groups"
+        raise NotASessionLog(f"{path}: not a session log (no /loop group; {has})")
 
 
 def _decode_attrs(raw: dict[str, Any]) -> dict[str, Any]:
@@ -173,6 +185,7 @@ def read_log(path: str | Path, *, groups: Iterable[str] | None = None) -> LogDat
     path = Path(path)
     f, clean = _open(path)
     with f:
+        _require_session_log(f, path)
         order = _channel_order(f)
         wanted = list(order) if groups is None else list(groups)
         unknown = [g for g in wanted if g not in order]
@@ -243,6 +256,11 @@ def recover_log(path: str | Path, *, output: Path | None = None) -> RecoverRepor
     """
     path = Path(path)
     f, clean = _open(path)
+    try:
+        _require_session_log(f, path)
+    except LogError:
+        f.close()
+        raise
     if clean:
         with f:
             order = _channel_order(f)
@@ -252,9 +270,16 @@ def recover_log(path: str | Path, *, output: Path | None = None) -> RecoverRepor
     if output is not None and target.exists():
         f.close()
         raise LogError(f"cannot recover {path}: output {target} already exists")
+    if not os.access(target.parent, os.W_OK | os.X_OK):
+        f.close()
+        raise LogError(f"cannot recover {path}: cannot write in {target.parent}")
     tmp = target.with_name(target.name + ".recover-tmp")
+    if tmp.exists() or tmp.is_symlink():
+        f.close()
+        raise LogError(f"cannot recover {path}: {tmp} is in the way (left by an earlier attempt? remove it)")
     rows: dict[str, int] = {}
     trimmed: dict[str, int] = {}
+    backup = None
     try:
         with f, h5py.File(tmp, "w", libver="latest") as out:
             attrs = _decode_attrs(dict(f.attrs))
@@ -290,14 +315,19 @@ def recover_log(path: str | Path, *, output: Path | None = None) -> RecoverRepor
             )
             out.attrs["json_attrs"] = json.dumps(sorted(names | {"recovered", "json_attrs"}))
         _fsync_path(tmp)
-        backup = None
         if output is None:
             backup = _free_name(path.with_name(f"{path.stem}.crashed.h5"))
             os.rename(path, backup)
         os.replace(tmp, target)
         _fsync_path(target.parent)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        if backup is not None and not target.exists():  # put the original back where it was
+            with contextlib.suppress(OSError):
+                os.rename(backup, path)
+        if isinstance(exc, OSError):
+            raise LogError(f"cannot recover {path}: {describe_error(exc)}") from None
         raise
     where = f"; the crashed file is kept as {backup.name}" if backup else ""
     total = sum(trimmed.values())
@@ -318,15 +348,42 @@ def export_log(path: str | Path, fmt: Literal["parquet", "csv"], out_dir: Path |
     """
     if fmt not in ("parquet", "csv"):
         raise ValueError(f"unknown export format {fmt!r} (parquet or csv)")
+    path = Path(path)
+    data = read_log(path)
+    out_dir = Path(out_dir) if out_dir is not None else path.parent
+    created = _missing_dirs(out_dir)
+    written: list[Path] = []
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        _write_groups(data, path, fmt, out_dir, written)
+    except OSError as exc:  # nothing half-written is left: the files and the directories made for them go
+        for done in written:
+            with contextlib.suppress(OSError):
+                done.unlink(missing_ok=True)
+        for d in created:
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        where = getattr(exc, "filename", None) or out_dir
+        raise LogError(f"cannot export {path}: {where}: {describe_error(exc)}") from None
+    return written
+
+
+def _missing_dirs(directory: Path) -> list[Path]:
+    """``directory`` and its ancestors that do not exist yet, deepest first."""
+    missing = []
+    d = directory.absolute()
+    while not d.exists() and d != d.parent:
+        missing.append(d)
+        d = d.parent
+    return missing
+
+
+def _write_groups(data: LogData, path: Path, fmt: str, out_dir: Path, written: list[Path]) -> None:
+    """One file per group into ``out_dir``; each is added to ``written`` before it is opened."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
     import pyarrow.parquet as pq
 
-    path = Path(path)
-    data = read_log(path)
-    out_dir = Path(out_dir) if out_dir is not None else path.parent
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = []
     for g, cols in data.groups.items():
         units = data.units[g]
         docs = data.docs[g]
@@ -349,11 +406,10 @@ def export_log(path: str | Path, fmt: Literal["parquet", "csv"], out_dir: Path |
         }
         table = pa.table([pa.array(v) for v in cols.values()], schema=pa.schema(fields, metadata=meta))
         out = out_dir / f"{path.stem}.{g}.{fmt}"
+        written.append(out)
         if fmt == "parquet":
             pq.write_table(table, out)
         else:
             with open(out, "wb") as fh:
                 fh.write(("# units: " + ",".join(units[c] for c in cols) + "\n").encode())
                 pacsv.write_csv(table, fh)
-        written.append(out)
-    return written

@@ -113,7 +113,7 @@ def test_imbalance_feedforward_controller_identifies_and_feeds_forward_in_counts
     """Noise-free measurements from a known eccentricity: the identified feed-forward matches the true torque."""
     from hil.control.ukf_imbalance import imbalance_torque
 
-    c = build_controller("eso_kf_ukf_ff", {"ff_limit_counts": 1e6})
+    c = build_controller("eso_kf_ukf_ff", {"ff_limit_counts": 32767})
     assert c.imbalance is not None and build_controller("eso_kf").imbalance is None
     rho_true = (0.004, -0.002)  # m
     mass, inertia = 10.0, 0.05

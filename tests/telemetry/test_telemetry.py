@@ -127,7 +127,7 @@ async def drive(tm: Telemetry, seconds: float, t0: float = 0.0, *, callable_form
 
 def test_config_validation_and_url() -> None:
     c = MqttConfig.from_url("mqtt://user:p%40ss@broker.lan:1884?bench_id=rig2&telemetry_hz=20")
-    assert (c.host, c.port, c.username, c.password, c.bench_id, c.telemetry_hz) == (
+    assert (c.host, c.port, c.username, c.password_value, c.bench_id, c.telemetry_hz) == (
         "broker.lan",
         1884,
         "user",

@@ -1,0 +1,3 @@
+from tests.reliability.helpers import no_board_contact, private_tmp
+
+__all__ = ["no_board_contact", "private_tmp"]
