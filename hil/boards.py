@@ -23,6 +23,7 @@ from hil.protocol import (
     Frame,
     HexapodStart,
     HexapodStop,
+    HostAlive,
     Ident,
     IdentRequest,
     Pose,
@@ -40,14 +41,42 @@ class FingerprintMismatch(LinkError):
     """The board's firmware was built from another message catalogue: refuse to talk to it."""
 
 
+class InterlockClosed(LinkError):
+    """A command that would move something was refused because the session has disarmed for good."""
+
+
+class Interlock:
+    """The session's one-way door (docs/reliability.md): once :meth:`close` is called, no board client
+    sharing it will enable the driver, start the gyro stream or start the hexapod again, on any path.
+
+    Every board of a session holds the same interlock; the commands that move hardware call
+    :meth:`check` before they write anything, and nothing reopens it."""
+
+    def __init__(self) -> None:
+        self.reason: str | None = None
+
+    @property
+    def closed(self) -> bool:
+        return self.reason is not None
+
+    def close(self, reason: str) -> None:
+        if self.reason is None:
+            self.reason = reason
+
+    def check(self, action: str) -> None:
+        if self.reason is not None:
+            raise InterlockClosed(f"{action} refused: the session has disarmed ({self.reason})")
+
+
 class BoardClient:
     """One board on one link: identification and acknowledged commands."""
 
     board_id: Board
 
-    def __init__(self, link: SerialLink) -> None:
+    def __init__(self, link: SerialLink, interlock: Interlock | None = None) -> None:
         self.link = link
         self.ident: Ident | None = None
+        self.interlock = interlock or Interlock()
 
     @property
     def name(self) -> str:
@@ -71,6 +100,11 @@ class BoardClient:
     async def command(self, message: Any, timeout_s: float = 0.5) -> Ack:
         return await self.link.request(message, self.board_id, Ack, timeout_s)
 
+    def alive(self, uptime_ms: int) -> None:
+        """HOST_ALIVE: keeps the board's host timer from expiring (docs/protocol.md, "Host liveness")."""
+        if self.link.transport is not None:
+            self.link.send(HostAlive(uptime_ms & 0xFFFFFFFF), self.board_id)
+
     def ident_dict(self) -> dict[str, Any]:
         i = self.ident
         if i is None:
@@ -87,6 +121,7 @@ class ServoBoard(BoardClient):
         await self.command(ServoConfig(1000, gyro_filter_hz, late_threshold_us))
 
     async def start_stream(self) -> None:
+        self.interlock.check("SERVO_MODE STREAM")
         await self.command(ServoMode(StreamMode.STREAM))
 
     async def stop_stream(self) -> None:
@@ -97,6 +132,7 @@ class DriverBoard(BoardClient):
     board_id = Board.DRIVER
 
     async def enable(self, clear_faults: bool = True) -> None:
+        self.interlock.check("DRIVE_ENABLE")
         await self.command(DriveEnable(AxisMask.BOTH, clear_faults))
 
     async def disable(self) -> None:
@@ -158,6 +194,7 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
             await self.command(msg)
 
     async def start(self) -> None:
+        self.interlock.check("HEXAPOD_START")
         await self.command(HexapodStart())
 
     async def stop(self) -> None:

@@ -28,9 +28,45 @@ err_console = Console(stderr=True, soft_wrap=True)
 
 
 def fail(message: str, code: int = 2) -> typer.Exit:
-    """Print one line naming what is wrong and return the Exit to raise."""
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False)
+    """Print one line naming what is wrong and return the Exit to raise (the message is shown as is: a
+    file name or value holding ``[...]`` is not taken for markup)."""
+    from rich.markup import escape
+
+    err_console.print(f"[bold red]error:[/] {escape(' '.join(message.split()))}", highlight=False)
     return typer.Exit(code)
+
+
+def finite(option: str, value: float | None) -> None:
+    """NaN and infinities are refused for every float option (click's ranges let NaN through)."""
+    if value is not None and not math.isfinite(value):
+        raise fail(f"{option}: {value!r} is not a finite number")
+
+
+def check_out_dir(path: Path, option: str) -> None:
+    """``path`` is a directory we may write into, or one we may create (nothing is created here); exit 2
+    naming the option otherwise. Checked before anything starts, so a bad one never reaches a board."""
+    import os
+
+    target = path.absolute()
+    if target.exists() and not target.is_dir():
+        raise fail(f"{option} {path}: exists and is not a directory")
+    parent = target
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise fail(f"{option} {path}: {parent} is not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise fail(f"{option} {path}: {parent} is not writable")
+
+
+def check_input_file(path: Path) -> None:
+    """``path`` names a regular file (a FIFO, device or directory is refused unopened); exit 2 otherwise."""
+    from hil.config import require_regular_file
+
+    try:
+        require_regular_file(path)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
 
 
 @app.callback(invoke_without_command=True)
@@ -44,7 +80,7 @@ def _main(
 
 @app.command()
 def selftest(
-    ticks: Annotated[int, typer.Option(min=100, help="GYRO_SAMPLEs to stream at 1 kHz.")] = 3000,
+    ticks: Annotated[int, typer.Option(min=100, max=3_600_000, help="GYRO_SAMPLEs to stream at 1 kHz.")] = 3000,
     seed: Annotated[int, typer.Option(help="Seed of the injected faults.")] = 1,
     garbage_rate: Annotated[float, typer.Option(min=0, max=1, help="Chance of a garbage burst per frame.")] = 0.01,
     flip_rate: Annotated[float, typer.Option(min=0, max=1, help="Chance of a flipped bit per frame.")] = 0.005,
@@ -53,6 +89,9 @@ def selftest(
     """Protocol self-test: the bench against an emulated servo board on a pty, with injected faults."""
     import dataclasses
     import json
+
+    finite("--garbage-rate", garbage_rate)
+    finite("--flip-rate", flip_rate)
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -140,16 +179,21 @@ def _run_session(config, out: Path | None, loopback: bool, clock: str | None, js
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from hil.config import PortConfig
+    from hil.config import PortConfig, require_regular_file
     from hil.loopback import EmulatorProcess
     from hil.session import Session
     from hil.transport import LinkError
 
     out_dir = out or config.logging.dir
+    check_out_dir(out_dir, "--out" if out else "logging.dir")
     emulator = None
     watchdog_ms = None
     if loopback:
         clock = clock or config.emulator.clock
+        try:  # the emulator validates it; a missing one is refused here, before anything starts
+            require_regular_file(config.emulator.config)
+        except ValueError as exc:
+            raise fail(f"emulator.config: {exc}") from None
         emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed,
                                    extra_args=config.emulator.process_args())
         try:
@@ -169,7 +213,8 @@ def _run_session(config, out: Path | None, loopback: bool, clock: str | None, js
         task = bar.add_task("run", total=total, sim=0.0, total_s=config.duration_s)
         session = Session(config, ports, out_dir, watchdog_ms=watchdog_ms,
                           progress=lambda n, _t: bar.update(task, completed=n, sim=n / 1000),
-                          log_attrs={"loopback": bool(loopback), "clock": clock or "hardware"})
+                          log_attrs={"loopback": bool(loopback), "clock": clock or "hardware"},
+                          lockstep=clock == "lockstep")
         try:
             result = asyncio.run(session.run())
         finally:
@@ -225,12 +270,15 @@ def _print_summary(s: dict) -> None:  # type: ignore[type-arg]
     t.add_row("board-measured p50 / p99", f"{_fmt(board['p50'], 0)} / {_fmt(board['p99'], 0)}",
               "us, GYRO k written -> DRIVE_CMD k in")
     t.add_row("cycles / late / missed", f"{s['cycles']} / {s['late_cycles']} / {s['missed_cycles']}", "late: > 1 ms")
-    t.add_row("link errors", " ".join(f"{k} {v}" for k, v in s["link_errors"].items()), "CRC + bad + lost frames")
+    t.add_row("link errors", " ".join(f"{k} {v}" for k, v in s["link_errors"].items()),
+              "CRC + bad + refused + lost + reordered frames")
     t.add_row("faults", str(s["faults"]), "events")
     if s.get("host_stalls"):
         t.add_row("host stalls: count / longest silence", f"{s['host_stalls']} / {_fmt(s['host_stall_max_ms'], 1)}",
                   "ms; the watchdog woke late and looked again")
     console.print(t)
+    if s.get("incomplete"):
+        console.print(f"[bold yellow]incomplete:[/] {s['incomplete']}", highlight=False)
     reasons = s.get("fault_reasons", [])
     if reasons:
         note = (f"{len(reasons)} fault{'s' if len(reasons) > 1 else ''}, the first: {reasons[0]}. The loop was "
@@ -287,13 +335,18 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
 
     if axis not in ("el", "az"):
         raise fail(f"--axis: {axis!r} is not el or az")
+    for option, value in (("--f-start-hz", f_start_hz), ("--f-stop-hz", f_stop_hz), ("--sweep-s", sweep_s),
+                          ("--amplitude-dps", amplitude_dps), ("--offset-dps", offset_dps)):
+        finite(option, value)
+    check_out_dir(out, "--out")
     base = _load_session(session)
     try:
         sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s,
                           amplitude_dps=amplitude_dps, axis=axis, offset_dps=offset_dps)  # type: ignore[arg-type]
         data = base.model_dump(mode="json", exclude_none=True)
         data.update(name=f"{base.name}-ident-{axis}", duration_s=sweep.total_s + 0.5, excitation=sweep.model_dump(),
-                    tracking={**data.get("tracking", {}), "enabled": False}, profile={"segments": []})
+                    tracking={**data.get("tracking", {}), "enabled": False}, profile={"segments": []},
+                    mqtt=base.mqtt)  # the object itself: its dump hides the password
         config = SessionConfig.model_validate(data)
     except ValidationError as exc:
         raise fail(one_line("ident", exc)) from None
@@ -345,15 +398,18 @@ def report(
     import json
 
     from hil.log import LogError
+    from hil.log.reader import NotASessionLog
     from hil.report import summarize_log
 
+    finite("--settle-s", settle_s)
     if log.is_dir():
         _campaign_report(log)
         return
-    if not log.is_file():
-        raise fail(f"{log}: no such file")
+    check_input_file(log)
     try:
         s = summarize_log(log, settle_s)
+    except NotASessionLog as exc:
+        raise fail(str(exc)) from None
     except (LogError, OSError, KeyError) as exc:
         raise fail(f"{log}: not a readable session log ({exc}); if the session crashed: hil recover {log}") from None
     if json_out:
@@ -378,7 +434,7 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     file: Annotated[Path, typer.Argument(help="Campaign YAML (see profiles/campaigns/).")],
     out: Annotated[Path | None, typer.Option(help="Campaign directory (default: runs/campaigns/NAME).")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Finish a campaign in --out, skipping done cells.")] = False,
-    jobs: Annotated[int, typer.Option(min=1, help="Cells run at once (loopback only).")] = 1,
+    jobs: Annotated[int, typer.Option(min=1, max=64, help="Cells run at once (loopback only).")] = 1,
     hardware: Annotated[bool, typer.Option("--hardware", help="Run on the lab's ports, one cell at a time.")] = False,
     report_too: Annotated[bool, typer.Option("--report/--no-report", help="Write the report at the end.")] = True,
 ) -> None:
@@ -387,12 +443,18 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from hil.campaign import CampaignError, load_campaign, run_campaign
+    from hil.campaign.runner import cell_sessions
 
     try:
         config = load_campaign(file)
     except CampaignError as exc:
         raise fail(str(exc)) from None
     out_dir = out or Path("runs") / "campaigns" / config.name
+    check_out_dir(out_dir, "--out")
+    try:  # every cell, before anything is written
+        sessions = cell_sessions(config, out_dir, hardware)
+    except CampaignError as exc:
+        raise fail(f"{file}: {exc}") from None
     n_cells = len(config.cells())
     with Progress(TextColumn(f"[bold]{config.name}[/]"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[last]}"), TimeElapsedColumn(), console=err_console,
@@ -404,7 +466,8 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
             bar.update(task, advance=1, last=f"{cell.cell_id} {mark}")
 
         try:
-            result = run_campaign(config, out_dir, jobs=jobs, resume=resume, hardware=hardware, on_cell=on_cell)
+            result = run_campaign(config, out_dir, jobs=jobs, resume=resume, hardware=hardware, on_cell=on_cell,
+                                  sessions=sessions)
         except CampaignError as exc:
             raise fail(str(exc)) from None
     _print_campaign(result)
@@ -459,8 +522,8 @@ def export(
 
     if fmt not in ("parquet", "csv"):
         raise fail(f"--format: {fmt!r} is not parquet or csv")
-    if not log.is_file():
-        raise fail(f"{log}: no such file")
+    check_input_file(log)
+    check_out_dir(out if out is not None else log.parent, "--out" if out is not None else "the log's directory")
     try:
         paths = export_log(log, fmt, out)  # type: ignore[arg-type]
     except LogError as exc:
@@ -476,8 +539,7 @@ def recover(
     """Make a log left by a crash (SIGKILL, power loss) open normally; the original is kept beside it."""
     from hil.log import LogError, recover_log
 
-    if not log.is_file():
-        raise fail(f"{log}: no such file")
+    check_input_file(log)
     try:
         result = recover_log(log)
     except LogError as exc:
@@ -495,11 +557,19 @@ def watch(
     """Live telemetry from the broker: latest value of every channel, session state, events."""
     import asyncio
 
+    from pydantic import ValidationError
+
+    from hil.config import one_line
     from hil.telemetry import MqttConfig
     from hil.telemetry import watch as watch_telemetry
 
+    finite("--seconds", seconds)
+    if seconds is not None and seconds <= 0:
+        raise fail(f"--seconds: {seconds!r} is not above 0")
     try:
         config = MqttConfig.from_url(broker, bench_id=bench)
+    except ValidationError as exc:
+        raise fail(one_line("--broker", exc)) from None
     except ValueError as exc:
         raise fail(f"--broker: {exc}") from None
     raise typer.Exit(asyncio.run(watch_telemetry(config, seconds=seconds, console=console)))
@@ -533,12 +603,14 @@ def protocol_docs(
     path: Annotated[Path | None, typer.Option(help="The protocol document (default: docs/protocol.md).")] = None,
 ) -> None:
     """Check (or with --write, regenerate) the catalogue tables in docs/protocol.md."""
+    from hil.config import read_text_file
     from hil.protocol import docgen
 
     path = path or docgen.DOC_PATH
-    if not path.is_file():
-        raise fail(f"{path}: no such file")
-    old = path.read_text()
+    try:
+        old = read_text_file(path, 16 << 20)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
     try:
         new = docgen.apply(old)
     except ValueError as exc:
@@ -557,33 +629,85 @@ def protocol_docs(
 def protocol_decode(
     capture: Annotated[str, typer.Argument(help="A raw binary capture file, '-' for stdin, or hex text with --hex.")],
     hex_input: Annotated[bool, typer.Option("--hex", help="The input is hex text (spaces allowed).")] = False,
-    limit: Annotated[int, typer.Option(help="Print at most this many frames.")] = 50,
+    limit: Annotated[int, typer.Option(min=0, help="Print at most this many frames.")] = 50,
+    link: Annotated[
+        str | None, typer.Option(help="Check addressing as on this board's link: servo, driver, image or hexapod.")
+    ] = None,
+    side: Annotated[
+        str, typer.Option(help="With --link, the receiving end: host (the capture holds what the board sent) or board.")
+    ] = "host",
 ) -> None:
-    """Decode a capture of one link: frames, then the link counters."""
-    from hil.protocol import Decoder
+    """Decode a capture of one link: frames, then the link counters. Streams: memory stays bounded."""
+    import re
+    from collections.abc import Iterator
 
+    from hil.protocol import Decoder, Frame
+    from hil.transport import board_of
+
+    chunk_bytes = 1 << 16
+    if link is None:
+        decoder = Decoder()
+    else:
+        board = board_of(link)
+        if board is None:
+            raise fail(f"--link: {link!r} is not servo, driver, image or hexapod")
+        if side not in ("host", "board"):
+            raise fail(f"--side: {side!r} is not host or board")
+        decoder = Decoder.for_link(board, "host" if side == "host" else "board")
     if capture == "-":
-        data = sys.stdin.buffer.read()
+        source, where = sys.stdin.buffer, "stdin"
     elif hex_input:
-        data = capture.encode()
+        source, where = None, "the --hex text"
     else:
         p = Path(capture)
         if not p.is_file():
             raise fail(f"{capture}: no such file (pass --hex to decode hex text given on the command line)")
-        data = p.read_bytes()
-    if hex_input:
         try:
-            data = bytes.fromhex(data.decode("ascii", "replace").replace(":", " "))
-        except ValueError as exc:
-            raise fail(f"not hex text: {exc}") from None
-    decoder = Decoder()
-    frames = decoder.feed(data)
-    table = Table("#", "src", "dst", "seq", "message", title=f"{len(frames)} frames")
-    for i, fr in enumerate(frames[:limit]):
+            source, where = p.open("rb"), capture
+        except OSError as exc:
+            raise fail(f"{capture}: cannot read: {exc.strerror}") from None
+
+    def blocks() -> Iterator[bytes]:
+        if source is None:
+            yield capture.encode()
+            return
+        while block := source.read(chunk_bytes):
+            yield block
+
+    def hex_blocks() -> Iterator[bytes]:
+        """Hex text to bytes, block by block; spaces, newlines and ':' between digits are ignored."""
+        carry, offset = b"", 0
+        for text in blocks():
+            bad = re.search(rb"[^0-9a-fA-F \t\r\n:]", text)
+            if bad:
+                raise fail(f"{where}: not hex text: {bad[0].decode('latin-1')!r} at byte {offset + bad.start()}")
+            offset += len(text)
+            digits = carry + text.translate(None, b" \t\r\n:")
+            cut = len(digits) & ~1
+            carry = digits[cut:]
+            yield bytes.fromhex(digits[:cut].decode("ascii"))
+        if carry:
+            raise fail(f"{where}: not hex text: an odd number of hex digits")
+
+    shown: list[Frame] = []
+    n_frames = 0
+    try:
+        for block in hex_blocks() if hex_input else blocks():
+            frames = decoder.feed(block)
+            n_frames += len(frames)
+            if len(shown) < limit:
+                shown += frames[: limit - len(shown)]
+    except OSError as exc:
+        raise fail(f"{where}: cannot read: {exc.strerror or exc}") from None
+    finally:
+        if source is not None and source is not sys.stdin.buffer:
+            source.close()
+    table = Table("#", "src", "dst", "seq", "message", title=f"{n_frames} frames")
+    for i, fr in enumerate(shown):
         table.add_row(str(i), f"{fr.src:#04x}", f"{fr.dst:#04x}", str(fr.seq), repr(fr.message))
     console.print(table)
-    if len(frames) > limit:
-        console.print(f"... {len(frames) - limit} more (raise --limit)")
+    if n_frames > limit:
+        console.print(f"... {n_frames - limit} more (raise --limit)")
     counters = Table("counter", "value", title="link counters")
     for name, value in decoder.counters.as_dict().items():
         counters.add_row(name, str(value))
@@ -606,6 +730,6 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         ctx = getattr(exc, "ctx", None)
         where = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
-        err_console.print(f"[bold red]error:[/] {exc.format_message()}{where}", highlight=False)
+        fail(f"{exc.format_message()}{where}")
         return 2
     return code if isinstance(code, int) else 0

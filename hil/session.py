@@ -18,6 +18,7 @@ import dataclasses
 import signal
 import threading
 import time
+import traceback
 from array import array
 from collections import deque
 from collections.abc import Callable
@@ -27,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from hil import __version__, host
-from hil.boards import DriverBoard, ImageBoard, ProtocolHexapod, ServoBoard
+from hil.boards import DriverBoard, ImageBoard, Interlock, InterlockClosed, ProtocolHexapod, ServoBoard
 from hil.config import PortConfig, SessionConfig
 from hil.control.controller import RateController
 from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
@@ -50,6 +51,7 @@ from hil.transport import LinkError, SerialLink
 
 LINKS = ("servo", "driver", "image", "hexapod")
 LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
+HOST_ALIVE_S = 0.1  # HOST_ALIVE on every link this often (docs/protocol.md, "Host liveness")
 EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
 
 
@@ -88,9 +90,12 @@ class Watchdog:
         self.last = self.clock()
 
     def start(self) -> None:
+        """Arm (again): restartable any number of times, also after :meth:`close`."""
         self.last = self.clock()
         self.armed = True
         if not self._thread.is_alive():
+            self._closed = threading.Event()
+            self._thread = threading.Thread(target=self._watch, name="hil-watchdog", daemon=True)
             self._thread.start()
 
     def look(self, now: float, due: float | None) -> float | None:
@@ -108,11 +113,12 @@ class Watchdog:
         return None
 
     def _watch(self) -> None:
+        closed = self._closed  # this thread's own: a restart after close() gives the next thread a new one
         due: float | None = None
-        while not self._closed.is_set():
+        while not closed.is_set():
             if not self.armed:
                 due = None
-                self._closed.wait(0.01)
+                closed.wait(0.01)
                 continue
             now = self.clock()
             wait = self.look(now, due)
@@ -122,7 +128,7 @@ class Watchdog:
                 self.loop.call_soon_threadsafe(self._trip)
                 continue
             due = now + wait
-            self._closed.wait(wait)
+            closed.wait(wait)
 
     def _trip(self) -> None:
         silent = self.clock() - self.last
@@ -248,7 +254,7 @@ class ControlLoop:
             g.tick, t_s, t_rx, g.rate_x_dps, g.rate_y_dps, g.rate_z_dps, g.az_deg, g.el_deg,
             cmd_az, cmd_el, az.rate_fb_dps, el.rate_fb_dps, cmd_az - g.rate_z_dps, cmd_el - g.rate_y_dps,
             az.disturbance_counts, el.disturbance_counts, 0.0, self.ff_el, u_az, u_el, latency_ns / 1000,
-            min(gap, 255)))
+            gap))
         if self.telemetry is not None:
             self.telemetry.sample(t_s, lambda: {
                 "gyro_y_dps": g.rate_y_dps, "gyro_z_dps": g.rate_z_dps, "rate_err_el_dps": cmd_el - g.rate_y_dps,
@@ -260,15 +266,13 @@ class ControlLoop:
             self.on_done()
 
     def _log_links(self, t_ns: int) -> None:
+        from hil.log.schema import LINK_COUNTERS  # the links group's columns of one link, in order
+
         row: list[int] = [t_ns]
         for name in LINKS:
             dec = self.decoders.get(name)
-            if dec is None:
-                row += [0] * 5
-                continue
-            c = dec.counters
-            row += [c.frames_ok, c.crc_errors, c.bad_lengths + c.unknown_ids, c.bytes_discarded,
-                    sum(c.frames_lost.values())]
+            totals = {} if dec is None else dec.counters.totals()
+            row += [totals.get(counter, 0) for counter in LINK_COUNTERS]
         self.log.append("links", [min(v, 0xFFFFFFFF) if i else v for i, v in enumerate(row)])
 
     def on_timing(self, t: LoopTiming) -> None:
@@ -310,7 +314,10 @@ class Session:
 
     def __init__(self, config: SessionConfig, ports: dict[str, PortConfig], out_dir: Path, *,
                  watchdog_ms: float | None = None, progress: Callable[[int, int], None] | None = None,
-                 log_attrs: dict[str, Any] | None = None) -> None:
+                 log_attrs: dict[str, Any] | None = None, lockstep: bool = False) -> None:
+        """``lockstep``: the boards are an emulator in lockstep (its world waits for the bench). The bench then
+        sends no HOST_ALIVE, which would land at wall-clock moments and change the bytes of the run; the
+        emulator judges host liveness by the lockstep itself (docs/protocol.md, "Host liveness")."""
         self.config = config
         self.ports = ports
         self.out_dir = out_dir
@@ -332,6 +339,12 @@ class Session:
         self._finished: asyncio.Future[str] | None = None
         self._recovering = False
         self._placement_before: host.Placement | None = None
+        self.lockstep = lockstep
+        self.interlock = Interlock()  # closed for good when the session starts to end (finish)
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._recovery: asyncio.Task[Any] | None = None
+        self._swing_started = False
+        self._t0 = time.monotonic()
 
     # --- frames from the boards ---------------------------------------------------------------------
 
@@ -377,10 +390,12 @@ class Session:
     async def _open(self, name: str, handler: Callable[[Frame], None]) -> None:
         port = self.ports[name]
         link = await SerialLink.open(name, port.port, port.baudrate, handler)
+        if self.lockstep:  # a resend would change the bytes of a lockstep run (docs/protocol.md, 6.1)
+            link.retry_interval_s = 1.0
         self.links[name] = link
         link.closed.add_done_callback(lambda fut, name=name: self._link_lost(name, fut))
         kinds = {"servo": ServoBoard, "driver": DriverBoard, "image": ImageBoard, "hexapod": ProtocolHexapod}
-        board = kinds[name](link)
+        board = kinds[name](link, self.interlock)
         setattr(self, name, board)
         await board.identify()
 
@@ -433,7 +448,8 @@ class Session:
             self.telemetry.event(kind, **detail)
 
     def fault(self, reason: str) -> None:
-        """Zero drive and DISABLE now, record it, then stop or recover per config."""
+        """Zero drive and DISABLE now, record it, then stop or recover per config (never once the session is
+        ending: the interlock is closed then, and a fault only disables)."""
         loop = self.loop_
         if loop is None or (not loop.armed and self._recovering):
             return
@@ -446,10 +462,31 @@ class Session:
         loop.stats.faults.append(reason)
         self.event("fault", reason=reason)
         safety = self.config.safety
+        if self.interlock.closed:
+            return  # winding down already: no recovery, the session ends as it was going to
         if safety.on_fault == "recover" and loop.stats.recoveries < safety.max_recoveries:
             self._recovering = True
-            asyncio.get_running_loop().create_task(self._recover())
+            self._recovery = self._spawn(self._recover(), "recovery")
         else:
+            self.finish("fault", reason)
+
+    def _spawn(self, coro: Any, name: str) -> asyncio.Task[Any]:
+        """A background task that cannot fail silently: an exception in it ends the session as a fault."""
+        task = asyncio.get_running_loop().create_task(coro, name=f"hil-{name}")
+        self._tasks.add(task)
+        task.add_done_callback(lambda t: self._task_done(t, name))
+        return task
+
+    def _task_done(self, task: asyncio.Task[Any], name: str) -> None:
+        self._tasks.discard(task)
+        if task.cancelled():
+            return
+        exc = task.exception()
+        if exc is not None:
+            reason = f"{name} failed: {type(exc).__name__}: {exc}"
+            self.event("fault", reason=reason)
+            if self.loop_ is not None:
+                self.loop_.stats.faults.append(reason)
             self.finish("fault", reason)
 
     def _on_host_stall(self, late_s: float, silent_s: float) -> None:
@@ -459,17 +496,22 @@ class Session:
         self.event("host_stall", watchdog_late_ms=round(late_s * 1000, 2), silent_ms=round(silent_s * 1000, 2))
 
     async def _recover(self) -> None:
-        """Wait, reopen what was lost, restart the stream, re-arm with fresh controller states."""
+        """Wait, reopen what was lost, restart the stream, re-arm with fresh controller states.
+
+        Every command that moves something goes through the interlock, so a recovery still under way when
+        the session starts to end is refused (and cancelled by :meth:`finish`); any other failure ends the
+        session as a fault with a "recovery failed" event."""
         assert self.loop_ is not None
         loop = self.loop_
-        await asyncio.sleep(self.config.safety.recover_after_ms / 1000)
         try:
+            await asyncio.sleep(self.config.safety.recover_after_ms / 1000)
             handlers = {"servo": self._on_servo, "driver": self._on_driver, "image": self._on_image,
                         "hexapod": self._on_hexapod}
             for name in LINKS:
                 link = self.links.get(name)
                 if link is None or link.transport is None:
                     for _ in range(50):
+                        self.interlock.check(f"reopening {name}")
                         try:
                             await self._open(name, handlers[name])
                             break
@@ -480,6 +522,7 @@ class Session:
             assert self.servo is not None and self.driver is not None
             await self.servo.start_stream()
             await self.driver.enable(clear_faults=True)
+            self.interlock.check("re-arming")
             loop.reset_controllers()
             loop.last_tick = None
             loop.stats.recoveries += 1
@@ -488,11 +531,23 @@ class Session:
             if loop.watchdog is not None:
                 loop.watchdog.start()
             self.event("recovered", recoveries=loop.stats.recoveries)
-        except LinkError as exc:
+        except InterlockClosed as exc:
+            self.event("info", recovery=f"abandoned: {exc}")
+        except Exception as exc:  # any failure ends the session, with its reason logged
+            reason = f"recovery failed: {type(exc).__name__ + ': ' if not isinstance(exc, LinkError) else ''}{exc}"
+            self.event("fault", reason=reason)
+            loop.stats.faults.append(reason)
+            self.finish("fault", reason)
+        finally:
             self._recovering = False
-            self.finish("fault", f"recovery failed: {exc}")
 
     def finish(self, status: str, message: str = "") -> None:
+        """The session ends: close the interlock (nothing enables, streams or swings again), cancel a recovery
+        under way, and let :meth:`run` wind down."""
+        self.interlock.close(f"session {status}" + (f": {message}" if message else ""))
+        if self._recovery is not None and not self._recovery.done():
+            self._recovery.cancel()
+            self.event("info", recovery="cancelled: the session is ending")
         if self._finished is not None and not self._finished.done():
             self.stop_reason = message
             self._finished.set_result(status)
@@ -507,6 +562,17 @@ class Session:
         self.event("signal", signal=signal.Signals(signum).name)
         self.finish("interrupted", signal.Signals(signum).name)
 
+    async def _host_alive_task(self) -> None:
+        """HOST_ALIVE on every open link every HOST_ALIVE_S, until the end of the shutdown: the boards' host
+        timers expire only when the bench is really gone (docs/protocol.md, "Host liveness")."""
+        while True:
+            uptime_ms = round((time.monotonic() - self._t0) * 1000)
+            for board in (self.servo, self.driver, self.image, self.hexapod):  # a recovery may reopen one
+                if board is not None:
+                    with contextlib.suppress(LinkError, OSError):
+                        board.alive(uptime_ms)
+            await asyncio.sleep(HOST_ALIVE_S)
+
     async def _progress_task(self) -> None:
         total = round(self.config.duration_s * 1000)
         while self.progress is not None:
@@ -519,10 +585,11 @@ class Session:
         for sig in (signal.SIGINT, signal.SIGTERM):
             aloop.add_signal_handler(sig, self._on_signal, sig)
         status, message = "fault", ""
-        progress = None
         try:
             await self.connect()
             assert self.servo and self.driver and self.image and self.hexapod
+            if not self.lockstep:
+                self._spawn(self._host_alive_task(), "HOST_ALIVE")
             await self.servo.configure()
             await self.image.track(self.config.tracking.enabled, self.config.tracking.gate_px)
             self._open_log()
@@ -538,12 +605,16 @@ class Session:
             self.loop_.decoders = {name: link.decoder for name, link in self.links.items()}
             self.hexapod.on_pose = self.loop_.on_pose
             self.event("state", state="configured")
+            segments = self.config.profile.protocol_segments()
+            if segments:  # before the driver is enabled: a profile the hexapod refuses ends the session unarmed
+                await self.hexapod.load(segments)
+                self.event("state", state="profile loaded", segments=len(segments))
             await self.driver.enable(clear_faults=True)
             self.loop_.armed = True
             self.event("state", state="armed")
-            segments = self.config.profile.protocol_segments()
             if segments:
-                await self.hexapod.load(segments)
+                self.interlock.check("HEXAPOD_START")
+                self._swing_started = True  # from here on the shutdown always sends HEXAPOD_STOP
                 await self.hexapod.start()
                 self.event("state", state="swing started", segments=len(segments))
             if self.telemetry:
@@ -552,17 +623,23 @@ class Session:
                 f"watchdog: no GYRO_SAMPLE for {s * 1000:.1f} ms"), self._on_host_stall)
             await self.servo.start_stream()
             self.loop_.watchdog.start()
-            progress = aloop.create_task(self._progress_task())
+            if self.progress is not None:
+                self._spawn(self._progress_task(), "progress")
             status = await self._finished
             message = self.stop_reason or ""
             if status == "completed":
                 await self._wind_down()
+        except InterlockClosed:  # a signal or a fault ended the session while it was still setting up
+            status = await self._finished if self._finished.done() else "fault"
+            message = self.stop_reason or ""
         except LinkError as exc:
             status, message = "fault", str(exc)
             self.event("fault", reason=message)
+        except Exception as exc:  # whatever went wrong, the boards end safe and the log says why
+            status, message = "fault", f"{type(exc).__name__}: {exc}"
+            self.event("fault", reason=message, traceback=traceback.format_exc(limit=8))
         finally:
-            if progress is not None:
-                progress.cancel()
+            self.finish(status, message)
             await self._shutdown()
             for sig in (signal.SIGINT, signal.SIGTERM):
                 aloop.remove_signal_handler(sig)
@@ -575,7 +652,7 @@ class Session:
     async def _wind_down(self) -> None:
         """Normal end: stop the swing while still stabilizing, wait until it rests, then disarm."""
         assert self.hexapod is not None
-        if self.config.profile.segments:
+        if self._swing_started:
             with contextlib.suppress(LinkError):
                 await self.hexapod.stop()
                 self.event("state", state="swing stopping")
@@ -585,14 +662,32 @@ class Session:
                     await asyncio.sleep(0.1)
 
     async def _shutdown(self) -> None:
-        """Driver first, then the swing, the stream, telemetry and the log. Never raises."""
+        """Driver first, then the swing, the stream, telemetry and the log. Never raises.
+
+        Runs with the interlock closed and every background task but HOST_ALIVE ended, so nothing can undo
+        it; the event ``state: safe`` records what each board confirmed."""
         if self.loop_ is not None:
             self.loop_.armed = False
             if self.loop_.watchdog is not None:
                 self.loop_.watchdog.close()
-        for step in (self._disarm, self._stop_swing, self._stop_stream):
-            with contextlib.suppress(LinkError, OSError, TimeoutError):
-                await step()
+        alive = [t for t in self._tasks if t.get_name() == "hil-HOST_ALIVE"]
+        others = [t for t in self._tasks if t not in alive]
+        for task in others:
+            task.cancel()
+        if others:
+            await asyncio.gather(*others, return_exceptions=True)
+        outcome: dict[str, str] = {}
+        for what, step in (("driver", self._disarm), ("hexapod", self._stop_swing), ("stream", self._stop_stream)):
+            try:
+                outcome[what] = await step()
+            except (LinkError, OSError, TimeoutError) as exc:
+                outcome[what] = f"not confirmed: {exc}"
+        if self.loop_ is not None or self.log is not None:
+            self.event("state", state="safe", **outcome)
+        for task in alive:
+            task.cancel()
+        if alive:
+            await asyncio.gather(*alive, return_exceptions=True)
         if self.loop_ is not None:
             self.event("summary", **self.summary_detail())
         if self.telemetry is not None:
@@ -610,20 +705,27 @@ class Session:
             with contextlib.suppress(OSError):
                 host.restore_placement(self._placement_before)
 
-    async def _disarm(self) -> None:
-        if self.driver is not None and self.driver.link.transport is not None:
-            self.driver.disable_now()
-            await self.driver.disable()
-            self.event("state", state="disarmed")
+    async def _disarm(self) -> str:
+        if self.driver is None or self.driver.link.transport is None:
+            return "no link" if self.driver is not None else "never connected"
+        self.driver.disable_now()
+        await self.driver.disable()
+        self.event("state", state="disarmed")
+        return "disabled"
 
-    async def _stop_swing(self) -> None:
-        if self.hexapod is not None and self.hexapod.link.transport is not None and self.config.profile.segments \
-                and self.hexapod_state in (HexapodState.RUNNING, HexapodState.STOPPING):
-            await self.hexapod.stop()
+    async def _stop_swing(self) -> str:
+        if not self._swing_started:
+            return "never started"
+        if self.hexapod is None or self.hexapod.link.transport is None:
+            return "no link"
+        await self.hexapod.stop()  # always accepted, also when it has already stopped
+        return "stopped"
 
-    async def _stop_stream(self) -> None:
-        if self.servo is not None and self.servo.link.transport is not None:
-            await self.servo.stop_stream()
+    async def _stop_stream(self) -> str:
+        if self.servo is None or self.servo.link.transport is None:
+            return "no link" if self.servo is not None else "never connected"
+        await self.servo.stop_stream()
+        return "idle"
 
     def summary_detail(self) -> dict[str, Any]:
         st = self.loop_.stats if self.loop_ else LoopStats()

@@ -234,7 +234,9 @@ class DriveStatus(NamedTuple):
 
     last_tick: Annotated[int, u32(doc="tick of the last DRIVE_CMD applied")]
     enabled: Annotated[AxisMask, u8(doc="AxisMask of enabled axes", enum=AxisMask)]
-    faults: Annotated[DriveFault, u8(doc="DriveFault flags (latched)", enum=DriveFault)]
+    faults: Annotated[DriveFault, u8(doc="DriveFault flags: OVERCURRENT_* latched until DRIVE_ENABLE clear_faults = 1; "
+                                         "STALE_COMMAND set while the stale timeout holds the output at zero",
+                                     enum=DriveFault)]
     az_current_a: Annotated[float, i16("A", "azimuth motor current", scale=1e-3)]
     el_current_a: Annotated[float, i16("A", "elevation motor current", scale=1e-3)]
     bus_voltage_v: Annotated[float, u16("V", "DC bus voltage", scale=1e-2)]
@@ -260,7 +262,8 @@ class TrackCmd(NamedTuple):
     """Start or stop target tracking."""
 
     mode: Annotated[TrackMode, u8(doc="TrackMode", enum=TrackMode)]
-    gate_px: Annotated[int, u16("px", "half-size of the search gate around the boresight")]
+    gate_px: Annotated[int, u16("px", "half-size of the search gate around the boresight; 0 = no gate (the whole "
+                                      "field)")]
 
 
 # --- hexapod controller ---------------------------------------------------------------------------

@@ -77,3 +77,16 @@ def test_any_layout_change_changes_the_fingerprint(changed):
     base = _one_message_catalogue(i32("deg", scale=1e-6))
     assert _one_message_catalogue(i32("deg", "other words", scale=1e-6)).fingerprint == base.fingerprint
     assert _one_message_catalogue(changed).fingerprint != base.fingerprint
+
+
+def test_an_empty_payload_line_ends_with_one_space_as_the_doc_says() -> None:
+    lines = CATALOGUE.layout_text().split("\n")
+    ident_req = next(line for line in lines if " IDENT_REQ" in line)
+    assert ident_req == "0x01 IDENT_REQ "  # one trailing space, no field list
+    doc = docgen.DOC_PATH.read_text()
+    assert "`0x01 IDENT_REQ `" in doc
+    spelled = "30 78 30 31 20 49 44 45 4E 54 5F 52 45 51 20"
+    assert spelled in doc and bytes.fromhex(spelled).decode() == ident_req
+    # the space is part of the fingerprint's input: without it the catalogue's fingerprint changes
+    without = "\n".join(line.rstrip() for line in lines)
+    assert zlib.crc32(without.encode()) != CATALOGUE.fingerprint == zlib.crc32("\n".join(lines).encode())

@@ -41,7 +41,10 @@ During = Callable[[EmulatorProcess, Session], Awaitable[None]]
 
 
 def run_session(config: SessionConfig, out: Path, *, clock: str = "lockstep", emulator_args: list[str] | None = None,
-                during: During | None = None, watchdog_ms: float | None = None) -> Run:
+                during: During | None = None, watchdog_ms: float | None = None,
+                after: Callable[[EmulatorProcess], None] | None = None) -> Run:
+    """One session against a fresh emulator; ``during`` runs beside the session, ``after`` once it has returned
+    (the emulator still running)."""
     fault_log = out / "emulator-records.jsonl"
     args = [*config.emulator.process_args(), *(emulator_args or []), "--fault-log", str(fault_log)]
     if watchdog_ms is None and clock == "lockstep":
@@ -50,7 +53,7 @@ def run_session(config: SessionConfig, out: Path, *, clock: str = "lockstep", em
     ports = emulator.start()
     try:
         session = Session(config, {n: PortConfig(port=p) for n, p in ports.items() if n != "control"}, out,
-                          watchdog_ms=watchdog_ms)
+                          watchdog_ms=watchdog_ms, lockstep=clock == "lockstep")
 
         async def main() -> SessionResult:
             task = asyncio.create_task(session.run())
@@ -59,6 +62,8 @@ def run_session(config: SessionConfig, out: Path, *, clock: str = "lockstep", em
             return await task
 
         result = asyncio.run(main())
+        if after is not None:
+            after(emulator)
     finally:
         summary = emulator.stop()
     records = [json.loads(line) for line in fault_log.read_text().splitlines()] if fault_log.exists() else []
@@ -72,3 +77,11 @@ async def wait_cycles(session: Session, n: int, timeout_s: float = 30.0) -> None
             return
         await asyncio.sleep(0.005)
     raise TimeoutError(f"the session did not reach {n} cycles")
+
+
+def logged_events(log_path: Path) -> list[tuple[str, dict[str, Any]]]:
+    """The events of a session log as (kind, detail) pairs."""
+    from hil.log import read_log
+
+    events = read_log(log_path).groups["events"]
+    return [(str(k), json.loads(str(d))) for k, d in zip(events["kind"], events["detail"], strict=True)]

@@ -105,7 +105,10 @@ def test_sigkill_mid_session_then_recover(tmp_path: Path) -> None:
         assert f["loop/tick"].shape[0] == n_read <= n
     report = hil("report", str(log), "--json")
     assert report.returncode == 0, report.stderr
-    assert json.loads(report.stdout)["cycles"] == n_read
+    summary = json.loads(report.stdout)
+    assert summary["cycles"] == n_read and summary["complete"] is False
+    text = hil("report", str(log))
+    assert text.returncode == 0 and "incomplete: the bench stopped without a summary" in " ".join(text.stdout.split())
 
 
 @pytest.mark.parametrize(("edit", "needle"), [
