@@ -80,15 +80,7 @@ def read_file_bytes(path: str | Path, max_bytes: int = MAX_CONFIG_BYTES) -> byte
 
     A FIFO, a device or a directory is refused before it is opened (so nothing blocks and nothing is read
     from a device), and at most ``max_bytes + 1`` bytes are ever read."""
-    path = Path(path)
-    try:
-        mode = os.stat(path).st_mode
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such file") from None
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if not stat.S_ISREG(mode):
-        raise ValueError(f"{path}: {_kind(mode)}, not a regular file")
+    path = require_regular_file(Path(path))
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as exc:
@@ -354,7 +346,7 @@ def require_regular_file(path: Path) -> Path:
     except FileNotFoundError:
         raise ValueError(f"{path}: no such file") from None
     except OSError as exc:
-        raise ValueError(f"{path}: {exc.strerror or exc}") from None
+        raise ValueError(f"{path}: cannot read: {exc.strerror or exc}") from None
     if not stat.S_ISREG(mode):
         raise ValueError(f"{path}: {_kind(mode)}, not a regular file")
     return path
