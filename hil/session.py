@@ -610,6 +610,7 @@ class Session:
                 await self.hexapod.load(segments)
                 self.event("state", state="profile loaded", segments=len(segments))
             await self.driver.enable(clear_faults=True)
+            self.interlock.check("arming")  # a signal may have come while the ACK was on its way
             self.loop_.armed = True
             self.event("state", state="armed")
             if segments:
