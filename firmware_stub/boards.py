@@ -60,7 +60,15 @@ from hil.protocol import (
     TrackCmd,
     TrackMode,
 )
-from hil.protocol.swing import ZERO6, Envelope, Segment, check_envelope, evaluate, profile_end_s, segment_from_message
+from hil.protocol.swing import (
+    ZERO6,
+    Envelope,
+    Profile,
+    Segment,
+    check_envelope,
+    profile_end_s,
+    segment_from_message,
+)
 
 if TYPE_CHECKING:
     from firmware_stub.plant import Plant
@@ -394,6 +402,7 @@ class ServoBoard(EmulatedBoard):
 
 
 AXES = ((AxisMask.AZ, DriveFault.OVERCURRENT_AZ, "az"), (AxisMask.EL, DriveFault.OVERCURRENT_EL, "el"))
+_AZ, _EL = int(AxisMask.AZ), int(AxisMask.EL)
 
 
 class DriverBoard(EmulatedBoard):
@@ -421,6 +430,7 @@ class DriverBoard(EmulatedBoard):
     def power_on(self) -> None:
         super().power_on()
         self.enabled = AxisMask(0)
+        self._en = 0  # int(self.enabled): the 1 kHz paths test plain ints, not IntFlag members
         self.faults = DriveFault(0)
         self.cmd = [0, 0]
         self.last_cmd_at = -1  # world tick of the last DRIVE_CMD
@@ -433,7 +443,8 @@ class DriverBoard(EmulatedBoard):
         msg: DriveCmd = frame.message
         self.world.servo.note_command(msg.tick, t_rx)
         self.last_cmd_tick = msg.tick
-        if not self.enabled:
+        en = self._en
+        if not en:
             if self.world.tick - self._last_nack_tick >= 100:
                 self._last_nack_tick = self.world.tick
                 self.nack(frame, ErrorCode.NOT_ENABLED)
@@ -443,9 +454,9 @@ class DriverBoard(EmulatedBoard):
             self.stale = False
             self.faults &= ~DriveFault.STALE_COMMAND
             self.world.recorder.record(self.link.name, "drive_fresh", tick_field=msg.tick)
-        if self.enabled & AxisMask.AZ:
+        if en & _AZ:
             self.cmd[0] = msg.az_counts
-        if self.enabled & AxisMask.EL:
+        if en & _EL:
             self.cmd[1] = msg.el_counts
 
     def _on_enable(self, frame: Frame, t_rx: float) -> None:
@@ -461,6 +472,7 @@ class DriverBoard(EmulatedBoard):
             if msg.axes & mask and not self.enabled & mask:
                 self.cmd[i] = 0  # output starts at zero
         self.enabled |= msg.axes
+        self._en = int(self.enabled)
         self.last_cmd_at = self.world.tick  # the stale timer starts now
         self.state = BoardState.RUNNING
         self.world.recorder.record(self.link.name, "drive_enable", axes=int(msg.axes), clear=bool(msg.clear_faults))
@@ -481,13 +493,15 @@ class DriverBoard(EmulatedBoard):
             if axes & mask:
                 self.cmd[i] = 0
         self.enabled &= ~axes
+        self._en = int(self.enabled)
         if not self.enabled:
             self.state = BoardState.FAULT if self.faults & ~DriveFault.STALE_COMMAND else BoardState.READY
         self.world.recorder.record(self.link.name, "drive_disable", axes=int(axes), cause=cause)
 
     def output_counts(self) -> tuple[int, int]:
         """What the power stage applies over the coming tick."""
-        if not self.enabled:
+        en = self._en
+        if not en:
             return 0, 0
         if self.world.tick - self.last_cmd_at > self.stale_ticks:
             if not self.stale:
@@ -496,18 +510,19 @@ class DriverBoard(EmulatedBoard):
                 self.faults |= DriveFault.STALE_COMMAND
                 self.world.recorder.record(self.link.name, "drive_stale", last_tick_field=self.last_cmd_tick)
             return 0, 0
-        az = self.cmd[0] if self.enabled & AxisMask.AZ else 0
-        el = self.cmd[1] if self.enabled & AxisMask.EL else 0
+        az = self.cmd[0] if en & _AZ else 0
+        el = self.cmd[1] if en & _EL else 0
         return az, el
 
     def on_tick(self, tick: int) -> None:
         super().on_tick(tick)
         currents = self.world.plant.currents_a()
-        if self.trip_ticks >= 0:
+        limit = self.current_limit_a
+        if self.trip_ticks >= 0 and (abs(currents[0]) > limit or abs(currents[1]) > limit or any(self.over_ticks)):
             for i, (mask, fault, ax) in enumerate(AXES):
-                if abs(currents[i]) > self.current_limit_a:
+                if abs(currents[i]) > limit:
                     self.over_ticks[i] += 1
-                    if self.over_ticks[i] > self.trip_ticks and self.enabled & mask:
+                    if self.over_ticks[i] > self.trip_ticks and self._en & mask:
                         self.faults |= fault
                         self.world.recorder.record(self.link.name, "drive_overcurrent", axis=ax,
                                                    current_a=round(currents[i], 3), limit_a=self.current_limit_a)
@@ -591,6 +606,7 @@ class HexapodBoard(EmulatedBoard):
     def power_on(self) -> None:
         super().power_on()
         self.segments: list[Segment] = []
+        self.profile = Profile(())
         self.expected = 0
         self.hex_state = HexapodState.IDLE
         self.start_tick = 0
@@ -638,6 +654,7 @@ class HexapodBoard(EmulatedBoard):
                 self._set_state(HexapodState.IDLE)
                 return
             self.end_ticks = math.ceil(profile_end_s(self.segments) * TICKS_PER_S)
+            self.profile = Profile(self.segments)
             self.fault = 0
             self._set_state(HexapodState.LOADED)
         self.ack(frame)
@@ -670,7 +687,7 @@ class HexapodBoard(EmulatedBoard):
         if self.hex_state not in (HexapodState.RUNNING, HexapodState.STOPPING):
             return ZERO6, ZERO6, ZERO6
         t_s = (tick - self.start_tick + 0.5) / TICKS_PER_S
-        pos, vel, acc = evaluate(self.segments, t_s)
+        pos, vel, acc = self.profile(t_s)
         if self.hex_state == HexapodState.STOPPING:
             # scale by s(t) falling 1 -> 0 over the stop ramp: p_s = s p, v_s = s v + s' p, a_s = s a + 2 s' v
             s_dot = -TICKS_PER_S / self.stop_ramp_ticks

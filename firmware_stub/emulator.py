@@ -61,7 +61,10 @@ class Emulator:
     """The world the boards live in. ``run()`` blocks until ``request_stop()`` (or max_ticks)."""
 
     def __init__(self, config: EmulatorConfig, *, run_dir: Path | None = None, fault_log: Path | None = None,
-                 fingerprint: int = CATALOGUE.fingerprint) -> None:
+                 fingerprint: int = CATALOGUE.fingerprint, link_factory: type[BoardLink] = BoardLink,
+                 control: bool = True) -> None:
+        """``link_factory`` makes each board's link (a pty by default; :class:`firmware_stub.sim.MessageLink`
+        passes messages in-process); ``control``: open the control socket."""
         self.config = config
         self.tick = 0
         self.deadline: float | None = None
@@ -72,7 +75,7 @@ class Emulator:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.recorder = FaultRecorder(fault_log)
         self.plant = Plant(load_plant_config(config.plant), config.seed)
-        self.links = {name: BoardLink(name, BOARD_IDS[name], self.run_dir, config.link_faults(name),
+        self.links = {name: link_factory(name, BOARD_IDS[name], self.run_dir, config.link_faults(name),
                                       seed=config.seed, recorder=self.recorder) for name in LinkName}
         self.servo = ServoBoard(self, self.links[LinkName.SERVO], fingerprint)
         self.driver = DriverBoard(self, self.links[LinkName.DRIVER], fingerprint)
@@ -90,20 +93,20 @@ class Emulator:
         realtime_timer = config.clock is ClockMode.REALTIME and config.boards.host_timeout_ms > 0
         self.host_check_tick = self.servo.host_timeout_ticks if realtime_timer else NEVER
         self.host_heard_s = -math.inf
-        self.control = ControlServer(self.run_dir / "control.sock", self.handle_control)
+        self.control = ControlServer(self.run_dir / "control.sock", self.handle_control) if control else None
         self.started_wall = time.time()
 
     # --- what the host connects to -----------------------------------------------------------------
 
     def ports(self) -> dict[str, str]:
         """Board -> serial port path (stable symlinks), plus the control socket."""
-        return {**{name.value: str(link.path) for name, link in self.links.items()},
-                "control": str(self.control.path)}
+        ports = {name.value: str(link.path) for name, link in self.links.items()}
+        return ports if self.control is None else {**ports, "control": str(self.control.path)}
 
     # --- inputs ------------------------------------------------------------------------------------
 
     def readers(self) -> Readers:
-        readers: dict[int, Callable[[float], None]] = self.control.fds()
+        readers: dict[int, Callable[[float], None]] = {} if self.control is None else self.control.fds()
         for name, link in self.links.items():
             if link.fd is not None:
                 readers[link.fd] = lambda t, name=name: self._on_readable(name, t)
@@ -311,7 +314,8 @@ class Emulator:
         """Close every pty and socket and remove the run directory: nothing is left behind."""
         for link in self.links.values():
             link.close()
-        self.control.close()
+        if self.control is not None:
+            self.control.close()
         self.recorder.close()
         if self._own_run_dir:
             shutil.rmtree(self.run_dir, ignore_errors=True)

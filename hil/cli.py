@@ -188,12 +188,16 @@ def _run_session(config, out: Path | None, loopback: bool, clock: str | None, js
     check_out_dir(out_dir, "--out" if out else "logging.dir")
     emulator = None
     watchdog_ms = None
+    if clock == "sim" and not loopback:
+        raise fail("--clock sim: runs the emulated lab in this process; add --loopback")
     if loopback:
         clock = clock or config.emulator.clock
         try:  # the emulator validates it; a missing one is refused here, before anything starts
             require_regular_file(config.emulator.config)
         except ValueError as exc:
             raise fail(f"emulator.config: {exc}") from None
+        if clock == "sim":
+            return _run_sim(config, out_dir, json_out)
         emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed,
                                    extra_args=config.emulator.process_args())
         try:
@@ -220,6 +224,29 @@ def _run_session(config, out: Path | None, loopback: bool, clock: str | None, js
         finally:
             if emulator is not None:
                 emulator.stop()
+    _print_result(result, json_out)
+    return result
+
+
+def _run_sim(config, out_dir: Path, json_out: bool):  # type: ignore[no-untyped-def]
+    """``--loopback --clock sim``: the emulated lab in this process (hil.sim); print the summary."""
+    import asyncio
+
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from firmware_stub.config import ConfigError as EmulatorConfigError
+    from hil.sim import run_sim_session
+
+    total = round(config.duration_s * 1000)
+    with Progress(TextColumn(f"[bold]{config.name}[/] {config.controller.name} (sim)"), BarColumn(),
+                  TextColumn("{task.fields[sim]:.1f} / {task.fields[total_s]:.1f} s"), TimeRemainingColumn(),
+                  console=err_console, transient=True, disable=json_out) as bar:
+        task = bar.add_task("run", total=total, sim=0.0, total_s=config.duration_s)
+        try:
+            result, _ = asyncio.run(run_sim_session(
+                config, out_dir, progress=lambda n, _t: bar.update(task, completed=n, sim=n / 1000)))
+        except EmulatorConfigError as exc:
+            raise fail(str(exc)) from None
     _print_result(result, json_out)
     return result
 
@@ -294,12 +321,14 @@ def run(
     session: Annotated[Path, typer.Argument(help="Session YAML (see profiles/sessions/).")],
     loopback: Annotated[bool, typer.Option("--loopback", help="Run against the emulator (started here).")] = False,
     out: Annotated[Path | None, typer.Option(help="Directory for the log (default: the session's logging.dir)")] = None,
-    clock: Annotated[str | None, typer.Option(help="Emulator clock with --loopback: realtime | lockstep.")] = None,
+    clock: Annotated[str | None, typer.Option(
+        help="Emulator clock with --loopback: realtime (paced 1 kHz over ptys) | lockstep (full protocol over "
+             "ptys, byte-reproducible) | sim (boards and plant in this process; logs identical to lockstep).")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
 ) -> None:
     """Run a bench session: connect, arm, swing, stabilize and track, log; print the summary."""
-    if clock not in (None, "realtime", "lockstep"):
-        raise fail(f"--clock: {clock!r} is not realtime or lockstep")
+    if clock not in (None, "realtime", "lockstep", "sim"):
+        raise fail(f"--clock: {clock!r} is not realtime, lockstep or sim")
     raise typer.Exit(run_session(_load_session(session), out, loopback, clock, json_out))
 
 
@@ -436,6 +465,8 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     resume: Annotated[bool, typer.Option("--resume", help="Finish a campaign in --out, skipping done cells.")] = False,
     jobs: Annotated[int, typer.Option(min=1, max=64, help="Cells run at once (loopback only).")] = 1,
     hardware: Annotated[bool, typer.Option("--hardware", help="Run on the lab's ports, one cell at a time.")] = False,
+    clock: Annotated[str, typer.Option(help="Loopback cells: sim (in-process, default) | lockstep (over ptys); "
+                                            "the same logs either way.")] = "sim",
     report_too: Annotated[bool, typer.Option("--report/--no-report", help="Write the report at the end.")] = True,
 ) -> None:
     """Run a swing campaign: profiles x controllers x seeds, each cell a session with its own log; then the
@@ -451,8 +482,10 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
         raise fail(str(exc)) from None
     out_dir = out or Path("runs") / "campaigns" / config.name
     check_out_dir(out_dir, "--out")
+    if clock not in ("sim", "lockstep"):
+        raise fail(f"--clock: {clock!r} is not sim or lockstep")
     try:  # every cell, before anything is written
-        sessions = cell_sessions(config, out_dir, hardware)
+        sessions = cell_sessions(config, out_dir, hardware, clock)
     except CampaignError as exc:
         raise fail(f"{file}: {exc}") from None
     n_cells = len(config.cells())

@@ -356,7 +356,9 @@ class EmulatorRef(Strict):
     """What `hil run --loopback` starts in place of the lab."""
 
     config: Path = PROFILES / "emulator" / "default.yaml"
-    clock: Literal["realtime", "lockstep"] = "lockstep"
+    clock: Literal["realtime", "lockstep", "sim"] = Field(
+        "lockstep", description="realtime: paced 1 kHz over ptys; lockstep: the full protocol over ptys, "
+        "byte-reproducible; sim: boards and plant in the bench's process, logs identical to lockstep")
     rt_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority of the emulator's clock, 0 = normal")
     cpu: int | None = Field(
         None, ge=-1024, le=1023,

@@ -21,7 +21,7 @@ import time
 import traceback
 from array import array
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -50,6 +50,7 @@ from hil.telemetry import Telemetry, TelemetryProcess
 from hil.transport import LinkError, SerialLink
 
 LINKS = ("servo", "driver", "image", "hexapod")
+LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[SerialLink]]
 LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
 HOST_ALIVE_S = 0.1  # HOST_ALIVE on every link this often (docs/protocol.md, "Host liveness")
 EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
@@ -314,10 +315,16 @@ class Session:
 
     def __init__(self, config: SessionConfig, ports: dict[str, PortConfig], out_dir: Path, *,
                  watchdog_ms: float | None = None, progress: Callable[[int, int], None] | None = None,
-                 log_attrs: dict[str, Any] | None = None, lockstep: bool = False) -> None:
+                 log_attrs: dict[str, Any] | None = None, lockstep: bool = False,
+                 open_link: LinkOpener | None = None, watchdog: bool = True) -> None:
         """``lockstep``: the boards are an emulator in lockstep (its world waits for the bench). The bench then
         sends no HOST_ALIVE, which would land at wall-clock moments and change the bytes of the run; the
-        emulator judges host liveness by the lockstep itself (docs/protocol.md, "Host liveness")."""
+        emulator judges host liveness by the lockstep itself (docs/protocol.md, "Host liveness").
+
+        ``open_link(name, port, on_frame)`` opens each board's link (default: :meth:`SerialLink.open` on the
+        port); the ``sim`` clock passes one that connects to an in-process world (hil.sim). ``watchdog``: run
+        the sample watchdog (off only in ``sim``, where the world advances with the loop and wall time means
+        nothing)."""
         self.config = config
         self.ports = ports
         self.out_dir = out_dir
@@ -340,6 +347,9 @@ class Session:
         self._recovering = False
         self._placement_before: host.Placement | None = None
         self.lockstep = lockstep
+        self.open_link = open_link
+        self.use_watchdog = watchdog
+        self._hexapod_changed = asyncio.Event()
         self.interlock = Interlock()  # closed for good when the session starts to end (finish)
         self._tasks: set[asyncio.Task[Any]] = set()
         self._recovery: asyncio.Task[Any] | None = None
@@ -376,6 +386,7 @@ class Session:
         msg = frame.message
         if type(msg) is HexapodStatus:
             self.hexapod_state = msg.state
+            self._hexapod_changed.set()
         elif self.hexapod is not None:
             self.hexapod.handle(frame)
 
@@ -389,7 +400,10 @@ class Session:
 
     async def _open(self, name: str, handler: Callable[[Frame], None]) -> None:
         port = self.ports[name]
-        link = await SerialLink.open(name, port.port, port.baudrate, handler)
+        if self.open_link is not None:
+            link = await self.open_link(name, port, handler)
+        else:
+            link = await SerialLink.open(name, port.port, port.baudrate, handler)
         if self.lockstep:  # a resend would change the bytes of a lockstep run (docs/protocol.md, 6.1)
             link.retry_interval_s = 1.0
         self.links[name] = link
@@ -620,10 +634,12 @@ class Session:
                 self.event("state", state="swing started", segments=len(segments))
             if self.telemetry:
                 self.telemetry.state("running", controller=self.config.controller.name)
-            self.loop_.watchdog = Watchdog(self.watchdog_s, lambda s: self.fault(
-                f"watchdog: no GYRO_SAMPLE for {s * 1000:.1f} ms"), self._on_host_stall)
+            if self.use_watchdog:
+                self.loop_.watchdog = Watchdog(self.watchdog_s, lambda s: self.fault(
+                    f"watchdog: no GYRO_SAMPLE for {s * 1000:.1f} ms"), self._on_host_stall)
             await self.servo.start_stream()
-            self.loop_.watchdog.start()
+            if self.loop_.watchdog is not None:
+                self.loop_.watchdog.start()
             if self.progress is not None:
                 self._spawn(self._progress_task(), "progress")
             status = await self._finished
@@ -657,10 +673,14 @@ class Session:
             with contextlib.suppress(LinkError):
                 await self.hexapod.stop()
                 self.event("state", state="swing stopping")
-                for _ in range(50):  # the controller ramps down (1 s on the emulator), at most 5 s
-                    if self.hexapod_state not in (HexapodState.RUNNING, HexapodState.STOPPING):
+                give_up = time.monotonic() + 5.0  # the controller ramps down (1 s on the emulator), at most 5 s
+                while self.hexapod_state in (HexapodState.RUNNING, HexapodState.STOPPING):
+                    left = give_up - time.monotonic()
+                    if left <= 0:
                         break
-                    await asyncio.sleep(0.1)
+                    self._hexapod_changed.clear()
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(self._hexapod_changed.wait(), min(left, 0.1))
 
     async def _shutdown(self) -> None:
         """Driver first, then the swing, the stream, telemetry and the log. Never raises.

@@ -1,9 +1,10 @@
 """Run a campaign's cells, keep each cell's log, resume, judge thresholds and acceptance.
 
 Each cell is one `hil run CELL/session.yaml --json` in its own process (with ``--loopback`` against its
-own emulator, in lockstep, so cells are reproducible and may run ``jobs`` at a time; on the lab's
-hardware one after another). A cell's ``result.json`` is written when it finishes, and the
-campaign's ``campaign.json`` after every cell, so an interrupted campaign resumes where it stopped.
+own emulated lab, on the ``sim`` clock by default or ``lockstep`` over ptys, so cells are reproducible and
+may run ``jobs`` at a time; on the lab's hardware one after another). A cell's ``result.json`` is written
+when it finishes, and the campaign's ``campaign.json`` after every cell, so an interrupted campaign resumes
+where it stopped.
 """
 
 from __future__ import annotations
@@ -57,13 +58,16 @@ def _base_session(config: CampaignConfig) -> SessionConfig:
         raise CampaignError(f"session: {exc}") from None
 
 
-def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardware: bool = False,
-                 base: SessionConfig | None = None) -> dict[str, Any]:
+def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardware: bool = False, *,
+                 base: SessionConfig | None = None, clock: str = "sim") -> dict[str, Any]:
     """The session file of one cell: the base session with the campaign's overrides and the cell's
     profile, controller and seed (paths absolute, so the file stands on its own), validated.
 
     A password written in the session file is refused (the cell's file would hold it in clear text:
-    give it as ``mqtt.password_env`` or ``mqtt.password_file``)."""
+    give it as ``mqtt.password_env`` or ``mqtt.password_file``).
+
+    ``clock`` (loopback cells): ``sim`` (default: boards and plant in the cell's process) or ``lockstep`` (the
+    full protocol over ptys); both give the same logs."""
     base = base if base is not None else _base_session(config)
     data = _merge(base.model_dump(mode="json", exclude_none=True), config.overrides)
     data.update(name=spec.cell_id, seed=spec.seed, controller={"name": spec.controller.name,
@@ -72,7 +76,7 @@ def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardwar
     if config.duration_s is not None:
         data["duration_s"] = config.duration_s
     if not hardware:  # lockstep cells run side by side (--jobs): CPU placement is for one realtime loop
-        data["emulator"] = {**data.get("emulator", {}), "clock": "lockstep", "cpu": None}
+        data["emulator"] = {**data.get("emulator", {}), "clock": clock, "cpu": None}
         data["host"] = {**data.get("host", {}), "loop_cpu": None}
     try:
         session = SessionConfig.model_validate(data)
@@ -187,10 +191,12 @@ def load_results(out_dir: Path) -> CampaignResult:
         raise CampaignError(one_line(str(path), exc) if isinstance(exc, ValidationError) else str(exc)) from None
 
 
-def cell_sessions(config: CampaignConfig, out_dir: Path, hardware: bool = False) -> dict[str, dict[str, Any]]:
+def cell_sessions(config: CampaignConfig, out_dir: Path, hardware: bool = False,
+                  clock: str = "sim") -> dict[str, dict[str, Any]]:
     """Every cell's session (:func:`cell_session`), by cell id: all of them validated, nothing written."""
     base = _base_session(config)
-    return {spec.cell_id: cell_session(config, spec, out_dir / "cells" / spec.cell_id, hardware, base)
+    return {spec.cell_id: cell_session(config, spec, out_dir / "cells" / spec.cell_id, hardware, base=base,
+                                       clock=clock)
             for spec in config.cells()}
 
 

@@ -68,7 +68,7 @@ from collections.abc import Sequence
 
 from hil.control.controller import ImbalanceCompensation
 from hil.control.ukf_imbalance import STANDARD_GRAVITY_M_S2
-from hil.protocol.swing import Segment, evaluate
+from hil.protocol.swing import Profile, Segment
 
 __all__ = ["RHO_WALK_STD_M", "ImbalanceFeed", "ProfileClock", "specific_force_body"]
 
@@ -135,6 +135,7 @@ class ImbalanceFeed:
             q = imbalance.ukf.filter.Q
             q[0, 0] = q[1, 1] = rho_walk_std_m**2
         self.segments = tuple(segments)
+        self._profile = Profile(self.segments)
         # outputs
         self.ff_counts = 0.0
         self.identified = False
@@ -177,7 +178,7 @@ class ImbalanceFeed:
 
     def carrier_specific_force(self, t_s: float) -> tuple[float, float, float]:
         """The profile's specific force in the body frame (m/s^2) at profile time ``t_s``."""
-        pose, _, acc = evaluate(self.segments, t_s)
+        pose, _, acc = self._profile(t_s)
         return specific_force_body((acc[0], acc[1], acc[2]), (pose[3], pose[4], pose[5]))
 
     # -- the 1 kHz path --------------------------------------------------------------------------------------------

@@ -63,36 +63,44 @@ def profile_end_s(segments: Iterable[Segment]) -> float:
     return max((seg.end_s for seg in segments), default=0.0)
 
 
-def _ramp(seg: Segment, t_s: float) -> tuple[float, float]:
-    """(r, dr/dt) of a segment at t_s (inside the segment)."""
-    ramp = min(seg.ramp_s, seg.duration_s / 2)
-    if ramp <= 0:
-        return 1.0, 0.0
-    since, until = t_s - seg.start_s, seg.end_s - t_s
-    if since < ramp:
-        return since / ramp, 1.0 / ramp
-    if until < ramp:
-        return until / ramp, -1.0 / ramp
-    return 1.0, 0.0
+class Profile:
+    """A profile ready to evaluate at 1 kHz: each segment's constants computed once (the emulated hexapod and
+    the imbalance feed-forward call it every tick). ``Profile(segments)(t_s)`` is :func:`evaluate`."""
+
+    def __init__(self, segments: Iterable[Segment]) -> None:
+        self.segments = tuple(segments)
+        self._terms = tuple(
+            (int(seg.axis), seg.start_s, seg.end_s, min(seg.ramp_s, seg.duration_s / 2), 2 * math.pi * seg.frequency_hz,
+             math.radians(seg.phase_deg), seg.amplitude)
+            for seg in self.segments)
+
+    def __call__(self, t_s: float) -> tuple[Vec6, Vec6, Vec6]:
+        """Pose, rate and acceleration at t_s (profile clock), per HexAxis. Each segment is
+        ``a r(t) sin(w (t - t0) + phase)`` with the linear ramp ``r`` over ``ramp_s`` at both ends."""
+        pos = [0.0] * N_AXES
+        vel = [0.0] * N_AXES
+        acc = [0.0] * N_AXES
+        for axis, start, end, ramp, w, phase, a in self._terms:
+            if not start <= t_s < end:
+                continue
+            r, dr = 1.0, 0.0
+            if ramp > 0:
+                since, until = t_s - start, end - t_s
+                if since < ramp:
+                    r, dr = since / ramp, 1.0 / ramp
+                elif until < ramp:
+                    r, dr = until / ramp, -1.0 / ramp
+            phi = w * (t_s - start) + phase
+            s, c = math.sin(phi), math.cos(phi)
+            pos[axis] += a * r * s
+            vel[axis] += a * (dr * s + r * w * c)
+            acc[axis] += a * (2 * dr * w * c - r * w * w * s)
+        return tuple(pos), tuple(vel), tuple(acc)  # type: ignore[return-value]
 
 
 def evaluate(segments: Iterable[Segment], t_s: float) -> tuple[Vec6, Vec6, Vec6]:
-    """Pose, rate and acceleration of the profile at t_s (profile clock), per HexAxis."""
-    pos = [0.0] * N_AXES
-    vel = [0.0] * N_AXES
-    acc = [0.0] * N_AXES
-    for seg in segments:
-        if not seg.start_s <= t_s < seg.end_s:
-            continue
-        r, dr = _ramp(seg, t_s)
-        w = 2 * math.pi * seg.frequency_hz
-        phi = w * (t_s - seg.start_s) + math.radians(seg.phase_deg)
-        s, c = math.sin(phi), math.cos(phi)
-        a = seg.amplitude
-        pos[seg.axis] += a * r * s
-        vel[seg.axis] += a * (dr * s + r * w * c)
-        acc[seg.axis] += a * (2 * dr * w * c - r * w * w * s)
-    return tuple(pos), tuple(vel), tuple(acc)  # type: ignore[return-value]
+    """Pose, rate and acceleration of the profile at t_s (profile clock), per HexAxis (see :class:`Profile`)."""
+    return Profile(segments)(t_s)
 
 
 def evaluate_batch(segments: Iterable[Segment], t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -326,6 +326,22 @@ class MessageSpec:
                 out.append(raw)
         return out
 
+    def roundtrip_slow(self, msg: Any) -> Any:
+        """:meth:`roundtrip` through ``struct``: pack the encoder's raw values, decode the payload."""
+        return self.payload_decoder(self.payload_struct.pack(*self.raw_values(msg)), 0)
+
+    @functools.cached_property
+    def roundtrip(self) -> Callable[[Any], Any]:
+        """``msg`` as the receiver decodes it: the same range checks and raw values as the encoder
+        (EncodeError on a bad value), then the payload decoder, without framing or CRC. The in-process
+        ``sim`` clock passes messages this way, so both ends see exactly the values a frame would carry.
+
+        For a message of integer fields only (scaled or not), a generated function does the same arithmetic
+        without ``struct`` (GYRO_SAMPLE, DRIVE_CMD: the 1 kHz pair); anything it does not accept at once
+        (a float where an int belongs, a value out of range, NaN) goes the ``struct`` way, which raises the
+        encoder's error."""
+        return _compile_fast_roundtrip(self.cls, self.fields, self.roundtrip_slow)
+
     @functools.cached_property
     def _all_scalar(self) -> bool:
         return all(f.wire.count == 1 or f.wire.kind == "char" for f in self.fields)
@@ -380,6 +396,39 @@ def _compile_fast_decoder(cls: type, fields: list[FieldSpec], pst: struct.Struct
     decode = namespace["decode"]
     decode.__source__ = source
     return decode
+
+
+def _compile_fast_roundtrip(
+    cls: type, fields: tuple[FieldSpec, ...], slow: Callable[[Any], Any]
+) -> Callable[[Any], Any]:
+    """A roundtrip specialised to one message of integer fields (``struct``-free); ``slow`` for any other
+    message, and the fallback for any value the fast path does not take at once. Generated source, as
+    :func:`_compile_fast_decoder`; kept on the function as ``__source__``."""
+    if not fields or not all(f.wire.kind in PRIMITIVES and f.wire.count == 1 and f.wire.enum is None
+               and not f.wire.primitive.is_float for f in fields):
+        return slow
+    lines, outs = [], []
+    namespace: dict[str, Any] = {"_new": tuple.__new__, "_cls": cls, "_slow": slow, "_int": int, "_float": float}
+    for i, f in enumerate(fields):
+        w, p, v = f.wire, f.wire.primitive, f"v{i}"
+        if w.scale == 1:
+            lines.append(f"    if {v}.__class__ is not _int or not {p.lo} <= {v} <= {p.hi}:\n        return _slow(msg)")
+            outs.append(v)
+            continue
+        lo, hi = w.eng_range
+        namespace[f"lo{i}"], namespace[f"hi{i}"] = lo - abs(w.scale), hi + abs(w.scale)
+        lines.append(f"    if ({v}.__class__ is not _float and {v}.__class__ is not _int) or not lo{i} <= {v} <= hi{i}:"
+                     f"\n        return _slow(msg)")
+        raw = f"round({v} * {w.divisor})" if w.divisor else f"round({v} / {w.scale!r})"
+        lines.append(f"    r{i} = {raw}\n    if not {p.lo} <= r{i} <= {p.hi}:\n        return _slow(msg)")
+        outs.append(f"r{i} / {w.divisor}" if w.divisor else f"r{i} * {w.scale!r}")
+    names = ", ".join(f"v{i}" for i in range(len(fields)))
+    source = (f"def roundtrip(msg):\n    {names}, = msg\n" + "\n".join(lines)
+              + f"\n    return _new(_cls, ({', '.join(outs)},))\n")
+    exec(source, namespace)
+    fn = namespace["roundtrip"]
+    fn.__source__ = source
+    return fn
 
 
 def _snake_upper(name: str) -> str:

@@ -1,0 +1,221 @@
+"""The ``sim`` session clock: the bench's own Session and ControlLoop, the emulated boards and the plant in one
+process, with no ptys and no child process (docs/emulator.md, "Clocks").
+
+Messages pass as objects after their wire round trip (the encoder's checks, then the decoder:
+:meth:`hil.protocol.MessageSpec.roundtrip`); commands with replies go as encoded bytes through the board's own
+decoder. The world (:class:`firmware_stub.sim.SimWorld`) advances as the lockstep emulator does, one tick per
+GYRO_SAMPLE answered, so for the same seed and config a ``sim`` log's channels equal a ``lockstep`` log's, apart
+from the host's own clock (``t_host_ns``, ``latency_us``). Campaigns, fits and tuning use it.
+
+The world ticks in a task of the session's event loop, :data:`TICKS_PER_YIELD` ticks between yields, so the
+session's own coroutines (handshake, wind-down, shutdown) run as they do against a real board.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Callable
+from pathlib import Path
+from time import perf_counter
+from typing import TYPE_CHECKING, Any
+
+from hil.config import PortConfig, SessionConfig
+from hil.protocol import CATALOGUE, Frame
+from hil.transport import SerialLink
+
+if TYPE_CHECKING:
+    from hil.session import SessionResult
+
+TICKS_PER_YIELD = 20  # world ticks between two yields to the event loop (a sim tick is ~20-40 us)
+
+
+class _SimTransport(asyncio.Transport):
+    """What ``SerialLink.request`` writes to: encoded frames, handed to the board's decoder."""
+
+    def __init__(self, link: SimLink) -> None:
+        super().__init__()
+        self._link = link
+        self._closing = False
+
+    def write(self, data: bytes | bytearray | memoryview) -> None:
+        self._link.lab.from_host_bytes(self._link.name, bytes(data))
+
+    def close(self) -> None:
+        if not self._closing:
+            self._closing = True
+            self._link.connection_lost(None)
+
+    def is_closing(self) -> bool:
+        return self._closing
+
+
+class SimLink(SerialLink):
+    """A link to a board of an in-process :class:`SimLab`. The hot path (:meth:`send`) passes the message as an
+    object through its wire round trip; :meth:`request` (inherited) writes encoded bytes. Frames from the board
+    arrive through :meth:`deliver`, counted in the decoder's counters as frames received."""
+
+    def __init__(self, name: str, lab: SimLab, on_frame: Callable[[Frame], None] | None) -> None:
+        super().__init__(name, on_frame)
+        self.lab = lab
+        self.port = f"sim:{name}"
+        self._roundtrip = {spec.cls: spec.roundtrip for spec in CATALOGUE}
+        self._to_board = lab.to_board(name)
+        self.connection_made(_SimTransport(self))
+
+    def send(self, message: Any, dst: int) -> int:
+        if self.transport is None:
+            from hil.transport import LinkError
+
+            raise LinkError(f"{self.name}: link is closed")
+        enc = self.encoder
+        seq = enc.next_seq
+        enc.next_seq = (seq + 1) & 0xFFFF
+        self._to_board(Frame(enc.src, dst, seq, self._roundtrip[type(message)](message)))
+        return seq
+
+    def deliver(self, frame: Frame) -> None:
+        self.decoder.counters.frames_ok += 1
+        if self._waiters:
+            self._wake_waiters(frame)
+        if self.on_frame is not None:
+            self.on_frame(frame)
+
+
+class SimLab:
+    """The emulated lab of ``emulator_config`` in this process. Use as an async context manager around a
+    Session built with ``open_link=lab.open_link``; the world ticks while the session runs."""
+
+    def __init__(self, emulator_config: Path, *, seed: int) -> None:
+        from firmware_stub.config import load_emulator_config
+        from firmware_stub.plant import PlantConfigError, load_plant_config
+        from firmware_stub.sim import SimWorld
+
+        config = load_emulator_config(emulator_config, clock="lockstep", seed=seed)
+        try:
+            load_plant_config(config.plant)
+        except PlantConfigError as exc:
+            from firmware_stub.config import ConfigError
+
+            raise ConfigError(f"{emulator_config}: plant: {exc}") from None
+        self.world = SimWorld(config, self._to_host)
+        self.links: dict[str, SimLink] = {}
+        self._wake = asyncio.Event()
+        self._delivery_due = False
+        self._ticking = False
+        self._task: asyncio.Task[None] | None = None
+        self.ticks = 0
+        self.busy_s = 0.0  # wall time spent ticking (the loop time: world, boards, the bench's loop, the log)
+        self.summary: dict[str, Any] = {}
+        self.on_error: Callable[[str], None] | None = None  # the session's fault(): the world failed
+
+    # --- links --------------------------------------------------------------------------------------
+
+    async def open_link(self, name: str, port: PortConfig, on_frame: Callable[[Frame], None]) -> SerialLink:
+        """The Session's ``open_link``: a SimLink to the board ``name`` (the port is not used)."""
+        link = SimLink(name, self, on_frame)
+        self.links[name] = link
+        return link
+
+    def _to_host(self, link: Any, frame: Frame) -> None:
+        host = self.links.get(link)  # a LinkName is a str: it finds the link by its name
+        if host is not None and host.transport is not None:
+            host.deliver(frame)
+
+    def to_board(self, name: str) -> Callable[[Frame], None]:
+        """What a host link calls with each frame for board ``name``."""
+        from firmware_stub.config import LinkName
+
+        link = LinkName(name)
+        from_host = self.world.from_host
+
+        def send(frame: Frame) -> None:
+            from_host(link, frame)
+            if not self._ticking:  # inside a tick, the tick delivers what the boards answer
+                self._after_host_frame()
+
+        return send
+
+    def from_host_bytes(self, name: str, data: bytes) -> None:
+        from firmware_stub.config import LinkName
+
+        self.world.from_host_bytes(LinkName(name), data)
+        if not self._ticking:
+            self._after_host_frame()
+
+    def _after_host_frame(self) -> None:
+        """A reply (or a stream now on) must reach the host: deliver soon, from the event loop, never from
+        inside the host's own call; and the world may have to start ticking."""
+        self._wake.set()
+        if self.world.outbox and not self._delivery_due:
+            self._delivery_due = True
+            asyncio.get_running_loop().call_soon(self._deliver)
+
+    def _deliver(self) -> None:
+        self._delivery_due = False
+        self.world.deliver()
+
+    # --- the clock ----------------------------------------------------------------------------------
+
+    async def _run(self) -> None:
+        try:
+            await self._tick_forever()
+        except Exception as exc:  # a bug in the world must end the session as a fault, not hang it
+            if self.on_error is None:
+                raise
+            self.on_error(f"sim world failed: {type(exc).__name__}: {exc}")
+
+    async def _tick_forever(self) -> None:
+        world = self.world
+        while True:
+            if world.streaming:
+                t0 = perf_counter()
+                n = 0
+                self._ticking = True
+                try:
+                    while n < TICKS_PER_YIELD and world.tick():
+                        n += 1
+                finally:
+                    self._ticking = False
+                self.ticks += n
+                self.busy_s += perf_counter() - t0
+                if world.outbox:  # a stream stopped mid-batch leaves its last replies
+                    self._after_host_frame()
+                await asyncio.sleep(0)
+            else:
+                self._wake.clear()
+                await self._wake.wait()
+
+    async def __aenter__(self) -> SimLab:
+        self._task = asyncio.get_running_loop().create_task(self._run(), name="hil-sim-world")
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+        self.summary = {**self.world.summary(), "sim_ticks": self.ticks, "sim_loop_s": round(self.busy_s, 4)}
+        self.world.close()
+
+
+def sim_ports() -> dict[str, PortConfig]:
+    """Placeholder ports for a Session whose links a SimLab opens."""
+    return {name: PortConfig(port=f"sim:{name}") for name in ("servo", "driver", "image", "hexapod")}
+
+
+async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Callable[[int, int], None] | None = None,
+                          log_attrs: dict[str, Any] | None = None) -> tuple[SessionResult, dict[str, Any]]:
+    """Run one session against the emulated lab of ``config.emulator`` in this process (the ``sim`` clock).
+    Returns the session's result and the emulator's summary. A bad emulator or plant file raises ConfigError."""
+    from hil.session import Session
+
+    lab = SimLab(config.emulator.config, seed=config.seed)
+    session = Session(config, sim_ports(), out_dir, progress=progress, lockstep=True, open_link=lab.open_link,
+                      watchdog=False, log_attrs={"loopback": True, "clock": "sim", **(log_attrs or {})})
+    lab.on_error = session.fault
+    async with lab:
+        result = await session.run()
+    return result, lab.summary
+
+

@@ -1,0 +1,132 @@
+"""The ``sim`` clock (hil.sim): the same Session, boards and plant in one process, logs identical to lockstep's."""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from hil.config import PROFILES
+from hil.log.reader import read_log
+from hil.sim import run_sim_session
+from tests.session.helpers import run_session, session_config
+
+HOST_CLOCK = {"t_host_ns", "latency_us"}  # the host's own monotonic clock: differs between any two runs
+# /image/loop_tick is the loop's last tick when the frame arrived: over ptys the host may read the servo pty
+# (sample k) before the image pty (a frame the board wrote before sample k), so two lockstep runs can differ by
+# one tick there; sim delivers in the order the boards wrote. Checked separately, within that one tick.
+ARRIVAL = {("image", "loop_tick")}
+CASES = [(3, "eso"), (11, "eso_kf"), (5, "eso_kf_ukf_ff")]
+
+
+def sim_run(config, out: Path):  # type: ignore[no-untyped-def]
+    return asyncio.run(run_sim_session(config, out))
+
+
+def within_session(group: str, g: dict, loop: dict, ticks: int) -> int:  # type: ignore[type-arg]
+    """Rows of ``group`` that belong to the session's first ``ticks`` ticks (after them, the wind-down depends
+    on how long the host took to start it: wall time in lockstep)."""
+    if group == "loop":
+        return ticks
+    if group == "image":  # frames exposed before the last sample of the session, board clock
+        return int(np.count_nonzero(np.asarray(g["t_exposure_s"]) <= loop["t_s"][ticks - 1]))
+    if group == "timing":
+        return int(np.count_nonzero(np.asarray(g["tick"]) < ticks))
+    return ticks // 10  # hexapod: POSE every 10 world ticks from the first
+
+
+def assert_same_channels(a: Path, b: Path, ticks: int) -> int:
+    """Every dataset of /loop, /image, /hexapod and /timing in the session's first ``ticks`` ticks equal, the
+    host's clock aside. Returns the number of values compared."""
+    la, lb = read_log(a), read_log(b)
+    compared = 0
+    for group in ("loop", "image", "hexapod", "timing"):
+        ga, gb = la.groups[group], lb.groups[group]
+        assert set(ga) == set(gb), group
+        n = within_session(group, ga, la.groups["loop"], ticks)
+        assert n == within_session(group, gb, lb.groups["loop"], ticks), group
+        for channel in sorted(set(ga) - HOST_CLOCK):
+            x, y = np.asarray(ga[channel])[:n], np.asarray(gb[channel])[:n]
+            assert len(x) == n and len(y) == n, (group, channel, len(x), len(y), n)
+            if (group, channel) in ARRIVAL:
+                diff = np.abs(x.astype(np.int64) - y.astype(np.int64))
+                assert diff.max(initial=0) <= 1 and np.count_nonzero(diff) <= 0.05 * n, (group, channel, diff)
+            else:
+                np.testing.assert_array_equal(x, y, err_msg=f"/{group}/{channel}")
+            compared += n
+    return compared
+
+
+@pytest.mark.parametrize(("seed", "controller"), CASES)
+def test_sim_logs_equal_lockstep_logs(tmp_path: Path, seed: int, controller: str) -> None:
+    config = session_config(duration_s=1.5, seed=seed,
+                            controller=str(PROFILES / "controllers" / f"{controller}.yaml")
+                            if (PROFILES / "controllers" / f"{controller}.yaml").exists()
+                            else {"name": controller, "params": {}})
+    (tmp_path / "lockstep").mkdir()
+    lock = run_session(config, tmp_path / "lockstep")
+    sim, emulator = sim_run(config, tmp_path / "sim")
+    assert lock.result.status == sim.status == "completed", (lock.result.message, sim.message)
+    assert emulator["clock"] == "sim" and emulator["sim_ticks"] >= 1500
+    compared = assert_same_channels(lock.result.log_path, sim.log_path, ticks=1500)
+    assert compared > 1500 * 15  # every loop channel, and the other groups
+    loop = read_log(sim.log_path).groups["loop"]
+    assert np.std(loop["drive_el_counts"][:1500]) > 50  # a real closed loop, not zeros on both sides
+    assert read_log(sim.log_path).attrs["clock"] == "sim"
+
+
+def test_sim_is_deterministic_and_seeds_differ(tmp_path: Path) -> None:
+    a, _ = sim_run(session_config(duration_s=1.0, seed=2), tmp_path / "a")
+    b, _ = sim_run(session_config(duration_s=1.0, seed=2), tmp_path / "b")
+    c, _ = sim_run(session_config(duration_s=1.0, seed=3), tmp_path / "c")
+    assert assert_same_channels(a.log_path, b.log_path, ticks=1000) > 0
+    ga, gc = read_log(a.log_path).groups["loop"], read_log(c.log_path).groups["loop"]
+    assert not np.array_equal(ga["gyro_y_dps"][:1000], gc["gyro_y_dps"][:1000])
+
+
+def _hil(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "hil", *args], capture_output=True, text=True, cwd=cwd, check=False)
+
+
+def test_cli_sim_needs_loopback_and_refuses_link_faults(tmp_path: Path) -> None:
+    session = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
+    res = _hil("run", str(session), "--clock", "sim", cwd=tmp_path)
+    assert res.returncode == 2 and "--clock sim" in res.stderr and "--loopback" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+
+    faulty = tmp_path / "emulator.yaml"
+    faulty.write_text(yaml.safe_dump({"plant": str(PROFILES / "plant" / "default.yaml"),
+                                      "links": {"servo": {"bit_error_rate": 1e-5}}}))
+    data = yaml.safe_load(session.read_text())
+    data.update(controller=str(PROFILES / "controllers" / "eso.yaml"), profile=str(PROFILES / "swing" / "static.yaml"),
+                hexapod_limits=str(PROFILES / "hexapod" / "default.yaml"),
+                emulator={"config": str(faulty), "clock": "sim"}, duration_s=0.5)
+    path = tmp_path / "session.yaml"
+    path.write_text(yaml.safe_dump(data))
+    res = _hil("run", str(path), "--loopback", "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert res.returncode == 2, res.stderr
+    assert "links.servo" in res.stderr and "--clock lockstep" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").glob("*.h5"))
+
+
+def test_cli_sim_run_completes_with_a_summary(tmp_path: Path) -> None:
+    session = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
+    data = yaml.safe_load(session.read_text())
+    for key in ("controller", "profile", "hexapod_limits"):
+        data[key] = str((session.parent / data[key]).resolve())
+    data["emulator"] = {"config": str((session.parent / data["emulator"]["config"]).resolve())}
+    data["duration_s"] = 1.0
+    path = tmp_path / "session.yaml"
+    path.write_text(yaml.safe_dump(data))
+    res = _hil("run", str(path), "--loopback", "--clock", "sim", "--json", "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    import json
+
+    summary = json.loads(res.stdout)
+    assert summary["status"] == "completed" and summary["cycles"] >= 1000 and summary["missed_cycles"] == 0
