@@ -609,6 +609,7 @@ class HexapodBoard(EmulatedBoard):
         self.profile = Profile(())
         self.expected = 0
         self.hex_state = HexapodState.IDLE
+        self._moving = False  # RUNNING or STOPPING (the 1 kHz path tests a bool, not an enum)
         self.start_tick = 0
         self.stop_tick = 0
         self.end_ticks = 0
@@ -618,6 +619,7 @@ class HexapodBoard(EmulatedBoard):
     def _set_state(self, state: HexapodState) -> None:
         if state != self.hex_state:
             self.hex_state = state
+            self._moving = state in (HexapodState.RUNNING, HexapodState.STOPPING)
             self.world.recorder.record(self.link.name, "hexapod_state", state=state.name)
             self._status()
 
@@ -684,7 +686,7 @@ class HexapodBoard(EmulatedBoard):
 
     def motion(self, tick: int) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
         """Pose, rate, acceleration at the middle of the tick that starts at ``tick`` (before stepping)."""
-        if self.hex_state not in (HexapodState.RUNNING, HexapodState.STOPPING):
+        if not self._moving:
             return ZERO6, ZERO6, ZERO6
         t_s = (tick - self.start_tick + 0.5) / TICKS_PER_S
         pos, vel, acc = self.profile(t_s)
@@ -698,13 +700,12 @@ class HexapodBoard(EmulatedBoard):
 
     def on_tick(self, tick: int) -> None:
         super().on_tick(tick)
-        finished = (self.hex_state == HexapodState.RUNNING and tick - self.start_tick >= self.end_ticks) or (
-            self.hex_state == HexapodState.STOPPING and tick - self.stop_tick >= self.stop_ramp_ticks)
-        if finished:
+        if self._moving and (
+                (self.hex_state == HexapodState.RUNNING and tick - self.start_tick >= self.end_ticks)
+                or (self.hex_state == HexapodState.STOPPING and tick - self.stop_tick >= self.stop_ramp_ticks)):
             self._set_state(HexapodState.LOADED)
         if tick % 10 == 0:
-            t_ms = max(0, tick - self.start_tick) if self.hex_state in (HexapodState.RUNNING,
-                                                                        HexapodState.STOPPING) else 0
+            t_ms = max(0, tick - self.start_tick) if self._moving else 0
             self.send(Pose(t_ms & U32, *self.pose))
         if tick % 100 == 0:
             self._status()

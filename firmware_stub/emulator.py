@@ -84,6 +84,8 @@ class Emulator:
         self.boards: dict[LinkName, EmulatedBoard] = {
             LinkName.SERVO: self.servo, LinkName.DRIVER: self.driver, LinkName.IMAGE: self.image,
             LinkName.HEXAPOD: self.hexapod}
+        self._link_list = tuple(self.links.values())
+        self._tick_order = (self.driver, self.hexapod, self.image, self.servo)  # the servo's GYRO_SAMPLE last
         self.inbox: dict[LinkName, deque[tuple[Frame, float]]] = {name: deque() for name in LinkName}
         self.schedule: deque[ScheduledFault] = deque(sorted(config.faults, key=lambda f: f.at_s))
         self.awaiting: int | None = None  # lockstep: the tick whose DRIVE_CMD releases the next step
@@ -136,18 +138,19 @@ class Emulator:
         pose, rate, accel = self.hexapod.motion(self.tick)
         self.hexapod.pose = pose
         self.plant.step_tick(u_az, u_el, CarrierMotion(pose, rate, accel))
-        self.tick += 1
-        self.recorder.now_tick = self.tick
-        if self.tick >= self.host_check_tick:
-            self.host_check_tick = min(board.check_host_timer(self.tick) for board in self.boards.values())
-        while self.schedule and round(self.schedule[0].at_s * 1000) <= self.tick:
+        tick = self.tick = self.tick + 1
+        self.recorder.now_tick = tick
+        if tick >= self.host_check_tick:
+            self.host_check_tick = min(board.check_host_timer(tick) for board in self.boards.values())
+        while self.schedule and round(self.schedule[0].at_s * 1000) <= tick:
             f = self.schedule.popleft()
             self.inject(f.link, f.kind, f.duration_ms, f.n_bytes)
-        for link in self.links.values():
-            link.on_tick(self.tick)
-        for board in (self.driver, self.hexapod, self.image, self.servo):
-            board.on_tick(self.tick)
-        if self.tick % 100 == 0:
+        for link in self._link_list:
+            if link.reconnect_at >= 0 or link.held:
+                link.on_tick(tick)
+        for board in self._tick_order:
+            board.on_tick(tick)
+        if tick % 100 == 0:
             self.recorder.flush()
 
     def inject(self, link: LinkName | str, kind: str, duration_ms: float = 0.0, n_bytes: int = 64) -> None:

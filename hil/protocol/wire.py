@@ -401,26 +401,56 @@ def _compile_fast_decoder(cls: type, fields: list[FieldSpec], pst: struct.Struct
 def _compile_fast_roundtrip(
     cls: type, fields: tuple[FieldSpec, ...], slow: Callable[[Any], Any]
 ) -> Callable[[Any], Any]:
-    """A roundtrip specialised to one message of integer fields (``struct``-free); ``slow`` for any other
-    message, and the fallback for any value the fast path does not take at once. Generated source, as
-    :func:`_compile_fast_decoder`; kept on the function as ``__source__``."""
-    if not fields or not all(f.wire.kind in PRIMITIVES and f.wire.count == 1 and f.wire.enum is None
-               and not f.wire.primitive.is_float for f in fields):
+    """A roundtrip specialised to one message (``struct``-free but for f32 fields): integers (scaled or not, and
+    arrays of unscaled ones), booleans and f32; ``slow`` for a message with an enum or text field, and the
+    fallback for any value the fast path does not take at once (a float where an int belongs, a value out of
+    range, NaN), which then raises the encoder's error. Generated source, as :func:`_compile_fast_decoder`; kept
+    on the function as ``__source__``."""
+
+    def fast(w: Wire) -> bool:
+        if w.enum is not None or w.kind == "char":
+            return False
+        if w.kind == "bool":
+            return w.count == 1
+        return w.count == 1 or (w.scale == 1 and not w.primitive.is_float)
+
+    if not fields or not all(fast(f.wire) for f in fields):
         return slow
+    f32 = struct.Struct("<f")
     lines, outs = [], []
-    namespace: dict[str, Any] = {"_new": tuple.__new__, "_cls": cls, "_slow": slow, "_int": int, "_float": float}
+    namespace: dict[str, Any] = {"_new": tuple.__new__, "_cls": cls, "_slow": slow, "_int": int, "_float": float,
+                                 "_tuple": tuple, "_list": list, "_pack_f": f32.pack, "_unpack_f": f32.unpack}
+    back = "\n        return _slow(msg)"
     for i, f in enumerate(fields):
-        w, p, v = f.wire, f.wire.primitive, f"v{i}"
+        w, v = f.wire, f"v{i}"
+        if w.kind == "bool":
+            lines.append(f"    if {v} is not True and {v} is not False:{back}")
+            outs.append(v)
+            continue
+        p = w.primitive
+        if w.count > 1:  # an array of unscaled integers: the decoder gives a tuple
+            lines.append(f"    if ({v}.__class__ is not _tuple and {v}.__class__ is not _list)"
+                         f" or len({v}) != {w.count}:{back}")
+            lines.append(f"    for x in {v}:\n        if x.__class__ is not _int or not {p.lo} <= x <= {p.hi}:"
+                         f"\n            return _slow(msg)")
+            outs.append(f"_tuple({v})")
+            continue
+        if p.is_float:
+            lo, hi = w.eng_range
+            namespace[f"lo{i}"], namespace[f"hi{i}"] = lo, hi
+            lines.append(f"    if {v}.__class__ is not _float or not lo{i} <= {v} <= hi{i}:{back}")
+            outs.append(f"_unpack_f(_pack_f({v}))[0]")
+            continue
         if w.scale == 1:
-            lines.append(f"    if {v}.__class__ is not _int or not {p.lo} <= {v} <= {p.hi}:\n        return _slow(msg)")
+            lines.append(f"    if {v}.__class__ is not _int or not {p.lo} <= {v} <= {p.hi}:{back}")
             outs.append(v)
             continue
         lo, hi = w.eng_range
         namespace[f"lo{i}"], namespace[f"hi{i}"] = lo - abs(w.scale), hi + abs(w.scale)
         lines.append(f"    if ({v}.__class__ is not _float and {v}.__class__ is not _int) or not lo{i} <= {v} <= hi{i}:"
-                     f"\n        return _slow(msg)")
+                     f"{back}")
         raw = f"round({v} * {w.divisor})" if w.divisor else f"round({v} / {w.scale!r})"
-        lines.append(f"    r{i} = {raw}\n    if not {p.lo} <= r{i} <= {p.hi}:\n        return _slow(msg)")
+        lines.append(f"    r{i} = {raw}\n    if not {p.lo} <= r{i} <= {p.hi}:{back}")
         outs.append(f"r{i} / {w.divisor}" if w.divisor else f"r{i} * {w.scale!r}")
     names = ", ".join(f"v{i}" for i in range(len(fields)))
     source = (f"def roundtrip(msg):\n    {names}, = msg\n" + "\n".join(lines)
