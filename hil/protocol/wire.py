@@ -402,15 +402,15 @@ def _compile_fast_roundtrip(
     cls: type, fields: tuple[FieldSpec, ...], slow: Callable[[Any], Any]
 ) -> Callable[[Any], Any]:
     """A roundtrip specialised to one message (``struct``-free but for f32 fields): integers (scaled or not, and
-    arrays of unscaled ones), booleans and f32; ``slow`` for a message with an enum or text field, and the
+    arrays of unscaled ones), booleans, enum members and f32; ``slow`` for a message with a text field, and the
     fallback for any value the fast path does not take at once (a float where an int belongs, a value out of
     range, NaN), which then raises the encoder's error. Generated source, as :func:`_compile_fast_decoder`; kept
     on the function as ``__source__``."""
 
     def fast(w: Wire) -> bool:
-        if w.enum is not None or w.kind == "char":
+        if w.kind == "char":
             return False
-        if w.kind == "bool":
+        if w.kind == "bool" or w.enum is not None:
             return w.count == 1
         return w.count == 1 or (w.scale == 1 and not w.primitive.is_float)
 
@@ -425,6 +425,11 @@ def _compile_fast_roundtrip(
         w, v = f.wire, f"v{i}"
         if w.kind == "bool":
             lines.append(f"    if {v} is not True and {v} is not False:{back}")
+            outs.append(v)
+            continue
+        if w.enum is not None:  # a member of the field's own enum encodes and decodes to itself
+            namespace[f"E{i}"] = w.enum
+            lines.append(f"    if {v}.__class__ is not E{i}:{back}")
             outs.append(v)
             continue
         p = w.primitive

@@ -3,6 +3,7 @@ decoding gives (values, types), and every value the encoder refuses is refused w
 
 from __future__ import annotations
 
+import enum
 import math
 import random
 from typing import Any
@@ -24,6 +25,10 @@ def value(w: Wire, rng: random.Random) -> Any:
         return rng.choice([math.nan, math.inf, -math.inf, "x", None, True, 1.5, 10**12, -(10**12)])
     if w.kind == "bool":
         return rng.choice([True, False, 0, 1])
+    if w.enum is not None:
+        members = list(w.enum)
+        return rng.choice([*members, *members, int(members[0]), 255, w.enum(0) if 0 in w.enum._value2member_map_
+                           or issubclass(w.enum, enum.IntFlag) else members[0]])
     if w.count > 1:
         n = w.count if rng.random() < 0.9 else w.count + 1
         return tuple(rng.randint(int(lo), int(hi)) if rng.random() < 0.97 else int(hi) + 1 for _ in range(n))
@@ -43,7 +48,8 @@ def outcome(fn: Any, msg: Any) -> Any:
 
 
 def test_the_hot_messages_have_a_fast_path() -> None:
-    assert {spec.name for spec in FAST} >= {"GYRO_SAMPLE", "DRIVE_CMD", "LOOP_TIMING", "MISS_DISTANCE", "POSE"}
+    assert {spec.name for spec in FAST} >= {"GYRO_SAMPLE", "DRIVE_CMD", "LOOP_TIMING", "MISS_DISTANCE", "POSE",
+                                            "DRIVE_STATUS", "HEXAPOD_STATUS", "ACK", "NACK"}
 
 
 @pytest.mark.parametrize("spec", FAST, ids=lambda s: s.name)
