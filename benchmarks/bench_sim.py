@@ -30,11 +30,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hil.config import PROFILES, PortConfig, SessionConfig, load_session  # noqa: E402
-from hil.log.reader import read_log  # noqa: E402
-from hil.loopback import EmulatorProcess  # noqa: E402
-from hil.session import Session  # noqa: E402
-from hil.sim import run_sim_session  # noqa: E402
+from hil.config import PROFILES, PortConfig, SessionConfig, load_session
+from hil.log.reader import read_log
+from hil.loopback import EmulatorProcess
+from hil.session import Session
+from hil.sim import run_sim_session
 
 
 def loop_seconds(log: Path, ticks: int) -> float:
@@ -63,6 +63,36 @@ def run_sim(config: SessionConfig, out: Path) -> tuple[Path, float]:
     return result.log_path, time.perf_counter() - t0
 
 
+class _NullDriver:
+    """Takes DRIVE_CMD and does nothing: the floor leaves out the world's handling of it."""
+
+    def drive(self, tick: int, az_counts: int, el_counts: int) -> None:
+        pass
+
+
+def loop_floor_us(config: SessionConfig, ticks: int, out: Path) -> float:
+    """The bench's own per-sample code alone: ``ControlLoop.on_sample`` on recorded-like samples, armed, with a
+    real SessionLog and a driver that does nothing. Any clock that runs the bench's ControlLoop pays this much
+    per tick, whatever the world costs: its real-time multiple is at most 1e6 / this."""
+    from hil.log import SessionLog
+    from hil.protocol import GyroSample
+    from hil.session import ControlLoop
+
+    out.mkdir(parents=True, exist_ok=True)
+    with SessionLog(out / "floor.h5", attrs={"config": {}, "ident": {}, "seed": 0}) as log:
+        loop = ControlLoop(config, _NullDriver(), log, telemetry=None, duration_ticks=10**9,  # type: ignore[arg-type]
+                           on_done=lambda: None)
+        loop.armed = True
+        rng = np.random.default_rng(0)
+        rates = (rng.standard_normal((ticks, 3)) * 0.05).round(6).tolist()
+        samples = [GyroSample(k * 1000, k, x, y, z, 0.0, 0.0) for k, (x, y, z) in enumerate(rates)]
+        on_sample = loop.on_sample
+        t0 = time.perf_counter()
+        for g in samples:
+            on_sample(g)
+        return (time.perf_counter() - t0) / ticks * 1e6
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="session duration (simulated)")
@@ -88,13 +118,18 @@ def main() -> int:
                   f"sim loop {sim_s:.3f} s ({r['sim_x_realtime']:.1f}x, {r['sim_us_per_tick']:.1f} us/tick); "
                   f"sim {r['sim_vs_lockstep']:.2f}x faster; whole calls {lock_wall:.2f} s / {sim_wall:.2f} s",
                   flush=True)
+        floor_us = loop_floor_us(config, ticks, Path(tmp) / "floor")
     med = {key: statistics.median(r[key] for r in rows) for key in rows[0]}
+    print(f"the bench's own ControlLoop.on_sample alone (null driver, real log): {floor_us:.1f} us per sample, "
+          f"so no clock that runs it exceeds {1e3 / floor_us:.0f}x real time; the sim world and the glue add "
+          f"{med['sim_us_per_tick'] - floor_us:.1f} us per tick")
     print(f"\nmedian of {len(rows)}: sim {med['sim_x_realtime']:.1f}x real time ({med['sim_us_per_tick']:.1f} us per "
           f"tick, target >= 50x), {med['sim_vs_lockstep']:.2f}x faster than lockstep (target >= 5x); lockstep "
           f"{med['lockstep_x_realtime']:.1f}x real time")
     if args.json:
         args.json.write_text(json.dumps({"session": str(args.session), "seconds": args.seconds, "runs": rows,
-                                         "median": med, "python": platform.python_version()}, indent=2))
+                                         "median": med, "loop_floor_us": floor_us,
+                                         "python": platform.python_version()}, indent=2))
     return 0
 
 

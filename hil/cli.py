@@ -349,6 +349,8 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
     offset_dps: Annotated[float, typer.Option(
         help="Constant rate under the sweep, above its amplitude, so Coulomb friction stays on one side "
         "(docs/ident.md); the axis turns offset x (sweep + 1 s) deg.")] = 2.5,
+    clock: Annotated[str | None, typer.Option(
+        help="Emulator clock with --loopback: realtime | lockstep | sim (default: the session's).")] = None,
 ) -> None:
     """Frequency-sweep identification (seed 000 Figs. 8-9): a swept sine on the rate command of the closed rate
     loop, the plant's frequency response from the log (indirect closed-loop method), a Bode plot, and the fit of
@@ -364,6 +366,8 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
 
     if axis not in ("el", "az"):
         raise fail(f"--axis: {axis!r} is not el or az")
+    if clock not in (None, "realtime", "lockstep", "sim"):
+        raise fail(f"--clock: {clock!r} is not realtime, lockstep or sim")
     for option, value in (("--f-start-hz", f_start_hz), ("--f-stop-hz", f_stop_hz), ("--sweep-s", sweep_s),
                           ("--amplitude-dps", amplitude_dps), ("--offset-dps", offset_dps)):
         finite(option, value)
@@ -384,7 +388,7 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
         raise fail(f"--offset-dps: the elevation axis would turn {travel_deg:.0f} deg during the sweep (at most "
                    f"{MAX_EL_TRAVEL_DEG:g}: near 90 deg the cross-elevation gyro loses the azimuth axis); lower "
                    "--offset-dps or --sweep-s, or identify --axis az")
-    result = _run_session(config, out, loopback, None, False)
+    result = _run_session(config, out, loopback, clock, False)
     if result.status != "completed" or result.log_path is None:
         raise typer.Exit(result.exit_code or 1)
     try:
