@@ -78,6 +78,7 @@ class SimWorld:
             assert isinstance(link, MessageLink)
             link.outbox = self.outbox
         self.to_host = to_host
+        self._driver_inbox = self.emu.inbox[LinkName.DRIVER]
         self.unanswered = 0  # samples the host did not answer (lockstep would have waited, then advanced)
 
     @property
@@ -115,18 +116,21 @@ class SimWorld:
         servo = emu.servo
         if not servo.streaming:
             return False
+        held = self._driver_inbox  # driver frames held back by the last release (usually none)
         emu.step()
         servo.on_written(time.perf_counter())
         emu.released = False
         k = servo.last_delivered
         emu.awaiting = k
-        emu._drain(LinkName.DRIVER)
+        if held:
+            emu._drain(LinkName.DRIVER)
         self.deliver()
         if k is not None and not emu.released and servo.streaming:
             self.unanswered += 1
         emu.awaiting = None
         emu.released = False
-        emu._drain(LinkName.DRIVER)
+        if held:
+            emu._drain(LinkName.DRIVER)
         return True
 
     def summary(self) -> dict[str, Any]:
