@@ -48,7 +48,20 @@ def ensure_env() -> None:
     pip = [PY, "-m", "pip", "install", "--quiet", "--disable-pip-version-check"]
     if run([*pip, "--upgrade", "pip"]) != 0 or run([*pip, "-e", ".[test]"]) != 0:
         sys.exit("[dev.py] pip install failed (see above); fix it and run the same command again")
+    warm_plant()
     STAMP.write_text(want + "\n")
+
+
+def warm_plant() -> None:
+    """Compile the emulated plant's kernel once (numba caches the machine code in firmware_stub/__pycache__), so
+    the first demo or test does not pause for it."""
+    say("compiling the emulated plant's kernel (numba; ~10 s once, then cached)")
+    code = ("from firmware_stub.plant import DEFAULT_PLANT_CONFIG, CarrierMotion, Plant, load_plant_config\n"
+            "p = Plant(load_plant_config(DEFAULT_PLANT_CONFIG), 0)\n"
+            "p.step_tick(0, 0, CarrierMotion.at_rest()); p.truth(); p.miss_px()\n"
+            "import numpy as np; p.run(np.zeros(2), np.zeros(2), np.zeros((2, 18)))\n")
+    if run([PY, "-c", code]) != 0:
+        say("the plant kernel did not compile (above); the emulator will try again when it starts")
 
 
 def ensure_mosquitto() -> None:
