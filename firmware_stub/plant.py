@@ -72,13 +72,16 @@ from __future__ import annotations
 import math
 import random
 from array import array
+from collections.abc import Iterable
 from pathlib import Path
 from statistics import NormalDist
 from typing import Any, Literal, NamedTuple
 
+import llvmlite.ir as llvm_ir
 import numba
 import numpy as np
 from numba import types as nbt
+from numba.extending import intrinsic
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from firmware_stub.config import ConfigError, read_yaml_mapping
@@ -769,7 +772,7 @@ _JIT = {"cache": True, "error_model": "numpy"}  # (no nogil: releasing the GIL c
 _INLINE = {**_JIT, "inline": "always"}  # small helpers, inlined into their callers at numba's IR level
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_INLINE)
 def _carrier(p, pose, rate, acc):
     """Body rates (p, q, r) and derivatives at the carrier's instant, and the specific force at the gimbal's pivot in
     the body frame: ``f_c + alpha x r + omega x (omega x r)`` (seed 001 eqs 2-4; r = mount.pivot_offset_m); and the
@@ -803,7 +806,7 @@ def _carrier(p, pose, rate, acc):
     return pr, qr, rr, pd, qd, rd, fbx, fby, fbz, sf, cf, st, ct
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_INLINE)
 def _imbalance(p, fbx, fby, fbz, sa, ca, se, ce):  # noqa: PLR0917
     """``-m rho x f`` with f (body) in the elevation frame (seed 001 eqs 3-4): torques about z_o and y_e."""
     mrx, mry, mrz = p[P_MRX], p[P_MRY], p[P_MRZ]
@@ -817,17 +820,60 @@ def _imbalance(p, fbx, fby, fbz, sa, ca, se, ce):  # noqa: PLR0917
     return tim_a, tim_e
 
 
+@intrinsic
+def _vdiv(typingctx, num, den):
+    """``num[j] / den[j]`` for two tuples of n float64 as one LLVM vector division: IEEE division in each lane (the
+    same quotient as ``num[j] / den[j]``, bit for bit), but the CPU divides 2 or 4 lanes in about the time of one
+    (division is the slowest arithmetic and the Taylor series below need six per angle)."""
+    if not (isinstance(num, nbt.UniTuple) and isinstance(den, nbt.UniTuple) and num.count == den.count
+            and num.dtype == nbt.float64 and den.dtype == nbt.float64):
+        return None
+    n = num.count
+
+    def codegen(context, builder, signature, args):
+        vec = llvm_ir.VectorType(llvm_ir.DoubleType(), n)
+        lanes = [llvm_ir.Constant(llvm_ir.IntType(32), j) for j in range(n)]
+        a = b = llvm_ir.Constant(vec, llvm_ir.Undefined)
+        for j in range(n):
+            a = builder.insert_element(a, builder.extract_value(args[0], j), lanes[j])
+            b = builder.insert_element(b, builder.extract_value(args[1], j), lanes[j])
+        q = builder.fdiv(a, b)  # no fast-math flags: IEEE, correctly rounded per lane
+        return context.make_tuple(builder, signature.return_type, [builder.extract_element(q, x) for x in lanes])
+
+    return num(num, den), codegen
+
+
+_TAYLOR_DEN = (6.0, 20.0, 42.0, 12.0, 30.0, 56.0)  # the divisors of the sin / cos Taylor series in _rotated
+
+
+@numba.njit(**_INLINE)
+def _rotated(sa, ca, d, q):
+    """sin and cos of ``a + d`` from those of ``a``, with ``q = d^2 / _TAYLOR_DEN`` (see :func:`_rotate`)."""
+    if abs(d) < 0.1:
+        d2 = d * d
+        sd = d * (1.0 - q[0] * (1.0 - q[1] * (1.0 - q[2])))  # d (1 - d^2/6 (1 - d^2/20 (1 - d^2/42)))
+        cd = 1.0 - d2 / 2.0 * (1.0 - q[3] * (1.0 - q[4] * (1.0 - q[5])))  # 1 - d^2/2 (1 - d^2/12 (...))
+    else:
+        sd, cd = math.sin(d), math.cos(d)
+    return sa * cd + ca * sd, ca * cd - sa * sd
+
+
 @numba.njit(**_INLINE)
 def _rotate(sa, ca, d):
     """sin and cos of ``a + d`` from those of ``a``: Taylor series of sin d and cos d to 7th / 8th order for
     |d| < 0.1 (error < 3e-15), libm above."""
-    if abs(d) < 0.1:
-        d2 = d * d
-        sd = d * (1.0 - d2 / 6.0 * (1.0 - d2 / 20.0 * (1.0 - d2 / 42.0)))
-        cd = 1.0 - d2 / 2.0 * (1.0 - d2 / 12.0 * (1.0 - d2 / 30.0 * (1.0 - d2 / 56.0)))
-    else:
-        sd, cd = math.sin(d), math.cos(d)
-    return sa * cd + ca * sd, ca * cd - sa * sd
+    d2 = d * d
+    return _rotated(sa, ca, d, _vdiv((d2, d2, d2, d2, d2, d2), _TAYLOR_DEN))
+
+
+@numba.njit(**_INLINE)
+def _rotate2(sa, ca, da, sb, cb, db):  # noqa: PLR0917
+    """:func:`_rotate` of two angles, their 12 divisions as one vector division."""
+    a2, b2 = da * da, db * db
+    q = _vdiv((a2, a2, a2, a2, a2, a2, b2, b2, b2, b2, b2, b2), _TAYLOR_DEN + _TAYLOR_DEN)
+    sa, ca = _rotated(sa, ca, da, q[0:6])
+    sb, cb = _rotated(sb, cb, db, q[6:12])
+    return sa, ca, sb, cb
 
 
 @numba.njit(**_INLINE)
@@ -854,29 +900,60 @@ def _held(p, b, v, c, tl):
 
 
 @numba.njit(**_INLINE)
-def _substep(p, b, x, z, v, c, k, rs):  # noqa: PLR0917
-    """One exact-ZOH sub-step of one axis (parameters at ``b``): ``x+ = Phi x + k + Gamma_m T_m`` with the motor-side
-    torque ``T_m`` (friction, ripple; ``rs`` = sin(N theta_m) at the sub-step's start) held over the sub-step,
-    LuGre's z updated implicitly, the current limit as a fast current loop. Returns ``(x+, z+, friction torque,
-    applied voltage)``."""
-    x0, x1, x2, x3, x4 = x
-    vr = x1 - c
+def _lugre_z(p, b, vr, z, e):
+    """LuGre's bristle deflection z over one sub-step, implicit (stable for any step; z -> g(v) / sigma_0 when
+    sliding): ``z+ = (z + h v) / (1 + h sigma_0 |v| / g(v))``, ``g(v) = T_c + (T_s - T_c) exp(-(v / v_s)^2)``; ``e`` is
+    that exponential. Returns the numerator and denominator of ``z+ = g (z + h v) / (g + h sigma_0 |v|)``."""
     tc = p[b + PA_TC]
-    tf = 0.0
-    if p[b + PA_FMODEL] != 0.0:  # LuGre, implicit in z: stable for any step; z -> g(v) / sigma_0 when sliding
-        h = p[P_H]
-        s0 = p[b + PA_S0]
+    gv = tc + (p[b + PA_TS] - tc) * e
+    return gv * (z + p[P_H] * vr), gv + p[P_H] * p[b + PA_S0] * abs(vr)
+
+
+@numba.njit(**_INLINE)
+def _lugre_torque(p, b, z, zn):
+    """LuGre's friction torque over a sub-step: ``sigma_0 z+ + sigma_1 dz/dt``, ``dz/dt = (z+ - z) / h``."""
+    return p[b + PA_S0] * zn + p[b + PA_S1H] * (zn - z)
+
+
+@numba.njit(**_INLINE)
+def _friction(p, b, vr, z):
+    """Friction torque held over one sub-step (opposing the motor-side relative rate ``vr``) and LuGre's z at its
+    end: LuGre, or ``T_c tanh(vr / w_s)`` (the viscous part is in the ZOH matrices)."""
+    tc = p[b + PA_TC]
+    if p[b + PA_FMODEL] != 0.0:
         u = vr * p[b + PA_IVS]
-        gv = tc + (p[b + PA_TS] - tc) * math.exp(-u * u)
-        zn = gv * (z + h * vr) / (gv + h * s0 * abs(vr))  # = (z + h v) / (1 + h sigma_0 |v| / g)
-        tf = s0 * zn + p[b + PA_S1H] * (zn - z)  # sigma_1 dz/dt, dz/dt = (z+ - z) / h
-        z = zn
-    elif tc != 0.0:
-        tf = tc * _tanh(vr * p[b + PA_IWS])
-    tm = -tf
-    ripa = p[b + PA_RIPA]
-    if ripa != 0.0:
-        tm += ripa * x0 * rs
+        num, den = _lugre_z(p, b, vr, z, math.exp(-u * u))
+        zn = num / den
+        return _lugre_torque(p, b, z, zn), zn
+    if tc != 0.0:
+        return tc * _tanh(vr * p[b + PA_IWS]), z
+    return 0.0, z
+
+
+@numba.njit(**_INLINE)
+def _friction2(p, lugre2, vra, za, vre, ze):  # noqa: PLR0917
+    """:func:`_friction` of both axes. With LuGre on both (``lugre2``) the two libm ``exp`` calls are made next to
+    each other: a call clobbers every floating-point register, so the values live across it are spilled to the stack
+    and reloaded, once per sub-step instead of twice. (Doing the same for tanh friction measured slower.)"""
+    if lugre2:
+        ua, ue = vra * p[PA_IVS], vre * p[PA_LEN + PA_IVS]
+        ea = math.exp(-ua * ua)
+        ee = math.exp(-ue * ue)
+        na, da = _lugre_z(p, 0, vra, za, ea)
+        ne, de = _lugre_z(p, PA_LEN, vre, ze, ee)
+        zna, zne = na / da, ne / de
+        return _lugre_torque(p, 0, za, zna), zna, _lugre_torque(p, PA_LEN, ze, zne), zne
+    tfa, za = _friction(p, 0, vra, za)
+    tfe, ze = _friction(p, PA_LEN, vre, ze)
+    return tfa, za, tfe, ze
+
+
+@numba.njit(**_INLINE)
+def _zoh(p, b, x, k, tm, v, vr):  # noqa: PLR0917
+    """One exact-ZOH sub-step of one axis (parameters at ``b``): ``x+ = Phi x + k + Gamma_m T_m`` with the motor-side
+    torque ``T_m`` (friction, ripple) held over the sub-step and the current limit as a fast current loop. Returns
+    ``(x+, applied voltage)``."""
+    x0, x1, x2, x3, x4 = x
     f = b + PA_PHI
     g = b + PA_GAM
     # sums as trees (the compiler may not reassociate): the dependency chain between sub-steps is 4 adds deep, not 7
@@ -905,13 +982,16 @@ def _substep(p, b, x, z, v, c, k, rs):  # noqa: PLR0917
         n4 += p[g + 16] * dv
         if abs(n0) > ilim:
             n0 = sg * ilim
-    return (n0, n1, n2, n3, n4), z, tf, va
+    return (n0, n1, n2, n3, n4), va
 
 
 @numba.njit(**_JIT)
 def _axes(p, s, v_a, c_a, tl_a, v_e, c_e, tl_e):  # noqa: PLR0917
     """Both axes over one tick: ``n_sub`` sub-steps with the drive ``v``, the carrier rate ``c`` and the load torque
-    ``tl`` held over the tick. The axes are stepped in the same loop (their dependency chains overlap)."""
+    ``tl`` held over the tick. Each sub-step: the friction torques (:func:`_friction2`), the motor-side torques
+    ``T_m = -T_f + a K_t i sin(N theta_m)`` (ripple; ``sin(N theta_m)`` at the sub-step's start), the exact-ZOH
+    update (:func:`_zoh`), the ripple phase rotated. The axes are stepped in the same loop (their dependency chains
+    overlap); the mechanism switches are read once per tick."""
     xa = (s[S_X], s[S_X + 1], s[S_X + 2], s[S_X + 3], s[S_X + 4])
     xe = (s[S_X + 5], s[S_X + 6], s[S_X + 7], s[S_X + 8], s[S_X + 9])
     ka = _held(p, 0, v_a, c_a, tl_a)
@@ -919,15 +999,27 @@ def _axes(p, s, v_a, c_a, tl_a, v_e, c_e, tl_e):  # noqa: PLR0917
     za, ze = s[S_Z], s[S_Z + 1]
     tfa = tfe = 0.0
     vaa, vae = v_a, v_e
+    lugre_a, lugre_e = p[PA_FMODEL] != 0.0, p[PA_LEN + PA_FMODEL] != 0.0
+    lugre2 = lugre_a and lugre_e
+    ripa_a, ripa_e = p[PA_RIPA], p[PA_LEN + PA_RIPA]
     # ripple phase sin / cos(N theta_m), carried in the state: rotated by N (change of theta_m) each sub-step
     na, ne = p[PA_RIPN], p[PA_LEN + PA_RIPN]
     sra, cra, sre, cre = s[S_RIP], s[S_RIP + 1], s[S_RIP + 2], s[S_RIP + 3]
     for _ in range(int(p[P_NSUB])):
-        xa1, za, tfa, vaa = _substep(p, 0, xa, za, v_a, c_a, ka, sra)
-        xe1, ze, tfe, vae = _substep(p, PA_LEN, xe, ze, v_e, c_e, ke, sre)
-        if na != 0.0:
+        vra, vre = xa[1] - c_a, xe[1] - c_e
+        tfa, za, tfe, ze = _friction2(p, lugre2, vra, za, vre, ze)
+        tma, tme = -tfa, -tfe
+        if ripa_a != 0.0:
+            tma += ripa_a * xa[0] * sra
+        if ripa_e != 0.0:
+            tme += ripa_e * xe[0] * sre
+        xa1, vaa = _zoh(p, 0, xa, ka, tma, v_a, vra)
+        xe1, vae = _zoh(p, PA_LEN, xe, ke, tme, v_e, vre)
+        if na != 0.0 and ne != 0.0:
+            sra, cra, sre, cre = _rotate2(sra, cra, na * (xa1[2] - xa[2]), sre, cre, ne * (xe1[2] - xe[2]))
+        elif na != 0.0:
             sra, cra = _rotate(sra, cra, na * (xa1[2] - xa[2]))
-        if ne != 0.0:
+        elif ne != 0.0:
             sre, cre = _rotate(sre, cre, ne * (xe1[2] - xe[2]))
         xa, xe = xa1, xe1
     s[S_X], s[S_X + 1], s[S_X + 2], s[S_X + 3], s[S_X + 4] = xa
@@ -941,22 +1033,35 @@ def _axes(p, s, v_a, c_a, tl_a, v_e, c_e, tl_e):  # noqa: PLR0917
     s[S_V], s[S_V + 1] = vaa, vae
 
 
-@numba.njit(**_JIT)
-def _outputs(p, s, flag):
-    """step_tick's tuple: gyro (deg/s), encoders (deg; az wrapped to [-180, 180), motor side), currents, flag."""
+@numba.njit(**_INLINE)
+def _encoders(p, s):
+    """Encoder readings (deg; az wrapped to [-180, 180), motor side), quantised to the encoder's LSB."""
     lsb = p[P_ENC_LSB]
     az = s[S_X + 2] * R2D
     if az < -180.0 or az >= 180.0:
         az = (az + 180.0) % 360.0 - 180.0
     el = s[S_X + 7] * R2D
-    az = ((az / lsb + _ROUND) - _ROUND) * lsb
-    el = ((el / lsb + _ROUND) - _ROUND) * lsb
+    qa, qe = _vdiv((az, el), (lsb, lsb))
+    return ((qa + _ROUND) - _ROUND) * lsb, ((qe + _ROUND) - _ROUND) * lsb
+
+
+@numba.njit(**_INLINE)
+def _outputs(p, s, flag):
+    """step_tick's tuple: gyro (deg/s), encoders (deg), currents, flag."""
+    az, el = _encoders(p, s)
     return s[S_M], s[S_M + 1], s[S_M + 2], az, el, s[S_X], s[S_X + 5], flag
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_INLINE)
 def _tick(p, s, nz, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
-    """One 1 ms tick; ``pose``, ``rate``, ``acc`` at mid-tick (tuples or array rows). Returns :func:`_outputs`."""
+    """One 1 ms tick (:func:`_advance`); returns :func:`_outputs` (step_tick's entry point)."""
+    return _outputs(p, s, _advance(p, s, nz, u_az, u_el, pose, rate, acc))
+
+
+@numba.njit(**_INLINE)
+def _advance(p, s, nz, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
+    """One 1 ms tick; ``pose``, ``rate``, ``acc`` at mid-tick (tuples or array rows). Returns 1.0 if the tick used up
+    the noise block (the caller refills it), else 0.0."""
     for j in range(6):
         s[S_CARR + j] = pose[j]
         s[S_CARR + 6 + j] = rate[j]
@@ -988,9 +1093,8 @@ def _tick(p, s, nz, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
     _axes(p, s, v_a, c_a, tim_a, v_e, c_e, tim_e)
     # sin, cos of the load angles at the tick end: the tick start's rotated by the tick's change (exact up to
     # rounding, which _renorm keeps off the norm; reset() starts them exact)
-    sa, ca = _rotate(s[S_SC], s[S_SC + 1], s[S_X + 4] - th_a)
+    sa, ca, se, ce = _rotate2(s[S_SC], s[S_SC + 1], s[S_X + 4] - th_a, s[S_SC + 2], s[S_SC + 3], s[S_X + 9] - th_e)
     sa, ca = _renorm(sa, ca)
-    se, ce = _rotate(s[S_SC + 2], s[S_SC + 3], s[S_X + 9] - th_e)
     se, ce = _renorm(se, ce)
     s[S_SC], s[S_SC + 1], s[S_SC + 2], s[S_SC + 3] = sa, ca, se, ce
     # gyro: true elevation-frame inertial rates of the load at the tick end (seed 001 eq 1)
@@ -1064,18 +1168,18 @@ def _tick(p, s, nz, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
         mz = ((mz + _ROUND) - _ROUND) * lsb
     s[S_M], s[S_M + 1], s[S_M + 2] = mx, my, mz
     s[S_TICK] += 1.0
-    return _outputs(p, s, flag)
+    return flag
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_INLINE)
 def _los(p, s):
     """Exact LOS error (deg about z_e, deg about -y_e, x_e component of the target) at the tick end."""
     t0, t1, t2 = p[P_TGX], p[P_TGY], p[P_TGZ]
     if s[S_HASC] != 0.0:  # attitude at the tick end: the mid-tick pose extrapolated by half a tick (2nd order)
         k2 = 0.5 * _HALF * _HALF
         c = S_CARR
-        sf, cf = _rotate(s[S_ATT], s[S_ATT + 1], (s[c + 9] * _HALF + s[c + 15] * k2) * D2R)
-        st, ct = _rotate(s[S_ATT + 2], s[S_ATT + 3], (s[c + 10] * _HALF + s[c + 16] * k2) * D2R)
+        sf, cf, st, ct = _rotate2(s[S_ATT], s[S_ATT + 1], (s[c + 9] * _HALF + s[c + 15] * k2) * D2R,
+                                  s[S_ATT + 2], s[S_ATT + 3], (s[c + 10] * _HALF + s[c + 16] * k2) * D2R)
         ps = (s[c + 5] + s[c + 11] * _HALF + s[c + 17] * k2) * D2R
         sp, cp = math.sin(ps), math.cos(ps)
         tb0 = ct * cp * t0 + ct * sp * t1 - st * t2
@@ -1089,6 +1193,28 @@ def _los(p, s):
     tey = ca * tb1 - sa * tb0
     tez = hxy * se + tb2 * ce
     return math.atan2(tey, tex) * R2D, math.atan2(-tez, math.hypot(tex, tey)) * R2D, tex
+
+
+@numba.njit(**_INLINE)
+def _views(buf):
+    """The parameter, state and noise arrays ``p``, ``s``, ``nz``: consecutive parts of the plant's one buffer (see
+    :class:`Plant`), so that a per-tick call unboxes one array, not three (~50 ns each)."""
+    ns = S_RING + 3 * int(buf[P_DELAY])
+    return buf[:P_LEN], buf[P_LEN:P_LEN + ns], buf[P_LEN + ns:]
+
+
+@numba.njit(**_JIT)
+def _tick_entry(buf, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
+    """:func:`_tick` on the plant's buffer (step_tick's one compiled call per tick)."""
+    p, s, nz = _views(buf)
+    return _tick(p, s, nz, u_az, u_el, pose, rate, acc)
+
+
+@numba.njit(**_JIT)
+def _los_entry(buf):
+    """:func:`_los` on the plant's buffer."""
+    p, s, _ = _views(buf)
+    return _los(p, s)
 
 
 @numba.njit(**_JIT)
@@ -1161,31 +1287,76 @@ RUN_COLUMNS = (
     "los_error_x_deg", "los_error_y_deg", "miss_x_px", "miss_y_px", "track_valid",
     "los_rate_x_dps", "los_rate_y_dps", "los_rate_z_dps", "az_deg", "el_deg", "voltage_az_v", "voltage_el_v",
 )
+_RUN_INDEX = {name: j for j, name in enumerate(RUN_COLUMNS)}
 
 
 @numba.njit(**_JIT)
-def _run(p, s, nz, u_az, u_el, carrier, out, k0):  # noqa: PLR0917
+def _run(p, s, nz, u_az, u_el, carrier, out, rows, k0):  # noqa: PLR0917
     """Ticks ``k0 ..`` of a batch (one row of ``carrier`` = pose, rate, accel per tick); stops after the tick that
-    used up the noise block (the caller refills it) or at the end; ``out[column, tick]``. Returns the next tick."""
+    used up the noise block (the caller refills it) or at the end. Column ``j`` of :data:`RUN_COLUMNS` goes to
+    ``out[rows[j], tick]``, not computed if ``rows[j] < 0`` (the LOS error and camera columns cost 2 atan2, a
+    hypot and a sin / cos per tick). Returns the next tick."""
     n = u_az.shape[0]
     ifov, hw, hh = p[P_IFOV], p[P_HW], p[P_HH]
+    r_gx, r_gy, r_gz, r_ea, r_ee, r_ia, r_ie = rows[0], rows[1], rows[2], rows[3], rows[4], rows[5], rows[6]
+    r_lx, r_ly, r_mx, r_my, r_tv = rows[7], rows[8], rows[9], rows[10], rows[11]
+    r_wx, r_wy, r_wz, r_az, r_el, r_va, r_ve = rows[12], rows[13], rows[14], rows[15], rows[16], rows[17], rows[18]
+    enc = r_ea >= 0 or r_ee >= 0
+    cam = r_lx >= 0 or r_ly >= 0 or r_mx >= 0 or r_my >= 0 or r_tv >= 0
     k = k0
     while k < n:
-        r = carrier[k]
-        o = _tick(p, s, nz, u_az[k], u_el[k], (r[0], r[1], r[2], r[3], r[4], r[5]),
-                  (r[6], r[7], r[8], r[9], r[10], r[11]), (r[12], r[13], r[14], r[15], r[16], r[17]))
-        ex, ey, front = _los(p, s)
-        mx = ex / ifov + s[S_CAMN]
-        my = ey / ifov + s[S_CAMN + 1]
-        for j in range(7):
-            out[j, k] = o[j]
-        out[7, k], out[8, k], out[9, k], out[10, k] = ex, ey, mx, my
-        out[11, k] = 1.0 if front > 0.0 and abs(mx) <= hw and abs(my) <= hh else 0.0
-        out[12, k], out[13, k], out[14, k] = s[S_LOS] * R2D, s[S_LOS + 1] * R2D, s[S_LOS + 2] * R2D
-        out[15, k], out[16, k] = s[S_X + 4] * R2D, s[S_X + 9] * R2D
-        out[17, k], out[18, k] = s[S_V], s[S_V + 1]
+        c = carrier
+        flag = _advance(p, s, nz, u_az[k], u_el[k],
+                        (c[k, 0], c[k, 1], c[k, 2], c[k, 3], c[k, 4], c[k, 5]),
+                        (c[k, 6], c[k, 7], c[k, 8], c[k, 9], c[k, 10], c[k, 11]),
+                        (c[k, 12], c[k, 13], c[k, 14], c[k, 15], c[k, 16], c[k, 17]))
+        if r_gx >= 0:
+            out[r_gx, k] = s[S_M]
+        if r_gy >= 0:
+            out[r_gy, k] = s[S_M + 1]
+        if r_gz >= 0:
+            out[r_gz, k] = s[S_M + 2]
+        if enc:
+            ea, ee = _encoders(p, s)
+            if r_ea >= 0:
+                out[r_ea, k] = ea
+            if r_ee >= 0:
+                out[r_ee, k] = ee
+        if r_ia >= 0:
+            out[r_ia, k] = s[S_X]
+        if r_ie >= 0:
+            out[r_ie, k] = s[S_X + 5]
+        if cam:
+            ex, ey, front = _los(p, s)
+            qx, qy = _vdiv((ex, ey), (ifov, ifov))
+            mx = qx + s[S_CAMN]
+            my = qy + s[S_CAMN + 1]
+            if r_lx >= 0:
+                out[r_lx, k] = ex
+            if r_ly >= 0:
+                out[r_ly, k] = ey
+            if r_mx >= 0:
+                out[r_mx, k] = mx
+            if r_my >= 0:
+                out[r_my, k] = my
+            if r_tv >= 0:
+                out[r_tv, k] = 1.0 if front > 0.0 and abs(mx) <= hw and abs(my) <= hh else 0.0
+        if r_wx >= 0:
+            out[r_wx, k] = s[S_LOS] * R2D
+        if r_wy >= 0:
+            out[r_wy, k] = s[S_LOS + 1] * R2D
+        if r_wz >= 0:
+            out[r_wz, k] = s[S_LOS + 2] * R2D
+        if r_az >= 0:
+            out[r_az, k] = s[S_X + 4] * R2D
+        if r_el >= 0:
+            out[r_el, k] = s[S_X + 9] * R2D
+        if r_va >= 0:
+            out[r_va, k] = s[S_V]
+        if r_ve >= 0:
+            out[r_ve, k] = s[S_V + 1]
         k += 1
-        if o[7] != 0.0:
+        if flag != 0.0:
             break
     return k
 
@@ -1203,9 +1374,9 @@ _A1 = nbt.Array(nbt.float64, 1, "C")
 _A2 = nbt.Array(nbt.float64, 2, "C")
 _T6 = nbt.UniTuple(nbt.float64, 6)
 _SIGNATURES: dict[str, tuple[Any, tuple[Any, ...]]] = {
-    "tick": (_tick, (_A1, _A1, _A1, nbt.float64, nbt.float64, _T6, _T6, _T6)),
-    "run": (_run, (_A1, _A1, _A1, _A1, _A1, _A2, _A2, nbt.int64)),
-    "los": (_los, (_A1, _A1)),
+    "tick": (_tick_entry, (_A1, nbt.float64, nbt.float64, _T6, _T6, _T6)),
+    "run": (_run, (_A1, _A1, _A1, _A1, _A1, _A2, _A2, nbt.Array(nbt.int64, 1, "C"), nbt.int64)),
+    "los": (_los_entry, (_A1,)),
     "truth": (_truth, (_A1, _A1)),
     "outputs": (_outputs, (_A1, _A1, nbt.float64)),
     "fill": (_fill_noise, (_A1, nbt.int64, nbt.int64, nbt.int64, nbt.Array(nbt.uint16, 1, "C"), _A1, _A1, _A1)),
@@ -1263,11 +1434,14 @@ class Plant:
         self.config = config
         self.seed = seed
         self.n_sub = round(TICK_S / config.internal_step_s)
-        self._p = _params(config)
-        self._delay_ticks = int(self._p[P_DELAY])
-        self._stride = int(self._p[P_STRIDE])
-        self._s = np.zeros(S_RING + 3 * self._delay_ticks)
-        self._nz = np.zeros(_NOISE_BLOCK_TICKS * self._stride)
+        p = _params(config)
+        self._delay_ticks = int(p[P_DELAY])
+        self._stride = int(p[P_STRIDE])
+        # one buffer: parameters, state, noise block (views of it; the per-tick kernel call takes the buffer)
+        ns = S_RING + 3 * self._delay_ticks
+        self._buf = np.zeros(P_LEN + ns + _NOISE_BLOCK_TICKS * self._stride)
+        self._p, self._s, self._nz = np.split(self._buf, [P_LEN, P_LEN + ns])
+        self._p[:] = p
         self._table = np.frombuffer(normal_table(), dtype=np.float64)
         g = config.gyro
         unit = g.quantisation_lsb_dps or 1.0  # the kernel works in gyro LSBs (see _params)
@@ -1323,15 +1497,15 @@ class Plant:
         """Advance one 1 ms tick with the drive (DAC counts) held; ``carrier`` is evaluated at mid-tick."""
         try:
             pose, rate, accel = carrier
-            out = self._tick(self._p, self._s, self._nz, u_az_counts, u_el_counts, pose, rate, accel)
+            out = self._tick(self._buf, u_az_counts, u_el_counts, pose, rate, accel)
         except (TypeError, ValueError):  # not floats / tuples of 6 (nothing was stepped): convert, or say why
-            out = self._tick(self._p, self._s, self._nz, float(u_az_counts), float(u_el_counts),
-                             *_carrier_tuples(carrier))
+            out = self._tick(self._buf, float(u_az_counts), float(u_el_counts), *_carrier_tuples(carrier))
         self._out = out
         if out[7]:
             self._refill_noise()
 
-    def run(self, u_az_counts: Any, u_el_counts: Any, carrier: Any) -> dict[str, np.ndarray]:
+    def run(self, u_az_counts: Any, u_el_counts: Any, carrier: Any,
+            outputs: Iterable[str] | None = None) -> dict[str, np.ndarray]:
         """Advance ``n`` ticks in one compiled loop (offline use: fitting, benchmarks): the same physics, noise and
         final state as ``n`` calls of :meth:`step_tick` (bit for bit; tested), so the two can be mixed.
 
@@ -1339,7 +1513,9 @@ class Plant:
         ``(n, 18)``, per tick the CarrierMotion's ``pose + rate + accel`` at mid-tick (mm, deg, mm/s, deg/s, mm/s^2,
         deg/s^2). Returns arrays ``(n,)`` at each tick end: ``t_s`` and :data:`RUN_COLUMNS` (gyro x/y/z in deg/s,
         encoders in deg, currents in A, LOS error in deg, miss x/y in px with centroid noise, ``track_valid``
-        (bool), true LOS rates in deg/s, load angles az/el in deg, armature voltages in V).
+        (bool), true LOS rates in deg/s, load angles az/el in deg, armature voltages in V). ``outputs``: the names of
+        the columns to compute and return (default: all); the physics, the noise and the state do not depend on it,
+        only the time spent (without the LOS error and camera columns: no atan2, hypot, sin / cos of the yaw).
         """
         u_a = np.ascontiguousarray(u_az_counts, dtype=np.float64)
         u_e = np.ascontiguousarray(u_el_counts, dtype=np.float64)
@@ -1350,19 +1526,24 @@ class Plant:
                              f"{u_e.shape}, {car.shape}")
         if not (np.all(np.isfinite(u_a)) and np.all(np.isfinite(u_e)) and np.all(np.isfinite(car))):
             raise ValueError("run: inputs must be finite")
-        out = np.empty((len(RUN_COLUMNS), n))
+        names = RUN_COLUMNS if outputs is None else tuple(dict.fromkeys(outputs))
+        rows = np.full(len(RUN_COLUMNS), -1, dtype=np.int64)
+        for i, name in enumerate(names):
+            if name not in _RUN_INDEX:
+                raise ValueError(f"run: unknown output {name!r}; the outputs are {', '.join(RUN_COLUMNS)}")
+            rows[_RUN_INDEX[name]] = i
+        out = np.empty((len(names), n))
         tick0 = int(self._s[S_TICK])
         step = kernel("run")
         k = 0
         while k < n:
-            k = step(self._p, self._s, self._nz, u_a, u_e, car, out, k)
+            k = step(self._p, self._s, self._nz, u_a, u_e, car, out, rows, k)
             if self._s[S_REFILL]:
                 self._refill_noise()
         self._out = kernel("outputs")(self._p, self._s, 0.0)
         res = {"t_s": (tick0 + np.arange(1, n + 1)) * TICK_S}
-        for j, name in enumerate(RUN_COLUMNS):
-            res[name] = out[j]  # contiguous rows of one array
-        res["track_valid"] = res["track_valid"] > 0.5
+        for i, name in enumerate(names):
+            res[name] = out[i] > 0.5 if name == "track_valid" else out[i]  # contiguous rows of one array
         return res
 
     # -- outputs --
@@ -1388,7 +1569,7 @@ class Plant:
         """Exact LOS error ``(x, y, in_front)`` at ``t_s``: the angles (deg) the LOS must turn about z_e (+ = target
         right) and about y_e (sign flipped, so + = target up) to reach the target, and the target direction's
         x_e component (> 0: in front of the camera)."""
-        return kernel("los")(self._p, self._s)
+        return kernel("los")(self._buf)
 
     def miss_px(self) -> tuple[float, float, bool]:
         """Miss distance (px, + = target right / up) with centroid noise, and track_valid, at ``t_s``."""

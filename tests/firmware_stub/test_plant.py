@@ -390,6 +390,32 @@ def test_run_is_step_tick_bit_for_bit() -> None:
         a.run(np.zeros(3), np.zeros(3), np.zeros((3, 17)))
 
 
+def test_run_outputs_selects_columns_only() -> None:
+    """``run(..., outputs=...)`` computes and returns only the named columns (plus t_s), the same floats as a full
+    run, and leaves the physics, the noise and the final state unchanged; an unknown name is refused."""
+    from firmware_stub.plant import RUN_COLUMNS, TYPICAL_PLANT_CONFIG
+
+    cfg = load_plant_config(TYPICAL_PLANT_CONFIG)
+    n = 1500  # across a noise refill
+    t = (np.arange(n) + 0.5) * 1e-3
+    drive = 8000.0 * np.sin(2 * math.pi * 3.0 * t)
+    arr = np.array([[*c.pose, *c.rate, *c.accel] for c in (swing_carrier(tk, 1.0, 1.0, True, True) for tk in t)])
+    full = Plant(cfg, seed=5)
+    ref = full.run(drive, -drive, arr)
+    assert tuple(ref) == ("t_s", *RUN_COLUMNS)
+    for sel in (("gyro_x_dps",), ("track_valid", "encoder_el_deg"), ("miss_y_px", "voltage_az_v", "az_deg"), ()):
+        part = Plant(cfg, seed=5)
+        got = part.run(drive, -drive, arr, outputs=sel)
+        assert tuple(got) == ("t_s", *sel)
+        for name in got:
+            assert np.array_equal(got[name], ref[name]), name
+        assert part.truth() == full.truth() and part.gyro_dps() == full.gyro_dps()
+        assert part.miss_px() == full.miss_px()
+    assert Plant(cfg, seed=5).run(drive, -drive, arr, outputs=RUN_COLUMNS)["track_valid"].dtype == bool
+    with pytest.raises(ValueError, match="unknown output 'gyro_w_dps'"):
+        Plant(cfg, seed=5).run(drive, -drive, arr, outputs=("gyro_w_dps",))
+
+
 def test_white_noise_is_the_documented_draw(default: PlantConfig) -> None:
     """The noise scheme the docstring promises (and the pure-Python plant drew): per tick five 16-bit little-endian
     random numbers from random.Random(seed).randbytes, each an index into the table of normal quantiles."""
