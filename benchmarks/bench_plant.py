@@ -7,10 +7,10 @@ Cases, each ``--seconds`` of simulated time (1 ms ticks), ``--repeat`` runs on a
 
 * ``step_tick``: the per-tick API as the emulator uses it (one compiled call per tick from a Python loop), on a
   1 deg / 1 Hz hexapod pitch + yaw swing (a new CarrierMotion every tick) with a 1 Hz drive on both axes; with
-  profiles/plant/rigid.yaml (today's physics) and profiles/plant/typical.yaml (every mechanism on); and the swing
+  profiles/plant/rigid.yaml (today's physics) and profiles/plant/default.yaml (every mechanism on); and the swing
   again with gyro + encoders read every tick and the camera at 100 Hz, as the boards do;
 * ``run``: the batch API (:meth:`Plant.run`, the whole run in one compiled loop) on the same inputs, computing every
-  output column (19), and with typical.yaml also the 14 columns without the camera's (``outputs=`` without the LOS
+  output column (19), and with default.yaml also the 14 columns without the camera's (``outputs=`` without the LOS
   error, miss distance and track_valid: those cost 2 atan2, a hypot and a sin / cos per tick);
 * ``old``: the pure-Python plant of commit eb35471 (before the kernel), loaded with ``git show
   eb35471:firmware_stub/plant.py`` into a temporary module (nothing of it is kept), on the same swing with the
@@ -47,9 +47,9 @@ from typing import Any
 import numpy as np
 
 from firmware_stub.plant import (
+    DEFAULT_PLANT_CONFIG,
     RIGID_PLANT_CONFIG,
     RUN_COLUMNS,
-    TYPICAL_PLANT_CONFIG,
     CarrierMotion,
     Plant,
     PlantConfig,
@@ -136,9 +136,9 @@ _COMPILE_PROBE = """
 import time, json
 t0 = time.perf_counter()
 import numpy as np
-from firmware_stub.plant import TYPICAL_PLANT_CONFIG, CarrierMotion, Plant, load_plant_config
+from firmware_stub.plant import DEFAULT_PLANT_CONFIG, CarrierMotion, Plant, load_plant_config
 t1 = time.perf_counter()
-plant = Plant(load_plant_config(TYPICAL_PLANT_CONFIG), seed=1)
+plant = Plant(load_plant_config(DEFAULT_PLANT_CONFIG), seed=1)
 plant.step_tick(0.0, 0.0, CarrierMotion.at_rest())
 plant.gyro_dps(); plant.miss_px()
 t2 = time.perf_counter()
@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = ap.parse_args(argv)
     n = round(args.seconds / TICK_S)
     rigid = load_plant_config(RIGID_PLANT_CONFIG)
-    typical = load_plant_config(TYPICAL_PLANT_CONFIG)
+    typical = load_plant_config(DEFAULT_PLANT_CONFIG)
     sw = swing(n)
     dr = drive(n)
     sw_arr = np.array([[*c.pose, *c.rate, *c.accel] for c in sw])
@@ -187,11 +187,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     cases: dict[str, Callable[[], float]] = {
         "step_tick rigid.yaml, swing": lambda: time_step_tick(new(rigid), n, sw, dr, False),
-        "step_tick typical.yaml (all on), swing": lambda: time_step_tick(new(typical), n, sw, dr, False),
-        "step_tick typical.yaml, swing + outputs read": lambda: time_step_tick(new(typical), n, sw, dr, True),
+        "step_tick default.yaml (all on), swing": lambda: time_step_tick(new(typical), n, sw, dr, False),
+        "step_tick default.yaml, swing + outputs read": lambda: time_step_tick(new(typical), n, sw, dr, True),
         "run rigid.yaml, swing, all 19 columns": lambda: time_run(new(rigid), dr_arr, sw_arr),
-        "run typical.yaml (all on), swing, all 19 columns": lambda: time_run(new(typical), dr_arr, sw_arr),
-        f"run typical.yaml (all on), swing, {len(NO_CAMERA)} columns (no camera)": lambda: time_run(
+        "run default.yaml (all on), swing, all 19 columns": lambda: time_run(new(typical), dr_arr, sw_arr),
+        f"run default.yaml (all on), swing, {len(NO_CAMERA)} columns (no camera)": lambda: time_run(
             new(typical), dr_arr, sw_arr, NO_CAMERA),
     }
     tmp = tempfile.TemporaryDirectory(prefix="old-plant-")

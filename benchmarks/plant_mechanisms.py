@@ -4,8 +4,8 @@
     .venv/bin/python benchmarks/plant_mechanisms.py [--seconds 6] [--seeds 1 2] [--out docs/plant-mechanisms.md]
 
 Starts from profiles/plant/rigid.yaml and switches on one mechanism at a time, with the values of
-profiles/plant/typical.yaml and, for most, once more at the stressed end of its plausible range (then all of
-them: typical.yaml itself). Each variant runs the shipped swing session (tracking on) at 1 deg and 3 deg / 1 Hz
+profiles/plant/default.yaml and, for most, once more at the stressed end of its plausible range (then all of
+them: default.yaml itself). Each variant runs the shipped swing session (tracking on) at 1 deg and 3 deg / 1 Hz
 with the plain ESO, and at 1 deg with ESO+KF at the same observer gain, on the ``sim`` clock (hil.sim), and
 reports per variant (median over the seeds):
 
@@ -41,7 +41,7 @@ from hil.log.reader import read_log
 from hil.sim import run_sim_session
 
 PLANTS = PROFILES / "plant"
-# variant -> (what it shows, patch over rigid.yaml). "typical" patches take typical.yaml's section; the others
+# variant -> (what it shows, patch over rigid.yaml). "typical" patches take default.yaml's section; the others
 # put the mechanism at the stressed end of its plausible range (docs/emulator.md, "Mechanisms").
 TYPICAL = "typical"
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -64,7 +64,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "torque ripple, typical (2 %)": {"ripple": TYPICAL},
     "torque ripple, 5 %": {"ripple": {"az": {"amplitude_fraction": 0.05, "periods_per_rev": 64},
                                       "el": {"amplitude_fraction": 0.05, "periods_per_rev": 48}}},
-    "typical.yaml (every mechanism, typical)": {"*": TYPICAL},
+    "default.yaml (every mechanism, typical)": {"*": TYPICAL},
 }
 SETTLE_S = 1.5
 REVERSAL_WINDOW_S = 0.02
@@ -72,7 +72,7 @@ REVERSAL_WINDOW_S = 0.02
 
 def plant_variant(patch: dict[str, Any]) -> dict[str, Any]:
     rigid = yaml.safe_load((PLANTS / "rigid.yaml").read_text())
-    typical = yaml.safe_load((PLANTS / "typical.yaml").read_text())
+    typical = yaml.safe_load((PLANTS / "default.yaml").read_text())
     if "*" in patch:
         return typical
     out = copy.deepcopy(rigid)

@@ -9,6 +9,7 @@ directory, and exits 0. A bad config exits 2 with one line naming the file and f
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -131,6 +132,10 @@ def main(argv: list[str] | None = None) -> int:
             tmp.write_text(json.dumps(ports, indent=2) + "\n")
             os.replace(tmp, ports_file)
         print(json.dumps(ports), flush=True)
+        # Everything built so far (numba, pydantic, numpy, the plant) lives as long as the process: moved to the
+        # permanent generation, a full collection during the run traverses only what the run allocates. Without
+        # it one took ~37 ms here, longer than the bench's watchdog (docs/performance.md, "Plant v2").
+        gc.freeze()
         emulator.run(max_ticks=None if args.seconds is None else round(args.seconds * 1000))
         print(json.dumps(emulator.summary()), flush=True)
     finally:

@@ -89,7 +89,6 @@ from firmware_stub.config import ConfigError, read_yaml_mapping
 __all__ = [
     "DEFAULT_PLANT_CONFIG",
     "RIGID_PLANT_CONFIG",
-    "TYPICAL_PLANT_CONFIG",
     "CableAxisConfig",
     "CableConfig",
     "CameraConfig",
@@ -120,7 +119,6 @@ __all__ = [
 
 DEFAULT_PLANT_CONFIG = Path(__file__).parents[1] / "profiles/plant/default.yaml"
 RIGID_PLANT_CONFIG = Path(__file__).parents[1] / "profiles/plant/rigid.yaml"
-TYPICAL_PLANT_CONFIG = Path(__file__).parents[1] / "profiles/plant/typical.yaml"
 
 G0_M_S2 = 9.80665  # standard gravity; lab z is down, so gravity in the lab is (0, 0, +G0)
 D2R = math.pi / 180.0
@@ -329,8 +327,8 @@ class RippleConfig(_Section):
 
 
 class PlantConfig(_Section):
-    """Every parameter of the plant. Units are in the field names; see profiles/plant/default.yaml (rigid) and
-    profiles/plant/typical.yaml (every mechanism on). The mechanism sections are optional: absent = off."""
+    """Every parameter of the plant. Units are in the field names; see profiles/plant/rigid.yaml (every mechanism
+    off) and profiles/plant/default.yaml (every mechanism on). The mechanism sections are optional: absent = off."""
 
     internal_step_s: float = Field(gt=0, le=2e-4, description="fixed integration step; must divide 1 ms")
     initial_az_deg: float = Field(0.0, description="gimbal angles at construction and reset()")

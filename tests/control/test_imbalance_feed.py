@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from firmware_stub.plant import (
-    DEFAULT_PLANT_CONFIG,
+    RIGID_PLANT_CONFIG,
     CarrierMotion,
     Plant,
     carrier_state,
@@ -65,7 +65,7 @@ def segments() -> tuple[Segment, ...]:
 
 def run(controller: str, *, seconds: float = SECONDS, seed: int = 1, feed: bool = True, profile: bool = True
         ) -> Result:
-    cfg = load_plant_config(DEFAULT_PLANT_CONFIG)
+    cfg = load_plant_config(RIGID_PLANT_CONFIG)
     plant = Plant(cfg, seed=seed)
     c_el, c_az = build_controller(controller), build_controller(controller)
     segs = segments()
@@ -108,7 +108,7 @@ def test_profile_is_inside_the_hexapod_envelope() -> None:
 
 
 def test_specific_force_and_torque_conventions_match_the_plant() -> None:
-    cfg = load_plant_config(DEFAULT_PLANT_CONFIG)
+    cfg = load_plant_config(RIGID_PLANT_CONFIG)
     segs = [*segments(), Segment(HexAxis.ROLL, 0.0, 5.0, 4.0, 0.7, 10.0, 0.5),
             Segment(HexAxis.PITCH, 0.0, 5.0, 6.0, 0.9, 30.0), Segment(HexAxis.YAW, 0.0, 5.0, 8.0, 1.1, 50.0),
             Segment(HexAxis.Y, 0.0, 5.0, 15.0, 1.7)]

@@ -1,5 +1,5 @@
 """The plant's compiled kernel is cached on disk (numba ``cache=True``): a process after the first one loads the
-machine code instead of compiling it again (docs/plant-kernel.md has the times)."""
+machine code instead of compiling it again (docs/performance.md, "Plant v2" has the times)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The plant's optional mechanisms ("plant v2", firmware_stub/plant.py, docs/emulator.md "Mechanisms"): each against
-its analytic signature, with numbers; the presets (profiles/plant/rigid.yaml, typical.yaml); the new config errors."""
+its analytic signature, with numbers; the presets (profiles/plant/rigid.yaml, default.yaml); the new config errors."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from scipy import signal
 from firmware_stub.plant import (
     DEFAULT_PLANT_CONFIG,
     RIGID_PLANT_CONFIG,
-    TYPICAL_PLANT_CONFIG,
     CarrierMotion,
     Plant,
     PlantConfig,
@@ -33,8 +32,11 @@ REST = CarrierMotion.at_rest()
 
 
 @pytest.fixture(scope="module")
-def default() -> PlantConfig:
-    return load_plant_config(DEFAULT_PLANT_CONFIG)
+def rigid() -> PlantConfig:
+    """The rigid plant (profiles/plant/rigid.yaml: every v2 mechanism off): the physics these tests pin against
+    analytic solutions. profiles/plant/default.yaml is the same plant with the mechanisms on, each tested on its
+    own in test_plant_mechanisms.py."""
+    return load_plant_config(RIGID_PLANT_CONFIG)
 
 
 def make(cfg: PlantConfig, **sections: Any) -> PlantConfig:
@@ -90,12 +92,12 @@ def _multisine_response(cfg: PlantConfig, freqs: np.ndarray) -> tuple[np.ndarray
     return fg / fu, fm / fu, fg / fu
 
 
-def test_structural_mode_shows_at_mode_hz(default: PlantConfig) -> None:
+def test_structural_mode_shows_at_mode_hz(rigid: PlantConfig) -> None:
     """Two-mass elevation axis, free-free mode 120 Hz, zeta 0.05, J_m = 0.3 J: the drive -> gyro (load) response
     over the rigid plant's peaks at 120 Hz (+-10 %) by ~1 / (2 zeta); the drive -> motor (encoder side) response has
     its antiresonance at sqrt(k / J_l) = 120 sqrt(0.3) = 66 Hz."""
     freqs = np.arange(20, 301, 2)
-    rigid = ideal(default)
+    rigid = ideal(rigid)
     two = make(rigid, structure={"el": {"mode_hz": 120.0, "damping_ratio": 0.05, "motor_inertia_fraction": 0.3}})
     hg_r, hm_r, _ = _multisine_response(rigid, freqs)
     hg, hm, _ = _multisine_response(two, freqs)
@@ -139,12 +141,12 @@ def _hold(cfg: PlantConfig, seconds: float) -> np.ndarray:
     return res["el_deg"]
 
 
-def test_lugre_holds_an_unbalanced_gimbal_that_tanh_lets_creep(default: PlantConfig) -> None:
+def test_lugre_holds_an_unbalanced_gimbal_that_tanh_lets_creep(rigid: PlantConfig) -> None:
     """Imbalance m g rho = 10 kg x 9.81 x 2 mm = 0.196 N m, below Coulomb (0.25 N m), present from t = 0: with LuGre
     the elevation deflects by a bounded presliding angle (of the order of T / sigma_0 = 0.75 mdeg: the step load
     slips the bristles a little while they load, ~2x) and then stays there to 1e-9 deg for 5 s; the smoothed tanh
     model creeps at w_s atanh(T / T_c) = 0.105 deg/s."""
-    base = make(default, imbalance__eccentricity_mm=(2.0, 0.0, 0.0), gyro__noise_std_dps=(0.0, 0.0, 0.0))
+    base = make(rigid, imbalance__eccentricity_mm=(2.0, 0.0, 0.0), gyro__noise_std_dps=(0.0, 0.0, 0.0))
     torque = 10.0 * G0 * 2e-3
     lugre = make(base, friction__el=_lugre(base))
     el = _hold(lugre, 5.0)
@@ -159,13 +161,13 @@ def test_lugre_holds_an_unbalanced_gimbal_that_tanh_lets_creep(default: PlantCon
     assert rate == pytest.approx(-expected, rel=0.03)
 
 
-def test_lugre_breaks_away_above_stiction_and_not_below(default: PlantConfig) -> None:
+def test_lugre_breaks_away_above_stiction_and_not_below(rigid: PlantConfig) -> None:
     """True stiction: a motor torque ramped over 2 s to 0.30 N m (between Coulomb 0.25 and stiction 0.32 N m) and
     held is held by the bearing (bounded presliding, a few mdeg, no motion in the last 1.5 s); ramped to 0.35 N m
     (above stiction) the gimbal breaks away. The tanh model has no stiction: 0.30 N m slides."""
-    base = make(default, gyro__noise_std_dps=(0.0, 0.0, 0.0), imbalance__mass_kg=0.0)
+    base = make(rigid, gyro__noise_std_dps=(0.0, 0.0, 0.0), imbalance__mass_kg=0.0)
     lugre = make(base, friction__el=_lugre(base))
-    m = default.motor_el
+    m = rigid.motor_el
     n = 4000
 
     def ramp_to(cfg: PlantConfig, torque: float) -> np.ndarray:
@@ -187,10 +189,10 @@ def test_lugre_breaks_away_above_stiction_and_not_below(default: PlantConfig) ->
 # --- current limit -----------------------------------------------------------------------------------------------
 
 
-def test_current_limit_caps_current_and_acceleration(default: PlantConfig) -> None:
+def test_current_limit_caps_current_and_acceleration(rigid: PlantConfig) -> None:
     """A 0.5 A limit on elevation, drive at 30000 counts (22 V: 2.2 A unlimited): |i| never exceeds 0.5 A and the
     axis accelerates at K_t I_max / J (2.74 rad/s^2) instead of K_t V / (R J)."""
-    cfg = ideal(default, drive={"el": {"current_limit_a": 0.5}})
+    cfg = ideal(rigid, drive={"el": {"current_limit_a": 0.5}})
     n = 500
     for sign in (1.0, -1.0):
         plant = Plant(cfg, seed=0)
@@ -200,31 +202,31 @@ def test_current_limit_caps_current_and_acceleration(default: PlantConfig) -> No
         assert np.all(np.abs(i[5:] - sign * 0.5) < 1e-4)  # at the limit (just below: the back-EMF rises)
         rate = res["los_rate_y_dps"] * D2R
         slope = np.polyfit(res["t_s"][100:], rate[100:], 1)[0]
-        m = default.motor_el
+        m = rigid.motor_el
         expected = m.torque_constant_n_m_per_a * 0.5 / m.inertia_kg_m2
         print(f"sign {sign}: max |i| {np.max(np.abs(i)):.6f} A, accel {slope:.4f} rad/s^2 (K_t I / J {expected:.4f})")
         assert slope == pytest.approx(sign * expected, rel=1e-3)
         assert np.all(np.abs(res["voltage_el_v"]) < 30000 * m.volts_per_count)  # the driver backed the voltage off
-    free = Plant(ideal(default), seed=0).run(np.zeros(n), np.full(n, 30000.0), at_rest(n))
+    free = Plant(ideal(rigid), seed=0).run(np.zeros(n), np.full(n, 30000.0), at_rest(n))
     assert np.max(free["current_el_a"]) > 2.0
 
 
 # --- cable -------------------------------------------------------------------------------------------------------
 
 
-def test_cable_spring_restoring_torque_and_natural_frequency(default: PlantConfig) -> None:
+def test_cable_spring_restoring_torque_and_natural_frequency(rigid: PlantConfig) -> None:
     """Cable k_c = 2 N m/rad, c_c = 0.02 on elevation, released at 5 deg: restoring torque -k_c theta, free
     oscillation at sqrt(k_c / J) (1.007 Hz, damped), logarithmic decrement from zeta = (c_c + K_t K_e / R) /
     (2 sqrt(k_c J)) (the shorted motor's back-EMF damps too)."""
     k_c, c_c = 2.0, 0.02
-    cfg = ideal(default, initial_el_deg=5.0, cable={"el": {"stiffness_n_m_per_rad": k_c,
+    cfg = ideal(rigid, initial_el_deg=5.0, cable={"el": {"stiffness_n_m_per_rad": k_c,
                                                           "damping_n_m_s_per_rad": c_c}})
     plant = Plant(cfg, seed=0)
     assert plant.truth()["cable_el_n_m"] == pytest.approx(-k_c * 5.0 * D2R, rel=1e-12)
     n = 6000
     res = plant.run(np.zeros(n), np.zeros(n), at_rest(n))
     el, t = res["el_deg"], res["t_s"]
-    m = default.motor_el
+    m = rigid.motor_el
     j = m.inertia_kg_m2
     wn = math.sqrt(k_c / j)
     zeta = (c_c + m.torque_constant_n_m_per_a * m.back_emf_v_s_per_rad / m.resistance_ohm) / (2 * math.sqrt(k_c * j))
@@ -243,12 +245,12 @@ def test_cable_spring_restoring_torque_and_natural_frequency(default: PlantConfi
 # --- pivot offset ------------------------------------------------------------------------------------------------
 
 
-def test_pivot_offset_adds_tangential_and_centripetal_acceleration(default: PlantConfig) -> None:
+def test_pivot_offset_adds_tangential_and_centripetal_acceleration(rigid: PlantConfig) -> None:
     """Pivot at r = (0.1, 0, -0.5) m from the hexapod's centre, 3 deg / 1 Hz pitch + roll swing: the imbalance torque
     is that of the specific force at the pivot, f_c + alpha x r + omega x (omega x r) (seed 001 eqs 2-4), computed
     here with numpy from the carrier's rates; the offset changes it by up to m rho_z |alpha| |r| ~ 0.02 N m."""
     r = np.array([0.1, 0.0, -0.5])
-    base = ideal(default, imbalance__mass_kg=10.0, imbalance__eccentricity_mm=(1.0, 0.0, 2.0))
+    base = ideal(rigid, imbalance__mass_kg=10.0, imbalance__eccentricity_mm=(1.0, 0.0, 2.0))
     with_pivot = make(base, mount={"pivot_offset_m": tuple(r)})
     a, b = Plant(with_pivot, seed=0), Plant(base, seed=0)
     w = 2 * math.pi
@@ -286,11 +288,11 @@ def test_band_pass_is_scipys_iirpeak_and_its_variance_gain() -> None:
         assert var == pytest.approx(float(np.sum(h * h)), rel=1e-9)
 
 
-def test_coloured_gyro_noise_has_its_band_and_std(default: PlantConfig) -> None:
+def test_coloured_gyro_noise_has_its_band_and_std(rigid: PlantConfig) -> None:
     """One band, 200 Hz centre, 20 Hz wide, 0.05 deg/s, no white noise: the Welch PSD peaks at 200 Hz, > 80 % of
     the variance lies within +-2 bandwidths, the std is 0.05 deg/s (+-6 %), the axes are independent. Adding white
     noise on top adds the variances."""
-    cfg = ideal(default, gyro__noise_psd=({"centre_hz": 200.0, "bandwidth_hz": 20.0, "std_dps": 0.05},))
+    cfg = ideal(rigid, gyro__noise_psd=({"centre_hz": 200.0, "bandwidth_hz": 20.0, "std_dps": 0.05},))
     n = 30000
     res = Plant(cfg, seed=4).run(np.zeros(n), np.zeros(n), at_rest(n))
     g = np.column_stack([res["gyro_x_dps"], res["gyro_y_dps"], res["gyro_z_dps"]])[1000:]
@@ -307,11 +309,11 @@ def test_coloured_gyro_noise_has_its_band_and_std(default: PlantConfig) -> None:
     assert g2.std() == pytest.approx(math.hypot(0.05, 0.03), rel=0.05)
 
 
-def test_random_walk_grows_as_sqrt_t(default: PlantConfig) -> None:
+def test_random_walk_grows_as_sqrt_t(rigid: PlantConfig) -> None:
     """Rate random walk 0.01 deg/s/sqrt(s), no other noise: over 64 seeds x 3 axes the spread of the gyro at t is
     0.01 sqrt(t) (t = 1, 4, 9 s), slope 1/2 in log-log."""
     q = 0.01
-    cfg = ideal(default, gyro__random_walk=q)
+    cfg = ideal(rigid, gyro__random_walk=q)
     n = 9000
     samples = []
     for seed in range(64):
@@ -325,8 +327,8 @@ def test_random_walk_grows_as_sqrt_t(default: PlantConfig) -> None:
     assert np.polyfit(np.log(t), np.log(std), 1)[0] == pytest.approx(0.5, abs=0.1)
 
 
-def test_switching_on_extra_noise_leaves_the_white_noise_unchanged(default: PlantConfig) -> None:
-    base = make(default, gyro__quantisation_lsb_dps=0.0, imbalance__mass_kg=0.0)
+def test_switching_on_extra_noise_leaves_the_white_noise_unchanged(rigid: PlantConfig) -> None:
+    base = make(rigid, gyro__quantisation_lsb_dps=0.0, imbalance__mass_kg=0.0)
     extra = make(base, gyro__random_walk=1e-3)
     n = 2500
     ga = Plant(base, seed=9).run(np.zeros(n), np.zeros(n), at_rest(n))["gyro_y_dps"]
@@ -339,13 +341,13 @@ def test_switching_on_extra_noise_leaves_the_white_noise_unchanged(default: Plan
 # --- torque ripple -------------------------------------------------------------------------------------------------
 
 
-def test_torque_ripple_appears_at_n_times_the_rotation_frequency(default: PlantConfig) -> None:
+def test_torque_ripple_appears_at_n_times_the_rotation_frequency(rigid: PlantConfig) -> None:
     """Elevation turning at a steady ~30 deg/s (constant voltage against viscous friction), ripple 5 % at 48 periods
     per revolution: the rate ripples at 48 x the rotation frequency (~4 Hz), with the amplitude of the first-order
     response to the ripple torque a K_t i, ``a K_t i / |J j w + D + K_t K_e / R|``; without ripple, no line there."""
     d_visc = 0.05
-    base = ideal(default, friction__el__viscous_n_m_s_per_rad=d_visc)
-    m = default.motor_el
+    base = ideal(rigid, friction__el__viscous_n_m_s_per_rad=d_visc)
+    m = rigid.motor_el
     w_target = 30.0 * D2R
     volts = w_target * (m.resistance_ohm * d_visc + m.torque_constant_n_m_per_a * m.back_emf_v_s_per_rad) / (
         m.torque_constant_n_m_per_a)
@@ -378,28 +380,38 @@ def test_torque_ripple_appears_at_n_times_the_rotation_frequency(default: PlantC
 # --- presets -----------------------------------------------------------------------------------------------------
 
 
-def test_rigid_preset_is_the_default_plant_and_typical_switches_everything_on(default: PlantConfig) -> None:
+def test_default_is_the_rigid_plant_with_every_mechanism_on() -> None:
     rigid = load_plant_config(RIGID_PLANT_CONFIG)
-    assert rigid == default
     assert all(getattr(rigid, k) is None for k in ("structure", "drive", "cable", "mount", "ripple"))
-    typical = load_plant_config(TYPICAL_PLANT_CONFIG)
+    assert rigid.friction.az.model == rigid.friction.el.model == "tanh"
+    assert not rigid.gyro.noise_psd and rigid.gyro.random_walk == 0
+    default = load_plant_config(DEFAULT_PLANT_CONFIG)
     for axis in ("az", "el"):
-        assert typical.structure_of(axis) is not None and typical.current_limit_a(axis) is not None
-        assert typical.cable_of(axis) is not None and typical.ripple_of(axis) is not None
-        assert getattr(typical.friction, axis).model == "lugre"
-    assert any(typical.pivot_offset_m()) and typical.gyro.noise_psd and typical.gyro.random_walk > 0
-    for path in (RIGID_PLANT_CONFIG, TYPICAL_PLANT_CONFIG):
+        assert default.structure_of(axis) is not None and default.current_limit_a(axis) is not None
+        assert default.cable_of(axis) is not None and default.ripple_of(axis) is not None
+        assert getattr(default.friction, axis).model == "lugre"
+    assert any(default.pivot_offset_m()) and default.gyro.noise_psd and default.gyro.random_walk > 0
+    # everything else is the rigid plant's, value for value (its calibration: docs/emulator.md)
+    mechanisms = {"structure", "drive", "cable", "mount", "ripple", "friction", "gyro"}
+    for field in type(rigid).model_fields:
+        if field not in mechanisms:
+            assert getattr(default, field) == getattr(rigid, field), field
+    for axis in ("az", "el"):
+        r, d = getattr(rigid.friction, axis), getattr(default.friction, axis)
+        assert (d.coulomb_n_m, d.viscous_n_m_s_per_rad) == (r.coulomb_n_m, r.viscous_n_m_s_per_rad)
+    assert default.gyro.model_copy(update={"noise_psd": (), "random_walk": 0.0}) == rigid.gyro
+    for path in (RIGID_PLANT_CONFIG, DEFAULT_PLANT_CONFIG):
         for line in path.read_text().splitlines():  # every parameter line has a comment with unit and source
             if ":" in line and not line.lstrip().startswith("#") and not line.rstrip().endswith(":"):
                 assert "#" in line, line
 
 
 @pytest.mark.parametrize("controller", ["eso", "eso_kf", "eso_kf_high_gain"])
-def test_typical_plant_keeps_the_shipped_loops_stable(controller: str) -> None:
-    """Under the 1 deg / 1 Hz swing the shipped controllers' rate error on typical.yaml stays within 1.5x of the
+def test_default_plant_keeps_the_shipped_loops_stable(controller: str) -> None:
+    """Under the 1 deg / 1 Hz swing the shipped controllers' rate error on default.yaml stays within 1.5x of the
     rigid plant's (a structural mode near the loop's bandwidth would make it a limit cycle: several times larger)."""
     rigid = run_closed_loop(controller, config=load_plant_config(RIGID_PLANT_CONFIG), seconds=3.0)
-    typical = run_closed_loop(controller, config=load_plant_config(TYPICAL_PLANT_CONFIG), seconds=3.0)
+    typical = run_closed_loop(controller, config=load_plant_config(DEFAULT_PLANT_CONFIG), seconds=3.0)
     for axis in ("el", "az"):
         r, t = rigid.axis(axis), typical.axis(axis)
         print(f"{controller} {axis}: rate std rigid {r.std_dps:.3f}, typical {t.std_dps:.3f} deg/s; drive ripple "
@@ -412,7 +424,7 @@ def test_typical_plant_keeps_the_shipped_loops_stable(controller: str) -> None:
 
 
 def _write(tmp_path: Path, change: Any) -> Path:
-    data = yaml.safe_load(TYPICAL_PLANT_CONFIG.read_text())
+    data = yaml.safe_load(DEFAULT_PLANT_CONFIG.read_text())
     change(data)
     path = tmp_path / "plant.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -451,7 +463,7 @@ def test_mechanism_config_errors_name_the_field(tmp_path: Path, change: Any, fie
     assert reason in msg
 
 
-def test_mechanisms_are_off_unless_present(tmp_path: Path, default: PlantConfig) -> None:
+def test_mechanisms_are_off_unless_present(tmp_path: Path, rigid: PlantConfig) -> None:
     """Empty sections and "off" values give the rigid plant's outputs exactly."""
     data = yaml.safe_load(RIGID_PLANT_CONFIG.read_text())
     data.update(structure={}, drive={"az": {"current_limit_a": None}}, cable={"el": None}, mount={},
@@ -469,6 +481,6 @@ def test_mechanisms_are_off_unless_present(tmp_path: Path, default: PlantConfig)
     car[:, 16] = -((2 * math.pi) ** 2) * np.sin(2 * math.pi * t)
     u = 3000.0 * np.sin(2 * math.pi * 3 * t)
     a = Plant(off, seed=2).run(u, -u, car)
-    b = Plant(default, seed=2).run(u, -u, car)
+    b = Plant(rigid, seed=2).run(u, -u, car)
     for key in a:
         assert np.array_equal(a[key], b[key]), key

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from firmware_stub.plant import DEFAULT_PLANT_CONFIG, CarrierMotion, Plant, load_plant_config
+from firmware_stub.plant import RIGID_PLANT_CONFIG, CarrierMotion, Plant, load_plant_config
 from hil.control.registry import build_controller
 from hil.ident import (
     Frf,
@@ -238,7 +238,7 @@ def test_estimate_frf_rejects_bad_input() -> None:
 def run_plant(sweep: SweptSine, *, controller: str = "pi_lpf", pre_s: float = 0.3, post_s: float = 0.3) -> dict:
     """The emulated plant in closed loop (registry controller, both axes), the sweep on ``sweep.axis``' rate
     command, idle ``pre_s`` before and ``post_s`` after; returns the loop-group columns the session would log."""
-    plant = Plant(load_plant_config(DEFAULT_PLANT_CONFIG), seed=1)
+    plant = Plant(load_plant_config(RIGID_PLANT_CONFIG), seed=1)
     c_az, c_el = build_controller(controller), build_controller(controller)
     rest = CarrierMotion.at_rest()
     n_pre, n = round(pre_s / DT), round((pre_s + sweep.total_s + post_s) / DT)
@@ -272,7 +272,7 @@ def test_plant_k_m_through_a_session_log(tmp_path: Path) -> None:
             log.append("loop", [cols[c][k] for c in names])
     data = read_log(tmp_path / "sweep.h5", groups=["loop"])
     frf, fit = identify_log(data, PLANT_SWEEP)
-    k_m = load_plant_config(DEFAULT_PLANT_CONFIG).k_m_dps2_per_count("el")
+    k_m = load_plant_config(RIGID_PLANT_CONFIG).k_m_dps2_per_count("el")
     print(f"emulated plant, el: {fit.describe()}; k_m error {fit.k_m_dps2_per_count / k_m - 1.0:+.2%}")
     assert fit.k_m_dps2_per_count == pytest.approx(k_m, rel=0.05)
     assert fit.k_m_dps2_per_count == pytest.approx(k_m, rel=0.01)  # what it actually achieves (docs/ident.md)
@@ -287,7 +287,7 @@ def test_plant_k_m_through_a_session_log(tmp_path: Path) -> None:
 def test_plant_az_axis_gaps_and_no_sweep_given() -> None:
     sweep = SweptSine.model_validate({**PLANT_SWEEP.model_dump(), "axis": "az"})
     cols = run_plant(sweep, pre_s=0.7)
-    k_m = load_plant_config(DEFAULT_PLANT_CONFIG).k_m_dps2_per_count("az")
+    k_m = load_plant_config(RIGID_PLANT_CONFIG).k_m_dps2_per_count("az")
     keep = np.ones(cols["tick"].size, dtype=bool)
     keep[5000:5003] = keep[8000] = False  # samples the bench missed: interpolated on the tick grid
     gappy = {c: v[keep] for c, v in cols.items()}
@@ -305,7 +305,7 @@ def test_coulomb_friction_spoils_the_fit_without_a_rate_offset() -> None:
     4 T_c k_m / (pi A) and k_m comes out far too low (docs/ident.md)."""
     sweep = SweptSine(f_start_hz=1.0, f_stop_hz=300.0, duration_s=10.0, amplitude_dps=2.0)
     _, fit = identify_log(as_log(run_plant(sweep)), sweep)
-    k_m = load_plant_config(DEFAULT_PLANT_CONFIG).k_m_dps2_per_count("el")
+    k_m = load_plant_config(RIGID_PLANT_CONFIG).k_m_dps2_per_count("el")
     print(f"no offset: {fit.describe()}")
     assert fit.k_m_dps2_per_count < 0.7 * k_m
 

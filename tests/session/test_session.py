@@ -108,19 +108,23 @@ def test_watchdog_zeroes_the_drive_within_5_ms_of_a_stall(tmp_path) -> None:
 
 def test_a_bench_the_host_stopped_while_the_board_was_stopped_too_does_not_trip(tmp_path) -> None:
     """A VM's vCPU taken away from the bench and an emulator that share it: both freeze; the bench comes
-    back first, its watchdog finds 60 ms of silence on a late look and gives the board one watchdog_ms."""
+    back first, its watchdog finds 60 ms of silence on a late look and gives the board one watchdog_ms.
+
+    The board is released 5 ms after the bench is back, when the watchdog (whose wait ran out during the stop)
+    has looked. A sample the board wrote just before the stop and the bench had not read yet reaches the
+    bench when it resumes and feeds the watchdog first; that stop is then no stall at all, which is also
+    right, so the test asks for at least one stall of the three and no trip."""
     stops = 3
 
     async def freeze(emu: EmulatorProcess, session: Session) -> None:
         assert emu.proc is not None
         await wait_cycles(session, 500)
         me, board = os.getpid(), emu.proc.pid
-        for i in range(stops):
+        for _ in range(stops):
             freezer = subprocess.Popen(["sh", "-c", f"kill -STOP {board} {me}; sleep 0.06; kill -CONT {me}"])
-            for _ in range(1000):  # back from the stop; the board stays stopped until the watchdog has looked
-                if session.loop_ is not None and session.loop_.stats.host_stalls > i:
-                    break
+            while freezer.poll() is None:  # this coroutine runs again: the bench is back
                 await asyncio.sleep(0.001)
+            await asyncio.sleep(0.005)  # the watchdog's late look
             os.kill(board, signal.SIGCONT)
             assert freezer.wait(timeout=5) == 0
             await asyncio.sleep(0.3)
@@ -130,7 +134,7 @@ def test_a_bench_the_host_stopped_while_the_board_was_stopped_too_does_not_trip(
     assert run.result.status == "completed", run.result.message
     summary = summarize_log(run.result.log_path)
     assert summary["faults"] == 0 and run.result.stats.faults == []
-    assert summary["host_stalls"] == run.result.stats.host_stalls >= stops  # every stop seen, none a trip
+    assert stops >= summary["host_stalls"] == run.result.stats.host_stalls >= 1  # seen as stalls, none a trip
     assert 60.0 <= summary["host_stall_max_ms"] < 1000.0
 
 
