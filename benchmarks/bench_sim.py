@@ -93,6 +93,53 @@ def loop_floor_us(config: SessionConfig, ticks: int, out: Path) -> float:
         return (time.perf_counter() - t0) / ticks * 1e6
 
 
+def world_floor_us(config: SessionConfig, ticks: int) -> float:
+    """The sim world alone (hil-free side: boards and plant, the session's swing running) with a host that answers
+    each GYRO_SAMPLE with a ready DRIVE_CMD object and does nothing else: what the boards' logic and the plant cost
+    per tick whatever the bench does."""
+    from firmware_stub.config import LinkName, load_emulator_config
+    from firmware_stub.sim import SimWorld
+    from hil.protocol import (
+        AxisMask,
+        Board,
+        DriveCmd,
+        DriveEnable,
+        Frame,
+        GyroSample,
+        HexapodStart,
+        ServoMode,
+        StreamMode,
+    )
+    from hil.protocol.swing import segments_to_messages
+
+    seq = [0]
+
+    def frame(dst: int, msg: object) -> Frame:
+        seq[0] = (seq[0] + 1) & 0xFFFF
+        return Frame(Board.HOST, dst, seq[0], msg)
+
+    def to_host(link: object, f: Frame) -> None:
+        if type(f.message) is GyroSample:
+            world.from_host(LinkName.DRIVER, frame(Board.DRIVER, DriveCmd(f.message.tick, 100, -100)))
+
+    world = SimWorld(load_emulator_config(config.emulator.config, clock="lockstep", seed=config.seed), to_host)
+    for msg in segments_to_messages(config.profile.protocol_segments()):
+        world.from_host(LinkName.HEXAPOD, frame(Board.HEXAPOD, msg))
+    world.from_host(LinkName.DRIVER, frame(Board.DRIVER, DriveEnable(AxisMask.BOTH, True)))
+    world.from_host(LinkName.HEXAPOD, frame(Board.HEXAPOD, HexapodStart()))
+    world.from_host(LinkName.SERVO, frame(Board.SERVO, ServoMode(StreamMode.STREAM)))
+    world.deliver()
+    tick = world.tick
+    for _ in range(1000):
+        tick()
+    t0 = time.perf_counter()
+    for _ in range(ticks):
+        tick()
+    us = (time.perf_counter() - t0) / ticks * 1e6
+    world.close()
+    return us
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="session duration (simulated)")
@@ -119,16 +166,19 @@ def main() -> int:
                   f"sim {r['sim_vs_lockstep']:.2f}x faster; whole calls {lock_wall:.2f} s / {sim_wall:.2f} s",
                   flush=True)
         floor_us = loop_floor_us(config, ticks, Path(tmp) / "floor")
+    world_us = world_floor_us(config, ticks)
     med = {key: statistics.median(r[key] for r in rows) for key in rows[0]}
-    print(f"the bench's own ControlLoop.on_sample alone (null driver, real log): {floor_us:.1f} us per sample, "
-          f"so no clock that runs it exceeds {1e3 / floor_us:.0f}x real time; the sim world and the glue add "
-          f"{med['sim_us_per_tick'] - floor_us:.1f} us per tick")
+    print(f"floors: the bench's own ControlLoop.on_sample alone (null driver, real log) {floor_us:.1f} us per "
+          f"sample; the sim world alone (boards and plant, the swing on, a host that only answers) {world_us:.1f} us "
+          f"per tick; together {floor_us + world_us:.1f} us, at most {1e3 / (floor_us + world_us):.0f}x real time "
+          f"with no glue at all; the glue between them (links, round trips, dispatch) is the other "
+          f"{med['sim_us_per_tick'] - floor_us - world_us:.1f} us")
     print(f"\nmedian of {len(rows)}: sim {med['sim_x_realtime']:.1f}x real time ({med['sim_us_per_tick']:.1f} us per "
           f"tick, target >= 50x), {med['sim_vs_lockstep']:.2f}x faster than lockstep (target >= 5x); lockstep "
           f"{med['lockstep_x_realtime']:.1f}x real time")
     if args.json:
         args.json.write_text(json.dumps({"session": str(args.session), "seconds": args.seconds, "runs": rows,
-                                         "median": med, "loop_floor_us": floor_us,
+                                         "median": med, "loop_floor_us": floor_us, "world_floor_us": world_us,
                                          "python": platform.python_version()}, indent=2))
     return 0
 
