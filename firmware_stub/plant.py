@@ -75,7 +75,7 @@ from array import array
 from collections.abc import Iterable
 from pathlib import Path
 from statistics import NormalDist
-from typing import Any, Literal, NamedTuple
+from typing import Any, Generic, Literal, NamedTuple, TypeVar
 
 import llvmlite.ir as llvm_ir
 import numba
@@ -141,6 +141,9 @@ class _Section(BaseModel):
     """Base of the plant's config sections: unknown fields refused, immutable, NaN and infinities refused."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+AxisSection = TypeVar("AxisSection", bound=_Section)
 
 
 class MotorConfig(_Section):
@@ -268,6 +271,13 @@ class HexapodConfig(_Section):
     yaw: AngularAxisLimits
 
 
+class PerAxis(_Section, Generic[AxisSection]):
+    """A mechanism given per axis (``az``, ``el``); an absent axis has it off."""
+
+    az: AxisSection | None = None
+    el: AxisSection | None = None
+
+
 class StructureAxisConfig(_Section):
     """Two-mass compliance of one axis: the free-free torsion mode between motor and load."""
 
@@ -276,18 +286,14 @@ class StructureAxisConfig(_Section):
     motor_inertia_fraction: float = Field(gt=0.0, lt=1.0, description="f: J_m = f J, J_l = (1 - f) J")
 
 
-class StructureConfig(_Section):
-    az: StructureAxisConfig | None = None
-    el: StructureAxisConfig | None = None
+StructureConfig = PerAxis[StructureAxisConfig]
 
 
 class DriveAxisConfig(_Section):
     current_limit_a: float | None = Field(None, gt=0, description="|armature current| <= this; null = no limit")
 
 
-class DriveConfig(_Section):
-    az: DriveAxisConfig | None = None
-    el: DriveAxisConfig | None = None
+DriveConfig = PerAxis[DriveAxisConfig]
 
 
 class CableAxisConfig(_Section):
@@ -297,9 +303,7 @@ class CableAxisConfig(_Section):
     damping_n_m_s_per_rad: float = Field(ge=0, le=1e3, description="c_c")
 
 
-class CableConfig(_Section):
-    az: CableAxisConfig | None = None
-    el: CableAxisConfig | None = None
+CableConfig = PerAxis[CableAxisConfig]
 
 
 class MountConfig(_Section):
@@ -321,9 +325,7 @@ class RippleAxisConfig(_Section):
     periods_per_rev: int = Field(gt=0, le=100000, description="N: ripple periods per motor revolution")
 
 
-class RippleConfig(_Section):
-    az: RippleAxisConfig | None = None
-    el: RippleAxisConfig | None = None
+RippleConfig = PerAxis[RippleAxisConfig]
 
 
 class PlantConfig(_Section):

@@ -30,42 +30,7 @@ from tests.firmware_stub.closed_loop import (
     static_gyro_peak,
     swing_carrier,
 )
-
-G0 = 9.80665
-D2R = math.pi / 180.0
-REST = CarrierMotion.at_rest()
-
-
-@pytest.fixture(scope="module")
-def rigid() -> PlantConfig:
-    """The rigid plant (profiles/plant/rigid.yaml: every v2 mechanism off): the physics these tests pin against
-    analytic solutions. profiles/plant/default.yaml is the same plant with the mechanisms on, each tested on its
-    own in test_plant_mechanisms.py."""
-    return load_plant_config(RIGID_PLANT_CONFIG)
-
-
-def with_(cfg: PlantConfig, **changes: Any) -> PlantConfig:
-    """A copy of ``cfg`` with ``section__field=value`` (or ``field=value``, or ``friction__el__field``) changed."""
-    d = cfg.model_dump()
-    for key, value in changes.items():
-        *path, leaf = key.split("__")
-        node = d
-        for part in path:
-            node = node[part]
-        node[leaf] = value
-    return PlantConfig.model_validate(d)
-
-
-def ideal(cfg: PlantConfig) -> PlantConfig:
-    """No friction, no imbalance, no gyro noise/bias/quantisation."""
-    return with_(
-        cfg,
-        friction__az__coulomb_n_m=0.0, friction__az__viscous_n_m_s_per_rad=0.0,
-        friction__el__coulomb_n_m=0.0, friction__el__viscous_n_m_s_per_rad=0.0,
-        imbalance__mass_kg=0.0,
-        gyro__noise_std_dps=(0.0, 0.0, 0.0), gyro__bias_dps=(0.0, 0.0, 0.0), gyro__quantisation_lsb_dps=0.0,
-        camera__centroid_noise_std_px=0.0,
-    )
+from tests.firmware_stub.plant_helpers import D2R, G0, REST, ideal, with_
 
 
 def linear_axis(cfg: PlantConfig, axis: str) -> tuple[np.ndarray, np.ndarray]:

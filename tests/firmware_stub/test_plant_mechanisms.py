@@ -25,42 +25,7 @@ from firmware_stub.plant import (
     load_plant_config,
 )
 from tests.firmware_stub.closed_loop import run_closed_loop
-
-G0 = 9.80665
-D2R = math.pi / 180.0
-REST = CarrierMotion.at_rest()
-
-
-@pytest.fixture(scope="module")
-def rigid() -> PlantConfig:
-    """The rigid plant (profiles/plant/rigid.yaml: every v2 mechanism off): the physics these tests pin against
-    analytic solutions. profiles/plant/default.yaml is the same plant with the mechanisms on, each tested on its
-    own in test_plant_mechanisms.py."""
-    return load_plant_config(RIGID_PLANT_CONFIG)
-
-
-def make(cfg: PlantConfig, **sections: Any) -> PlantConfig:
-    """``cfg`` with ``key=value`` (``a__b__c`` for nested keys) set; a value of a whole section replaces it."""
-    d = cfg.model_dump()
-    for key, value in sections.items():
-        *path, leaf = key.split("__")
-        node = d
-        for part in path:
-            node = node[part]
-        node[leaf] = value
-    return PlantConfig.model_validate(d)
-
-
-def ideal(cfg: PlantConfig, **sections: Any) -> PlantConfig:
-    """No friction, imbalance, noise, bias, quantisation; an ideal gyro (no delay, very wide band)."""
-    changes: dict[str, Any] = {
-        "friction__az__coulomb_n_m": 0.0, "friction__az__viscous_n_m_s_per_rad": 0.0,
-        "friction__el__coulomb_n_m": 0.0, "friction__el__viscous_n_m_s_per_rad": 0.0,
-        "imbalance__mass_kg": 0.0,
-        "gyro__noise_std_dps": (0.0, 0.0, 0.0), "gyro__bias_dps": (0.0, 0.0, 0.0), "gyro__quantisation_lsb_dps": 0.0,
-        "gyro__delay_s": 0.0, "gyro__bandwidth_hz": 1e9, "camera__centroid_noise_std_px": 0.0,
-    }
-    return make(cfg, **{**changes, **sections})
+from tests.firmware_stub.plant_helpers import D2R, G0, REST, ideal, with_
 
 
 def at_rest(n: int) -> np.ndarray:
@@ -97,8 +62,8 @@ def test_structural_mode_shows_at_mode_hz(rigid: PlantConfig) -> None:
     over the rigid plant's peaks at 120 Hz (+-10 %) by ~1 / (2 zeta); the drive -> motor (encoder side) response has
     its antiresonance at sqrt(k / J_l) = 120 sqrt(0.3) = 66 Hz."""
     freqs = np.arange(20, 301, 2)
-    rigid = ideal(rigid)
-    two = make(rigid, structure={"el": {"mode_hz": 120.0, "damping_ratio": 0.05, "motor_inertia_fraction": 0.3}})
+    rigid = ideal(rigid, ideal_gyro=True)
+    two = with_(rigid, structure={"el": {"mode_hz": 120.0, "damping_ratio": 0.05, "motor_inertia_fraction": 0.3}})
     hg_r, hm_r, _ = _multisine_response(rigid, freqs)
     hg, hm, _ = _multisine_response(two, freqs)
     ratio_load = np.abs(hg / hg_r)
@@ -146,9 +111,9 @@ def test_lugre_holds_an_unbalanced_gimbal_that_tanh_lets_creep(rigid: PlantConfi
     the elevation deflects by a bounded presliding angle (of the order of T / sigma_0 = 0.75 mdeg: the step load
     slips the bristles a little while they load, ~2x) and then stays there to 1e-9 deg for 5 s; the smoothed tanh
     model creeps at w_s atanh(T / T_c) = 0.105 deg/s."""
-    base = make(rigid, imbalance__eccentricity_mm=(2.0, 0.0, 0.0), gyro__noise_std_dps=(0.0, 0.0, 0.0))
+    base = with_(rigid, imbalance__eccentricity_mm=(2.0, 0.0, 0.0), gyro__noise_std_dps=(0.0, 0.0, 0.0))
     torque = 10.0 * G0 * 2e-3
-    lugre = make(base, friction__el=_lugre(base))
+    lugre = with_(base, friction__el=_lugre(base))
     el = _hold(lugre, 5.0)
     presliding = -torque / 1.5e4 / D2R
     print(f"LuGre: el after 0.2 s {el[200]:.3e} deg, after 5 s {el[-1]:.3e} (T / sigma_0 = {presliding:.3e})")
@@ -165,8 +130,8 @@ def test_lugre_breaks_away_above_stiction_and_not_below(rigid: PlantConfig) -> N
     """True stiction: a motor torque ramped over 2 s to 0.30 N m (between Coulomb 0.25 and stiction 0.32 N m) and
     held is held by the bearing (bounded presliding, a few mdeg, no motion in the last 1.5 s); ramped to 0.35 N m
     (above stiction) the gimbal breaks away. The tanh model has no stiction: 0.30 N m slides."""
-    base = make(rigid, gyro__noise_std_dps=(0.0, 0.0, 0.0), imbalance__mass_kg=0.0)
-    lugre = make(base, friction__el=_lugre(base))
+    base = with_(rigid, gyro__noise_std_dps=(0.0, 0.0, 0.0), imbalance__mass_kg=0.0)
+    lugre = with_(base, friction__el=_lugre(base))
     m = rigid.motor_el
     n = 4000
 
@@ -192,7 +157,7 @@ def test_lugre_breaks_away_above_stiction_and_not_below(rigid: PlantConfig) -> N
 def test_current_limit_caps_current_and_acceleration(rigid: PlantConfig) -> None:
     """A 0.5 A limit on elevation, drive at 30000 counts (22 V: 2.2 A unlimited): |i| never exceeds 0.5 A and the
     axis accelerates at K_t I_max / J (2.74 rad/s^2) instead of K_t V / (R J)."""
-    cfg = ideal(rigid, drive={"el": {"current_limit_a": 0.5}})
+    cfg = ideal(rigid, drive={"el": {"current_limit_a": 0.5}}, ideal_gyro=True)
     n = 500
     for sign in (1.0, -1.0):
         plant = Plant(cfg, seed=0)
@@ -207,7 +172,7 @@ def test_current_limit_caps_current_and_acceleration(rigid: PlantConfig) -> None
         print(f"sign {sign}: max |i| {np.max(np.abs(i)):.6f} A, accel {slope:.4f} rad/s^2 (K_t I / J {expected:.4f})")
         assert slope == pytest.approx(sign * expected, rel=1e-3)
         assert np.all(np.abs(res["voltage_el_v"]) < 30000 * m.volts_per_count)  # the driver backed the voltage off
-    free = Plant(ideal(rigid), seed=0).run(np.zeros(n), np.full(n, 30000.0), at_rest(n))
+    free = Plant(ideal(rigid, ideal_gyro=True), seed=0).run(np.zeros(n), np.full(n, 30000.0), at_rest(n))
     assert np.max(free["current_el_a"]) > 2.0
 
 
@@ -220,7 +185,7 @@ def test_cable_spring_restoring_torque_and_natural_frequency(rigid: PlantConfig)
     (2 sqrt(k_c J)) (the shorted motor's back-EMF damps too)."""
     k_c, c_c = 2.0, 0.02
     cfg = ideal(rigid, initial_el_deg=5.0, cable={"el": {"stiffness_n_m_per_rad": k_c,
-                                                          "damping_n_m_s_per_rad": c_c}})
+                                                          "damping_n_m_s_per_rad": c_c}}, ideal_gyro=True)
     plant = Plant(cfg, seed=0)
     assert plant.truth()["cable_el_n_m"] == pytest.approx(-k_c * 5.0 * D2R, rel=1e-12)
     n = 6000
@@ -250,8 +215,8 @@ def test_pivot_offset_adds_tangential_and_centripetal_acceleration(rigid: PlantC
     is that of the specific force at the pivot, f_c + alpha x r + omega x (omega x r) (seed 001 eqs 2-4), computed
     here with numpy from the carrier's rates; the offset changes it by up to m rho_z |alpha| |r| ~ 0.02 N m."""
     r = np.array([0.1, 0.0, -0.5])
-    base = ideal(rigid, imbalance__mass_kg=10.0, imbalance__eccentricity_mm=(1.0, 0.0, 2.0))
-    with_pivot = make(base, mount={"pivot_offset_m": tuple(r)})
+    base = ideal(rigid, imbalance__mass_kg=10.0, imbalance__eccentricity_mm=(1.0, 0.0, 2.0), ideal_gyro=True)
+    with_pivot = with_(base, mount={"pivot_offset_m": tuple(r)})
     a, b = Plant(with_pivot, seed=0), Plant(base, seed=0)
     w = 2 * math.pi
     diffs = []
@@ -292,7 +257,7 @@ def test_coloured_gyro_noise_has_its_band_and_std(rigid: PlantConfig) -> None:
     """One band, 200 Hz centre, 20 Hz wide, 0.05 deg/s, no white noise: the Welch PSD peaks at 200 Hz, > 80 % of
     the variance lies within +-2 bandwidths, the std is 0.05 deg/s (+-6 %), the axes are independent. Adding white
     noise on top adds the variances."""
-    cfg = ideal(rigid, gyro__noise_psd=({"centre_hz": 200.0, "bandwidth_hz": 20.0, "std_dps": 0.05},))
+    cfg = ideal(rigid, gyro__noise_psd=({"centre_hz": 200.0, "bandwidth_hz": 20.0, "std_dps": 0.05},), ideal_gyro=True)
     n = 30000
     res = Plant(cfg, seed=4).run(np.zeros(n), np.zeros(n), at_rest(n))
     g = np.column_stack([res["gyro_x_dps"], res["gyro_y_dps"], res["gyro_z_dps"]])[1000:]
@@ -304,7 +269,7 @@ def test_coloured_gyro_noise_has_its_band_and_std(rigid: PlantConfig) -> None:
     assert frac > 0.8
     assert g.std(axis=0) == pytest.approx([0.05] * 3, rel=0.06)
     assert np.max(np.abs(np.corrcoef(g.T) - np.eye(3))) < 0.05
-    both = make(cfg, gyro__noise_std_dps=(0.03, 0.03, 0.03))
+    both = with_(cfg, gyro__noise_std_dps=(0.03, 0.03, 0.03))
     g2 = Plant(both, seed=4).run(np.zeros(n), np.zeros(n), at_rest(n))["gyro_y_dps"][1000:]
     assert g2.std() == pytest.approx(math.hypot(0.05, 0.03), rel=0.05)
 
@@ -313,7 +278,7 @@ def test_random_walk_grows_as_sqrt_t(rigid: PlantConfig) -> None:
     """Rate random walk 0.01 deg/s/sqrt(s), no other noise: over 64 seeds x 3 axes the spread of the gyro at t is
     0.01 sqrt(t) (t = 1, 4, 9 s), slope 1/2 in log-log."""
     q = 0.01
-    cfg = ideal(rigid, gyro__random_walk=q)
+    cfg = ideal(rigid, gyro__random_walk=q, ideal_gyro=True)
     n = 9000
     samples = []
     for seed in range(64):
@@ -328,8 +293,8 @@ def test_random_walk_grows_as_sqrt_t(rigid: PlantConfig) -> None:
 
 
 def test_switching_on_extra_noise_leaves_the_white_noise_unchanged(rigid: PlantConfig) -> None:
-    base = make(rigid, gyro__quantisation_lsb_dps=0.0, imbalance__mass_kg=0.0)
-    extra = make(base, gyro__random_walk=1e-3)
+    base = with_(rigid, gyro__quantisation_lsb_dps=0.0, imbalance__mass_kg=0.0)
+    extra = with_(base, gyro__random_walk=1e-3)
     n = 2500
     ga = Plant(base, seed=9).run(np.zeros(n), np.zeros(n), at_rest(n))["gyro_y_dps"]
     gb = Plant(extra, seed=9).run(np.zeros(n), np.zeros(n), at_rest(n))["gyro_y_dps"]
@@ -346,7 +311,7 @@ def test_torque_ripple_appears_at_n_times_the_rotation_frequency(rigid: PlantCon
     per revolution: the rate ripples at 48 x the rotation frequency (~4 Hz), with the amplitude of the first-order
     response to the ripple torque a K_t i, ``a K_t i / |J j w + D + K_t K_e / R|``; without ripple, no line there."""
     d_visc = 0.05
-    base = ideal(rigid, friction__el__viscous_n_m_s_per_rad=d_visc)
+    base = ideal(rigid, friction__el__viscous_n_m_s_per_rad=d_visc, ideal_gyro=True)
     m = rigid.motor_el
     w_target = 30.0 * D2R
     volts = w_target * (m.resistance_ohm * d_visc + m.torque_constant_n_m_per_a * m.back_emf_v_s_per_rad) / (
@@ -355,7 +320,7 @@ def test_torque_ripple_appears_at_n_times_the_rotation_frequency(rigid: PlantCon
     n = 16000
     spectra = {}
     for amp in (0.05, 0.0):
-        cfg = make(base, ripple={"el": {"amplitude_fraction": amp, "periods_per_rev": 48}}) if amp else base
+        cfg = with_(base, ripple={"el": {"amplitude_fraction": amp, "periods_per_rev": 48}}) if amp else base
         res = Plant(cfg, seed=0).run(np.zeros(n), np.full(n, u), at_rest(n))
         rate = res["gyro_y_dps"][8000:]
         cur = res["current_el_a"][8000:]
