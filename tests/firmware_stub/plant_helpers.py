@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
-from firmware_stub.plant import CarrierMotion, PlantConfig
+import pytest
+import yaml
+
+from firmware_stub.plant import CarrierMotion, PlantConfig, PlantConfigError, load_plant_config
 
 G0 = 9.80665
 D2R = math.pi / 180.0
@@ -38,3 +43,18 @@ def ideal(cfg: PlantConfig, *, ideal_gyro: bool = False, **changes: Any) -> Plan
     if ideal_gyro:
         base.update(gyro__delay_s=0.0, gyro__bandwidth_hz=1e9)
     return with_(cfg, **{**base, **changes})
+
+
+def assert_config_error(tmp_path: Path, base: Path, change: Callable[[dict[str, Any]], Any], field: str,
+                        reason: str) -> None:
+    """The plant file ``base`` with ``change`` applied to its YAML data is refused with one line that starts with
+    the file and ``field`` and says ``reason``."""
+    data = yaml.safe_load(base.read_text())
+    change(data)
+    path = tmp_path / "plant.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(PlantConfigError) as exc:
+        load_plant_config(path)
+    msg = str(exc.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: {field}") and reason in msg, msg
+    assert isinstance(exc.value, ValueError)

@@ -9,7 +9,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-import yaml
 
 from firmware_stub.plant import (
     DEFAULT_PLANT_CONFIG,
@@ -30,7 +29,7 @@ from tests.firmware_stub.closed_loop import (
     static_gyro_peak,
     swing_carrier,
 )
-from tests.firmware_stub.plant_helpers import D2R, G0, REST, ideal, with_
+from tests.firmware_stub.plant_helpers import D2R, G0, REST, assert_config_error, ideal, with_
 
 
 def linear_axis(cfg: PlantConfig, axis: str) -> tuple[np.ndarray, np.ndarray]:
@@ -752,14 +751,6 @@ def test_default_config_file() -> None:
                 assert "#" in line, line
 
 
-def _write(tmp_path: Path, change: Any) -> Path:
-    data = yaml.safe_load(RIGID_PLANT_CONFIG.read_text())
-    change(data)
-    path = tmp_path / "plant.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
 @pytest.mark.parametrize(
     ("change", "field", "reason"),
     [
@@ -774,15 +765,7 @@ def _write(tmp_path: Path, change: Any) -> Path:
     ],
 )
 def test_config_errors_are_one_line_naming_the_field(tmp_path: Path, change: Any, field: str, reason: str) -> None:
-    path = _write(tmp_path, change)
-    with pytest.raises(PlantConfigError) as exc:
-        load_plant_config(path)
-    msg = str(exc.value)
-    print(msg)
-    assert "\n" not in msg
-    assert msg.startswith(f"{path}: {field}")
-    assert reason in msg
-    assert isinstance(exc.value, ValueError)
+    assert_config_error(tmp_path, RIGID_PLANT_CONFIG, change, field, reason)
 
 
 def test_config_file_errors(tmp_path: Path) -> None:
