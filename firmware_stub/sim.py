@@ -37,7 +37,7 @@ class MessageLink(BoardLink):
                  recorder: FaultRecorder) -> None:
         super().__init__(name, board_id, run_dir, faults, seed=seed, recorder=recorder)
         self.outbox: Outbox = []
-        self._roundtrip = {spec.cls: spec.roundtrip for spec in CATALOGUE}
+        self._roundtrip = CATALOGUE.roundtrips()
 
     def _open(self) -> None:
         self.port = None  # nothing to open: messages pass in-process

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from hil.config import PortConfig, SessionConfig
 from hil.protocol import CATALOGUE, Frame
-from hil.transport import SerialLink
+from hil.transport import LinkError, SerialLink
 
 if TYPE_CHECKING:
     from hil.session import SessionResult
@@ -59,14 +59,12 @@ class SimLink(SerialLink):
         super().__init__(name, on_frame)
         self.lab = lab
         self.port = f"sim:{name}"
-        self._roundtrip = {spec.cls: spec.roundtrip for spec in CATALOGUE}
+        self._roundtrip = CATALOGUE.roundtrips()
         self._to_board = lab.to_board(name)
         self.connection_made(_SimTransport(self))
 
     def send(self, message: Any, dst: int) -> int:
         if self.transport is None:
-            from hil.transport import LinkError
-
             raise LinkError(f"{self.name}: link is closed")
         enc = self.encoder
         seq = enc.next_seq

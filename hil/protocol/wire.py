@@ -487,6 +487,11 @@ class Catalogue:
     def __iter__(self) -> Iterator[MessageSpec]:
         return iter(sorted(self.by_id.values(), key=lambda s: s.msg_id))
 
+    def roundtrips(self) -> dict[type, Callable[[Any], Any]]:
+        """Message type -> its :meth:`MessageSpec.roundtrip` (for a link that passes messages as objects: one
+        dict lookup per message)."""
+        return {spec.cls: spec.roundtrip for spec in self}
+
     def __len__(self) -> int:
         return len(self.by_id)
 

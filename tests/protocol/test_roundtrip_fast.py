@@ -13,8 +13,7 @@ import pytest
 from hil.protocol import CATALOGUE, EncodeError, MessageSpec
 from hil.protocol.wire import Wire
 
-FAST = [spec for spec in CATALOGUE if spec.roundtrip is not spec.roundtrip_slow
-        and getattr(spec.roundtrip, "__source__", None)]
+FAST = [spec for spec in CATALOGUE if getattr(spec.roundtrip, "__source__", None)]  # the generated ones
 
 
 def value(w: Wire, rng: random.Random) -> Any:
