@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from hil.config import PROFILES, PortConfig, SessionConfig, load_session
+from hil.log.reader import read_log
 from hil.loopback import EmulatorProcess
 from hil.session import Session, SessionResult
 
@@ -85,3 +89,59 @@ def logged_events(log_path: Path) -> list[tuple[str, dict[str, Any]]]:
 
     events = read_log(log_path).groups["events"]
     return [(str(k), json.loads(str(d))) for k, d in zip(events["kind"], events["detail"], strict=True)]
+
+
+HOST_CLOCK = {"t_host_ns", "latency_us"}  # the host's own monotonic clock: differs between any two runs
+# /image/loop_tick is the loop's last tick when the frame arrived: over ptys the host may read the servo pty
+# (sample k) before the image pty (a frame the board wrote before sample k), so two lockstep runs can differ by
+# one tick there; sim delivers in the order the boards wrote. Checked separately, within that one tick.
+ARRIVAL = {("image", "loop_tick")}
+
+
+def within_session(group: str, g: dict, loop: dict, ticks: int) -> int:  # type: ignore[type-arg]
+    """Rows of ``group`` that belong to the session's first ``ticks`` ticks (after them, the wind-down depends
+    on how long the host took to start it: wall time in lockstep)."""
+    if group == "loop":
+        return ticks
+    if group == "image":  # frames exposed before the last sample of the session, board clock
+        return int(np.count_nonzero(np.asarray(g["t_exposure_s"]) <= loop["t_s"][ticks - 1]))
+    if group == "timing":
+        return int(np.count_nonzero(np.asarray(g["tick"]) < ticks))
+    return ticks // 10  # hexapod: POSE every 10 world ticks from the first
+
+
+def assert_same_channels(a: Path, b: Path, ticks: int) -> int:
+    """Every dataset of /loop, /image, /hexapod and /timing in the session's first ``ticks`` ticks equal, the
+    host's clock aside. Returns the number of values compared."""
+    la, lb = read_log(a), read_log(b)
+    compared = 0
+    for group in ("loop", "image", "hexapod", "timing"):
+        ga, gb = la.groups[group], lb.groups[group]
+        assert set(ga) == set(gb), group
+        n = within_session(group, ga, la.groups["loop"], ticks)
+        assert n == within_session(group, gb, lb.groups["loop"], ticks), group
+        for channel in sorted(set(ga) - HOST_CLOCK):
+            x, y = np.asarray(ga[channel])[:n], np.asarray(gb[channel])[:n]
+            assert len(x) == n and len(y) == n, (group, channel, len(x), len(y), n)
+            if (group, channel) in ARRIVAL:
+                diff = np.abs(x.astype(np.int64) - y.astype(np.int64))
+                assert diff.max(initial=0) <= 1 and np.count_nonzero(diff) <= 0.05 * n, (group, channel, diff)
+            else:
+                np.testing.assert_array_equal(x, y, err_msg=f"/{group}/{channel}")
+            compared += n
+    return compared
+
+
+def channel_digests(log_path: Path, ticks: int) -> dict[str, str]:
+    """SHA-256 of every /loop, /image, /hexapod and /timing dataset over the session's first ``ticks`` ticks, the
+    host's clock and the arrival-dependent channel aside: what a lockstep run reproduces byte for byte."""
+    log = read_log(log_path)
+    out = {}
+    for group in ("loop", "image", "hexapod", "timing"):
+        g = log.groups[group]
+        n = within_session(group, g, log.groups["loop"], ticks)
+        for channel in sorted(set(g) - HOST_CLOCK):
+            if (group, channel) not in ARRIVAL:
+                data = np.ascontiguousarray(np.asarray(g[channel])[:n])
+                out[f"/{group}/{channel}"] = f"{data.dtype.str}:{n}:{hashlib.sha256(data.tobytes()).hexdigest()[:16]}"
+    return out

@@ -14,52 +14,13 @@ import yaml
 from hil.config import PROFILES
 from hil.log.reader import read_log
 from hil.sim import run_sim_session
-from tests.session.helpers import run_session, session_config
+from tests.session.helpers import assert_same_channels, run_session, session_config
 
-HOST_CLOCK = {"t_host_ns", "latency_us"}  # the host's own monotonic clock: differs between any two runs
-# /image/loop_tick is the loop's last tick when the frame arrived: over ptys the host may read the servo pty
-# (sample k) before the image pty (a frame the board wrote before sample k), so two lockstep runs can differ by
-# one tick there; sim delivers in the order the boards wrote. Checked separately, within that one tick.
-ARRIVAL = {("image", "loop_tick")}
 CASES = [(3, "eso"), (11, "eso_kf"), (5, "eso_kf_ukf_ff")]
 
 
 def sim_run(config, out: Path):  # type: ignore[no-untyped-def]
     return asyncio.run(run_sim_session(config, out))
-
-
-def within_session(group: str, g: dict, loop: dict, ticks: int) -> int:  # type: ignore[type-arg]
-    """Rows of ``group`` that belong to the session's first ``ticks`` ticks (after them, the wind-down depends
-    on how long the host took to start it: wall time in lockstep)."""
-    if group == "loop":
-        return ticks
-    if group == "image":  # frames exposed before the last sample of the session, board clock
-        return int(np.count_nonzero(np.asarray(g["t_exposure_s"]) <= loop["t_s"][ticks - 1]))
-    if group == "timing":
-        return int(np.count_nonzero(np.asarray(g["tick"]) < ticks))
-    return ticks // 10  # hexapod: POSE every 10 world ticks from the first
-
-
-def assert_same_channels(a: Path, b: Path, ticks: int) -> int:
-    """Every dataset of /loop, /image, /hexapod and /timing in the session's first ``ticks`` ticks equal, the
-    host's clock aside. Returns the number of values compared."""
-    la, lb = read_log(a), read_log(b)
-    compared = 0
-    for group in ("loop", "image", "hexapod", "timing"):
-        ga, gb = la.groups[group], lb.groups[group]
-        assert set(ga) == set(gb), group
-        n = within_session(group, ga, la.groups["loop"], ticks)
-        assert n == within_session(group, gb, lb.groups["loop"], ticks), group
-        for channel in sorted(set(ga) - HOST_CLOCK):
-            x, y = np.asarray(ga[channel])[:n], np.asarray(gb[channel])[:n]
-            assert len(x) == n and len(y) == n, (group, channel, len(x), len(y), n)
-            if (group, channel) in ARRIVAL:
-                diff = np.abs(x.astype(np.int64) - y.astype(np.int64))
-                assert diff.max(initial=0) <= 1 and np.count_nonzero(diff) <= 0.05 * n, (group, channel, diff)
-            else:
-                np.testing.assert_array_equal(x, y, err_msg=f"/{group}/{channel}")
-            compared += n
-    return compared
 
 
 @pytest.mark.parametrize(("seed", "controller"), CASES)
