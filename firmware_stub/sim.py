@@ -45,8 +45,7 @@ class MessageLink(BoardLink):
     def send(self, message: Any, dst: int, tick: int) -> bool:
         msg = self._roundtrip[type(message)](message)
         enc = self.encoder
-        seq = enc.next_seq
-        enc.next_seq = (seq + 1) & 0xFFFF
+        seq = enc.take_seq()
         self.stats.tx_frames += 1
         self.outbox.append((self.name, Frame(self.board_id, dst, seq, msg)))
         return True

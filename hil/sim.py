@@ -67,17 +67,13 @@ class SimLink(SerialLink):
         if self.transport is None:
             raise LinkError(f"{self.name}: link is closed")
         enc = self.encoder
-        seq = enc.next_seq
-        enc.next_seq = (seq + 1) & 0xFFFF
+        seq = enc.take_seq()
         self._to_board(Frame(enc.src, dst, seq, self._roundtrip[type(message)](message)))
         return seq
 
     def deliver(self, frame: Frame) -> None:
         self.decoder.counters.frames_ok += 1
-        if self._waiters:
-            self._wake_waiters(frame)
-        if self.on_frame is not None:
-            self.on_frame(frame)
+        super().deliver(frame)
 
 
 class SimLab:

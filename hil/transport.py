@@ -15,6 +15,7 @@ import serial
 import serial_asyncio_fast
 
 from hil.protocol import CATALOGUE, Ack, Board, Decoder, Encoder, Frame, Nack
+from hil.protocol.framing import frame_seq
 
 DEFAULT_BAUD = 921_600
 RETRY_INTERVAL_S = 0.05  # docs/protocol.md section 6: resend after 50 ms without a reply ...
@@ -82,10 +83,15 @@ class SerialLink(asyncio.Protocol):
 
     def data_received(self, data: bytes) -> None:
         for frame in self.decoder.feed(data):
-            if self._waiters:
-                self._wake_waiters(frame)
-            if self.on_frame is not None:
-                self.on_frame(frame)
+            self.deliver(frame)
+
+    def deliver(self, frame: Frame) -> None:
+        """One decoded frame to whoever waits for it, then to ``on_frame``. The realtime loop thread, which reads the
+        servo link itself while it runs (hil.loop_thread), hands every frame but GYRO_SAMPLE here on the event loop."""
+        if self._waiters:
+            self._wake_waiters(frame)
+        if self.on_frame is not None:
+            self.on_frame(frame)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.transport = None
@@ -101,9 +107,9 @@ class SerialLink(asyncio.Protocol):
         """Encode and write one message; returns the sequence number it went out with."""
         if self.transport is None:
             raise LinkError(f"{self.name}: link is closed")
-        seq = self.encoder.next_seq
-        self.transport.write(self.encoder.encode(message, dst))
-        return seq
+        data = self.encoder.encode(message, dst)
+        self.transport.write(data)
+        return frame_seq(data)
 
     def _wake_waiters(self, frame: Frame) -> None:
         keep = []
@@ -148,8 +154,8 @@ class SerialLink(asyncio.Protocol):
         spec = CATALOGUE.spec(message)
         if self.transport is None:
             raise LinkError(f"{self.name}: link is closed")
-        seq = self.encoder.next_seq
         data = self.encoder.encode(message, dst)
+        seq = frame_seq(data)
 
         def matches(frame: Frame) -> bool:
             msg = frame.message
