@@ -63,11 +63,8 @@ def run_sim(config: SessionConfig, out: Path) -> tuple[Path, float]:
     return result.log_path, time.perf_counter() - t0
 
 
-class _NullDriver:
+def _null_drive(tick: int, az_counts: int, el_counts: int) -> None:
     """Takes DRIVE_CMD and does nothing: the floor leaves out the world's handling of it."""
-
-    def drive(self, tick: int, az_counts: int, el_counts: int) -> None:
-        pass
 
 
 def loop_floor_us(config: SessionConfig, ticks: int, out: Path) -> float:
@@ -80,8 +77,7 @@ def loop_floor_us(config: SessionConfig, ticks: int, out: Path) -> float:
 
     out.mkdir(parents=True, exist_ok=True)
     with SessionLog(out / "floor.h5", attrs={"config": {}, "ident": {}, "seed": 0}) as log:
-        loop = ControlLoop(config, _NullDriver(), log, telemetry=None, duration_ticks=10**9,  # type: ignore[arg-type]
-                           on_done=lambda: None)
+        loop = ControlLoop(config, _null_drive, log, telemetry=None, duration_ticks=10**9, on_done=lambda: None)
         loop.armed = True
         rng = np.random.default_rng(0)
         rates = (rng.standard_normal((ticks, 3)) * 0.05).round(6).tolist()

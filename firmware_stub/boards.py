@@ -32,6 +32,7 @@ from hil.protocol import (
     AxisMask,
     Board,
     BoardState,
+    ClockLate,
     DriveCmd,
     DriveDisable,
     DriveEnable,
@@ -269,12 +270,14 @@ class ServoBoard(EmulatedBoard):
 
     board_id = Board.SERVO
     WINDOW = 64  # ticks of write times kept (>= 20 needed)
+    CLOCK_LATE_S = 1e-3  # realtime: a sample written this long after its due time is followed by CLOCK_LATE
 
     def __init__(self, world: World, link: BoardLink, fingerprint: int = CATALOGUE.fingerprint) -> None:
         super().__init__(world, link, fingerprint)
         self.handlers.update({ServoMode: self._on_mode, ServoConfig: self._on_config})
         self.latencies_us = array("d")  # every measured latency since the emulator started (for summaries)
         self.pacing_late_us = array("d")  # realtime: how late each sample write was against its deadline
+        self.clock_late = 0  # CLOCK_LATE frames sent (realtime samples computed over CLOCK_LATE_S late)
 
     def power_on(self) -> None:
         super().power_on()
@@ -365,6 +368,14 @@ class ServoBoard(EmulatedBoard):
         if k >= 20 and k % 10 == 0:  # after the sample: the time-critical frame is first on the wire
             self._report_timing(k - 20)
 
+    def announce_late(self, late_s: float) -> None:
+        """Realtime, just before the tick's output is written ``late_s`` after its deadline: if that is over
+        CLOCK_LATE_S, CLOCK_LATE for the sample goes out right behind it, in the same write (docs/protocol.md,
+        "Host liveness"): this process was not run in time, the board itself was not silent."""
+        if late_s > self.CLOCK_LATE_S and self._unwritten is not None and self.last_delivered is not None:
+            self.clock_late += 1
+            self.send(ClockLate(self.last_delivered & U32, min(round(late_s * 1e6), U32)))
+
     def on_written(self, t_perf: float) -> None:
         """The tick's output has been written to the pty (realtime: at the deadline)."""
         if self._unwritten is not None:
@@ -398,6 +409,7 @@ class ServoBoard(EmulatedBoard):
             "missing_commands": self.missing_total,
             "latency_us": percentiles_us(self.latencies_us),
             "pacing_late_us": percentiles_us(self.pacing_late_us),
+            "clock_late": self.clock_late,
         }
 
 

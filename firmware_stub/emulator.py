@@ -213,7 +213,7 @@ class Emulator:
             for link in self.links.values():
                 link.defer()
             self.step()
-            wait_until(self.deadline, self.readers())
+            self.servo.announce_late(wait_until(self.deadline, self.readers()))
             self.links[LinkName.SERVO].flush()
             self.servo.on_written(time.perf_counter())
             self.released = False

@@ -317,6 +317,11 @@ class SafetyConfig(Strict):
     max_recoveries: int = Field(3, ge=0, le=1000)
     max_drive_counts: int = Field(30000, gt=0, le=32767, description="|DRIVE_CMD| saturation")
     max_slew_counts: int = Field(32767, gt=0, le=65535, description="largest change of the drive per tick")
+    emulator_stall_grace_ms: float = Field(
+        0.0, ge=0, le=10_000,
+        description="emulated boards only (--loopback, realtime): a silence past watchdog_ms that ends with the "
+        "emulator's CLOCK_LATE (the host it shares with the bench did not run its clock in time) is a host stall, "
+        "not a fault; a silence without it, or longer than this, still trips. 0 = off; refused with real ports")
 
 
 class HostConfig(Strict):

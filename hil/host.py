@@ -60,6 +60,11 @@ def pin_this_thread(cpu: int) -> None:
     os.sched_setaffinity(0, {cpu})
 
 
+def pin_this_thread_to(cpus: set[int]) -> None:
+    """Pin the calling thread (threads it starts later inherit it) to any of ``cpus``."""
+    os.sched_setaffinity(0, cpus)
+
+
 def pin_process(pid: int, cpus: set[int]) -> None:
     """Pin every thread of process ``pid`` to ``cpus`` (threads it starts later inherit it)."""
     tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")] if Path(f"/proc/{pid}/task").is_dir() else [pid]

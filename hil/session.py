@@ -1,13 +1,16 @@
 """A bench session: connect -> configure -> arm -> load and start the swing -> run -> stop the swing -> disarm.
 
 The 1 kHz loop is driven by the servo board's GYRO_SAMPLE stream: :meth:`ControlLoop.on_sample` runs
-inside the servo link's ``data_received`` and writes DRIVE_CMD k before it returns, so the board's
-clock is the loop's clock and no asyncio timer paces anything. Camera frames update the tracking loop
-when they arrive; poses, board timing reports and link counters are logged as they come.
+on each sample and writes DRIVE_CMD k before it returns, so the board's clock is the loop's clock and
+no asyncio timer paces anything. On the realtime clock (real boards, or the emulator in real time) it
+runs in a thread of its own that reads the servo link itself (hil.loop_thread); in lockstep and sim it
+runs inside the servo link's ``data_received`` on the event loop, where the world waits for it anyway.
+The same ControlLoop code runs either way. Camera frames update the tracking loop when they arrive;
+poses, board timing reports and link counters are logged as they come.
 
-Safety: the watchdog (no GYRO_SAMPLE for ``watchdog_ms``), a lost link or a driver fault zero the
-drive and DISABLE the driver at once, log a fault event, then stop or recover per config. SIGINT and
-SIGTERM disable the driver first, stop the hexapod, close the log and end with 130 / 143.
+Safety: the watchdog (no GYRO_SAMPLE for ``watchdog_ms``; hil.watchdog), a lost link or a driver fault
+zero the drive and DISABLE the driver at once, log a fault event, then stop or recover per config.
+SIGINT and SIGTERM disable the driver first, stop the hexapod, close the log and end with 130 / 143.
 """
 
 from __future__ import annotations
@@ -17,7 +20,6 @@ import contextlib
 import dataclasses
 import gc
 import signal
-import threading
 import time
 import traceback
 from array import array
@@ -36,8 +38,10 @@ from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
 from hil.control.loops import TrackingLoop
 from hil.control.registry import build_controller
 from hil.log import SessionLog
+from hil.loop_thread import DriveWriter, LoopThread, link_fd
 from hil.protocol import (
     NO_LATENCY_US,
+    ClockLate,
     DriveStatus,
     Frame,
     GyroSample,
@@ -49,102 +53,13 @@ from hil.protocol import (
 )
 from hil.telemetry import Telemetry, TelemetryProcess
 from hil.transport import LinkError, SerialLink
+from hil.watchdog import EventLoopWatchdog, Watchdog
 
 LINKS = ("servo", "driver", "image", "hexapod")
 LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[SerialLink]]
 LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
 HOST_ALIVE_S = 0.1  # HOST_ALIVE on every link this often (docs/protocol.md, "Host liveness")
 EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
-
-
-class Watchdog:
-    """Trips when nothing fed it for ``timeout_s``.
-
-    A thread sleeps until the deadline (the last feed + timeout; pthread timed waits are precise to
-    ~0.1 ms, where an asyncio timer rounds up to the next millisecond), re-checks, and on a trip hands
-    ``on_trip`` to the event loop with ``call_soon_threadsafe``. ``feed`` is one float store per sample.
-
-    A trip needs the silence to be seen by a watchdog that was itself running. When this thread wakes
-    more than ``LATE_S`` after it meant to, the host did not run it, nor (on the same CPU) the loop or
-    an emulator: samples may be queued unread or on their way. It then reports ``on_host_stall(late_s,
-    silent_s)`` and gives the board one timeout from now, so it trips on the first on-time look that
-    still finds the silence, and at ``GIVE_UP`` x timeout of silence whatever its own timing. The
-    bench could not act during such a stall anyway; a real trip comes at most one timeout after it.
-    """
-
-    LATE_S = 1e-3
-    GIVE_UP = 10.0
-
-    def __init__(self, timeout_s: float, on_trip: Callable[[float], None],
-                 on_host_stall: Callable[[float, float], None] | None = None, *,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        self.timeout_s = timeout_s
-        self.on_trip = on_trip
-        self.on_host_stall = on_host_stall
-        self.clock = clock
-        self.loop = asyncio.get_running_loop()
-        self.last = clock()
-        self.armed = False
-        self._closed = threading.Event()
-        self._thread = threading.Thread(target=self._watch, name="hil-watchdog", daemon=True)
-
-    def feed(self) -> None:
-        self.last = self.clock()
-
-    def start(self) -> None:
-        """Arm (again): restartable any number of times, also after :meth:`close`."""
-        self.last = self.clock()
-        self.armed = True
-        if not self._thread.is_alive():
-            self._closed = threading.Event()
-            self._thread = threading.Thread(target=self._watch, name="hil-watchdog", daemon=True)
-            self._thread.start()
-
-    def look(self, now: float, due: float | None) -> float | None:
-        """One look at ``now`` by a thread that meant to wake at ``due`` (None: its first look).
-
-        Returns how long to wait before the next look, or None: trip."""
-        silent = now - self.last
-        if silent < self.timeout_s:
-            return min(self.timeout_s - silent, 0.05)
-        late = 0.0 if due is None else now - due
-        if late > self.LATE_S and silent < self.GIVE_UP * self.timeout_s:
-            if self.on_host_stall is not None:
-                self.loop.call_soon_threadsafe(self.on_host_stall, late, silent)
-            return self.timeout_s
-        return None
-
-    def _watch(self) -> None:
-        closed = self._closed  # this thread's own: a restart after close() gives the next thread a new one
-        due: float | None = None
-        while not closed.is_set():
-            if not self.armed:
-                due = None
-                closed.wait(0.01)
-                continue
-            now = self.clock()
-            wait = self.look(now, due)
-            if wait is None:
-                self.armed = False
-                due = None
-                self.loop.call_soon_threadsafe(self._trip)
-                continue
-            due = now + wait
-            closed.wait(wait)
-
-    def _trip(self) -> None:
-        silent = self.clock() - self.last
-        if silent >= self.timeout_s:
-            self.on_trip(silent)
-        else:  # a sample came in while the trip was on its way to the loop
-            self.armed = True
-
-    def stop(self) -> None:
-        self.armed = False
-
-    def close(self) -> None:
-        self.armed = False
-        self._closed.set()
 
 
 @dataclass
@@ -155,23 +70,25 @@ class LoopStats:
     latency_us: array = field(default_factory=lambda: array("f"))
     faults: list[str] = field(default_factory=list)
     recoveries: int = 0
-    host_stalls: int = 0  # the watchdog woke late and looked again instead of tripping (Watchdog)
+    host_stalls: int = 0  # silences the host caused, not the board: the watchdog woke late, or the emulator's clock
+    clock_late: int = 0  # CLOCK_LATE frames: the emulator's clock fired late (its host did not run it in time)
 
 
 class ControlLoop:
     """Per-axis controllers and tracking loops; everything that happens per sample and per frame."""
 
-    def __init__(self, config: SessionConfig, driver: DriverBoard, log: SessionLog, *,
+    def __init__(self, config: SessionConfig, drive: Callable[[int, int, int], None], log: SessionLog, *,
                  telemetry: Telemetry | None, duration_ticks: int, on_done: Callable[[], None]) -> None:
+        """``drive(tick, az_counts, el_counts)`` sends DRIVE_CMD; ``on_done`` is called once, at the last tick of
+        the run (from the loop's own thread: it must hand over to the event loop itself if it needs it)."""
         self.config = config
-        self.driver = driver
+        self.drive = drive
         self.log = log
         self.telemetry = telemetry
         self.duration_ticks = duration_ticks
         self.on_done = on_done
         self.stats = LoopStats()
         self.armed = False
-        self.watchdog: Watchdog | None = None
         self.last_tick: int | None = None
         self.t_wraps = 0
         self.last_t_us = 0
@@ -203,10 +120,11 @@ class ControlLoop:
 
     # --- the 1 kHz cycle -------------------------------------------------------------------------------
 
-    def on_sample(self, g: GyroSample) -> None:
-        t_rx = time.monotonic_ns()
-        if self.watchdog is not None:
-            self.watchdog.feed()
+    def on_sample(self, g: GyroSample, t_rx: int | None = None) -> None:
+        """One cycle for sample ``g``, read at ``t_rx`` (monotonic ns; default: now). Latency is counted from
+        ``t_rx`` to DRIVE_CMD written."""
+        if t_rx is None:
+            t_rx = time.monotonic_ns()
         gap = 0 if self.last_tick is None else max(0, g.tick - self.last_tick - 1)
         self.last_tick = g.tick
         if g.t_us < self.last_t_us:
@@ -242,7 +160,7 @@ class ControlLoop:
                 self.ctrl_az.hold(u_az)  # the estimator must see the drive actually applied
             if u_el != self.ctrl_el.u_counts:
                 self.ctrl_el.hold(u_el)
-            self.driver.drive(g.tick, u_az, u_el)
+            self.drive(g.tick, u_az, u_el)
         else:
             u_az = u_el = 0
         self.u_az, self.u_el = u_az, u_el
@@ -317,7 +235,7 @@ class Session:
     def __init__(self, config: SessionConfig, ports: dict[str, PortConfig], out_dir: Path, *,
                  watchdog_ms: float | None = None, progress: Callable[[int, int], None] | None = None,
                  log_attrs: dict[str, Any] | None = None, lockstep: bool = False,
-                 open_link: LinkOpener | None = None, watchdog: bool = True) -> None:
+                 open_link: LinkOpener | None = None, watchdog: bool = True, emulated: bool = False) -> None:
         """``lockstep``: the boards are an emulator in lockstep (its world waits for the bench). The bench then
         sends no HOST_ALIVE, which would land at wall-clock moments and change the bytes of the run; the
         emulator judges host liveness by the lockstep itself (docs/protocol.md, "Host liveness").
@@ -325,7 +243,11 @@ class Session:
         ``open_link(name, port, on_frame)`` opens each board's link (default: :meth:`SerialLink.open` on the
         port); the ``sim`` clock passes one that connects to an in-process world (hil.sim). ``watchdog``: run
         the sample watchdog (off only in ``sim``, where the world advances with the loop and wall time means
-        nothing)."""
+        nothing). ``emulated``: the boards are the emulator on this host, so ``safety.emulator_stall_grace_ms`` applies
+        (hil.watchdog); ignored otherwise.
+
+        The loop runs in its own thread (hil.loop_thread) unless ``lockstep`` or ``open_link`` is given: lockstep and
+        sim keep it on the event loop, where the boards wait for it and a run's bytes are reproducible."""
         self.config = config
         self.ports = ports
         self.out_dir = out_dir
@@ -350,6 +272,11 @@ class Session:
         self.lockstep = lockstep
         self.open_link = open_link
         self.use_watchdog = watchdog
+        self.use_thread = not lockstep and open_link is None
+        self.stall_grace_s = config.safety.emulator_stall_grace_ms / 1000 if emulated else 0.0
+        self.loop_thread: LoopThread | None = None
+        self.event_watchdog: EventLoopWatchdog | None = None
+        self._loop_cpu: int | None = None
         self._hexapod_changed = asyncio.Event()
         self.interlock = Interlock()  # closed for good when the session starts to end (finish)
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -362,9 +289,14 @@ class Session:
     def _on_servo(self, frame: Frame) -> None:
         msg = frame.message
         kind = type(msg)
-        if kind is GyroSample:
+        if kind is GyroSample:  # the event loop's path (lockstep, sim); the loop thread takes samples itself
             if self.loop_ is not None:
+                if self.event_watchdog is not None:
+                    self.event_watchdog.feed()
                 self.loop_.on_sample(msg)
+        elif kind is ClockLate:
+            if self.loop_ is not None:
+                self.loop_.stats.clock_late += 1
         elif kind is LoopTiming:
             if self.loop_ is not None:
                 self.loop_.on_timing(msg)
@@ -430,8 +362,9 @@ class Session:
                               fsync=self.config.logging.fsync)
 
     def _place(self) -> None:
-        """The loop thread's CPU and scheduling class from ``config.host`` (hil.host); the helpers are already
-        running and are moved off the loop's CPU. Refusals are logged, never fatal."""
+        """The loop's CPU and scheduling class from ``config.host`` (hil.host); the helpers are already running
+        and are moved off the loop's CPU. With a loop thread, the event loop goes with the helpers and the loop
+        thread takes the CPU and the priority itself when it starts. Refusals are logged, never fatal."""
         host_cfg = self.config.host
         self._placement_before = host.current_placement()
         if host_cfg.loop_cpu is not None:
@@ -440,7 +373,11 @@ class Session:
             try:
                 cpus = host.allowed_cpus()
                 cpu = host.resolve_cpu(host_cfg.loop_cpu, cpus)
-                host.pin_this_thread(cpu)  # the watchdog thread, started later, inherits it
+                if self.use_thread:
+                    self._loop_cpu = cpu
+                    host.pin_this_thread_to(set(cpus) - {cpu})
+                else:
+                    host.pin_this_thread(cpu)
                 for pid in helpers:
                     host.pin_process(pid, set(cpus) - {cpu})
                 self.event("info", loop_cpu=cpu, helper_cpus=sorted(set(cpus) - {cpu}), helper_pids=helpers)
@@ -448,7 +385,7 @@ class Session:
                 self.event("info", loop_cpu=None, warning=f"host.loop_cpu {host_cfg.loop_cpu} not applied: "
                            f"{getattr(exc, 'strerror', None) or exc}")
         prio = host_cfg.rt_priority
-        if prio:
+        if prio and not self.use_thread:
             try:  # this thread (the event loop) only; threads started later inherit it, children do not
                 host.set_fifo(prio)
                 self.event("info", rt_priority=prio)
@@ -472,8 +409,7 @@ class Session:
         if self.driver is not None:
             with contextlib.suppress(LinkError, OSError):
                 self.driver.disable_now()
-        if loop.watchdog is not None:
-            loop.watchdog.stop()
+        self._disarm_watchdog()
         loop.stats.faults.append(reason)
         self.event("fault", reason=reason)
         safety = self.config.safety
@@ -504,11 +440,61 @@ class Session:
                 self.loop_.stats.faults.append(reason)
             self.finish("fault", reason)
 
-    def _on_host_stall(self, late_s: float, silent_s: float) -> None:
-        """The watchdog woke ``late_s`` late to ``silent_s`` without a sample and looks again (Watchdog)."""
+    def _on_host_stall(self, late_s: float, silent_s: float, by: str = "bench") -> None:
+        """A silence of ``silent_s`` the host caused (hil.watchdog): the bench's watchdog looked ``late_s`` late
+        (``by="bench"``), or the emulator's clock fired ``late_s`` late (``by="emulator"``, CLOCK_LATE)."""
         if self.loop_ is not None:
             self.loop_.stats.host_stalls += 1
-        self.event("host_stall", watchdog_late_ms=round(late_s * 1000, 2), silent_ms=round(silent_s * 1000, 2))
+        self.event("host_stall", late_by=by, late_ms=round(late_s * 1000, 2), silent_ms=round(silent_s * 1000, 2))
+
+    def _stall_reporter(self) -> Callable[[float, float, str], None]:
+        """The loop thread's watchdog's stall report, handed to the event loop."""
+        aloop = asyncio.get_running_loop()
+        return lambda *stall: aloop.call_soon_threadsafe(self._on_host_stall, *stall)
+
+    def _watchdog_trip(self, silent_s: float) -> None:
+        self.fault(f"watchdog: no GYRO_SAMPLE for {silent_s * 1000:.1f} ms")
+
+    def _arm(self) -> None:
+        """The loop drives, and the watchdog watches it (from now)."""
+        assert self.loop_ is not None
+        self.loop_.armed = True
+        if self.loop_thread is not None:
+            self.loop_thread.arm_watchdog()
+        elif self.event_watchdog is not None:
+            self.event_watchdog.arm()
+
+    def _disarm_watchdog(self) -> None:
+        if self.loop_thread is not None:
+            self.loop_thread.disarm_watchdog()
+        if self.event_watchdog is not None:
+            self.event_watchdog.disarm()
+
+    def _start_loop_thread(self) -> None:
+        """A new loop thread on the servo and driver links as they are now (a thread runs once: a recovery that
+        reopened a link starts another). Before the stream starts, so every sample goes to it."""
+        assert self.loop_ is not None and self.servo is not None and self.driver is not None
+        self._stop_loop_thread()
+        fd = link_fd(self.driver.link)
+        if fd is None:
+            raise LinkError("driver: the loop thread needs a link with a file descriptor")
+        writer = DriveWriter(self.driver.link, fd)
+        loop = self.loop_
+        loop.drive = writer.drive
+        dog = Watchdog(self.watchdog_s, self._stall_reporter(), grace_s=self.stall_grace_s)
+
+        def disarm() -> None:
+            loop.armed = False
+
+        self.loop_thread = LoopThread(
+            self.servo.link, writer, dog, on_sample=loop.on_sample, is_armed=lambda: loop.armed, disarm=disarm,
+            on_trip=self._watchdog_trip, cpu=self._loop_cpu, rt_priority=self.config.host.rt_priority,
+            on_info=lambda **detail: self.event("info", **detail))
+        self.loop_thread.start()
+
+    def _stop_loop_thread(self) -> None:
+        if self.loop_thread is not None:
+            self.loop_thread.stop()
 
     async def _recover(self) -> None:
         """Wait, reopen what was lost, restart the stream, re-arm with fresh controller states.
@@ -535,16 +521,17 @@ class Session:
                     else:
                         raise LinkError(f"{name}: did not come back within 5 s")
             assert self.servo is not None and self.driver is not None
+            if self.use_thread:
+                self.interlock.check("restarting the loop thread")
+                self._start_loop_thread()
             await self.servo.start_stream()
             await self.driver.enable(clear_faults=True)
             self.interlock.check("re-arming")
             loop.reset_controllers()
             loop.last_tick = None
             loop.stats.recoveries += 1
-            loop.armed = True
+            self._arm()
             self._recovering = False
-            if loop.watchdog is not None:
-                loop.watchdog.start()
             self.event("recovered", recoveries=loop.stats.recoveries)
         except InterlockClosed as exc:
             self.event("info", recovery=f"abandoned: {exc}")
@@ -614,9 +601,11 @@ class Session:
                                                   self.log_path.stem if self.log_path else "session")
                 await self.telemetry.start()
             self._place()
-            self.loop_ = ControlLoop(self.config, self.driver, self.log, telemetry=self.telemetry,
+            aloop_ = asyncio.get_running_loop()
+            self.loop_ = ControlLoop(self.config, self.driver.drive, self.log, telemetry=self.telemetry,
                                      duration_ticks=round(self.config.duration_s * 1000),
-                                     on_done=lambda: self.finish("completed"))
+                                     on_done=(lambda: aloop_.call_soon_threadsafe(self.finish, "completed"))
+                                     if self.use_thread else lambda: self.finish("completed"))
             self.loop_.decoders = {name: link.decoder for name, link in self.links.items()}
             self.hexapod.on_pose = self.loop_.on_pose
             self.event("state", state="configured")
@@ -626,7 +615,7 @@ class Session:
                 self.event("state", state="profile loaded", segments=len(segments))
             await self.driver.enable(clear_faults=True)
             self.interlock.check("arming")  # a signal may have come while the ACK was on its way
-            self.loop_.armed = True
+            self.loop_.armed = True  # it drives from the first sample; the watchdog watches once the stream is on
             self.event("state", state="armed")
             if segments:
                 self.interlock.check("HEXAPOD_START")
@@ -635,16 +624,17 @@ class Session:
                 self.event("state", state="swing started", segments=len(segments))
             if self.telemetry:
                 self.telemetry.state("running", controller=self.config.controller.name)
-            if self.use_watchdog:
-                self.loop_.watchdog = Watchdog(self.watchdog_s, lambda s: self.fault(
-                    f"watchdog: no GYRO_SAMPLE for {s * 1000:.1f} ms"), self._on_host_stall)
+            if self.use_thread:
+                self._start_loop_thread()
+            elif self.use_watchdog:
+                self.event_watchdog = EventLoopWatchdog(self.watchdog_s, self._watchdog_trip, self._on_host_stall)
             # what setup built (imports, configs, the log, the controllers) lives as long as the session: moved to
             # the permanent generation, a full collection in the 1 kHz loop traverses only what the loop allocates
             # (a full collection of this process took ~21 ms, four times the default watchdog)
             gc.freeze()
             await self.servo.start_stream()
-            if self.loop_.watchdog is not None:
-                self.loop_.watchdog.start()
+            self.interlock.check("arming the watchdog")
+            self._arm()
             if self.progress is not None:
                 self._spawn(self._progress_task(), "progress")
             status = await self._finished
@@ -694,8 +684,8 @@ class Session:
         it; the event ``state: safe`` records what each board confirmed."""
         if self.loop_ is not None:
             self.loop_.armed = False
-            if self.loop_.watchdog is not None:
-                self.loop_.watchdog.close()
+        self._disarm_watchdog()
+        self._stop_loop_thread()  # the event loop reads the servo link again (the ACKs of the shutdown)
         alive = [t for t in self._tasks if t.get_name() == "hil-HOST_ALIVE"]
         others = [t for t in self._tasks if t not in alive]
         for task in others:
@@ -727,6 +717,9 @@ class Session:
             self.log.close()
         for link in self.links.values():
             link.close()
+        closing = [link.closed for link in self.links.values() if not link.closed.done()]
+        if closing:  # the transport closes its port in an executor: wait, or its descriptors outlive the session
+            await asyncio.wait(closing, timeout=2.0)
         if self._placement_before is not None:  # the process may go on (a test, a script): give the thread back
             with contextlib.suppress(OSError):
                 host.restore_placement(self._placement_before)
@@ -759,5 +752,5 @@ class Session:
         pick = (lambda q: round(lat[min(len(lat) - 1, int(q * len(lat)))], 1)) if lat else (lambda q: None)
         return {"cycles": st.cycles, "late": st.late, "missed": st.missed, "latency_us_p50": pick(0.5),
                 "latency_us_p99": pick(0.99), "faults": st.faults, "recoveries": st.recoveries,
-                "host_stalls": st.host_stalls,
+                "host_stalls": st.host_stalls, "clock_late": st.clock_late,
                 "link_errors": {n: link.decoder.counters.errors() for n, link in self.links.items()}}

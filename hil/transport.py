@@ -53,6 +53,7 @@ class SerialLink(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
         self.port = ""
         self.closed = asyncio.get_running_loop().create_future()
+        self._lost_exc: Exception | None = None
         self._waiters: list[tuple[Callable[[Frame], bool], asyncio.Future[Frame]]] = []
 
     @classmethod
@@ -93,7 +94,15 @@ class SerialLink(asyncio.Protocol):
         if self.on_frame is not None:
             self.on_frame(frame)
 
+    def lost(self, exc: Exception | None) -> None:
+        """The link failed where the event loop was not reading it (the realtime loop thread reads the servo link):
+        close it, and let ``closed`` carry ``exc`` as a read failure of the transport would."""
+        self._lost_exc = exc
+        if self.transport is not None:
+            self.transport.close()
+
     def connection_lost(self, exc: Exception | None) -> None:
+        exc = exc or self._lost_exc
         self.transport = None
         if not self.closed.done():
             self.closed.set_result(exc)

@@ -201,6 +201,17 @@ class LoopTiming(NamedTuple):
     missing_total: Annotated[int, u32(doc="ticks that never got a command, since STREAM")]
 
 
+@CATALOGUE.message(0x14, sender=Board.SERVO, receiver=Board.HOST, rate="after a late sample (emulators only)")
+class ClockLate(NamedTuple):
+    """The board's own sample clock fired late: GYRO_SAMPLE ``tick``, just before this frame in the same write, went
+    out ``late_us`` after its due time. A board with a hardware timer never sends it; an emulator its host OS did not
+    run does, so a bench beside it can tell a stall of the host they share from a board that went silent
+    (docs/protocol.md, "Host liveness")."""
+
+    tick: Annotated[int, u32(doc="tick of the late GYRO_SAMPLE just before it")]
+    late_us: Annotated[int, u32("us", "how long after its due time that sample went out")]
+
+
 # --- motor driver board ---------------------------------------------------------------------
 
 
@@ -333,6 +344,7 @@ __all__ = [
     "AxisMask",
     "Board",
     "BoardState",
+    "ClockLate",
     "DriveCmd",
     "DriveDisable",
     "DriveEnable",

@@ -133,7 +133,7 @@ def test_link_messages_follow_the_catalogue_directions() -> None:
 
     common_up = {"IDENT", "HEARTBEAT", "ACK", "NACK"}
     common_down = {"IDENT_REQ", "HOST_ALIVE"}
-    assert named(Board.SERVO, "host") == common_up | {"GYRO_SAMPLE", "LOOP_TIMING"}
+    assert named(Board.SERVO, "host") == common_up | {"GYRO_SAMPLE", "LOOP_TIMING", "CLOCK_LATE"}
     assert named(Board.SERVO, "board") == common_down | {"SERVO_CONFIG", "SERVO_MODE"}
     assert named(Board.DRIVER, "host") == common_up | {"DRIVE_STATUS"}
     assert named(Board.DRIVER, "board") == common_down | {"DRIVE_CMD", "DRIVE_ENABLE", "DRIVE_DISABLE"}

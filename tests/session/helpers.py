@@ -46,7 +46,7 @@ During = Callable[[EmulatorProcess, Session], Awaitable[None]]
 
 def run_session(config: SessionConfig, out: Path, *, clock: str = "lockstep", emulator_args: list[str] | None = None,
                 during: During | None = None, watchdog_ms: float | None = None,
-                after: Callable[[EmulatorProcess], None] | None = None) -> Run:
+                after: Callable[[EmulatorProcess], None] | None = None, emulated: bool = False) -> Run:
     """One session against a fresh emulator; ``during`` runs beside the session, ``after`` once it has returned
     (the emulator still running)."""
     fault_log = out / "emulator-records.jsonl"
@@ -57,7 +57,7 @@ def run_session(config: SessionConfig, out: Path, *, clock: str = "lockstep", em
     ports = emulator.start()
     try:
         session = Session(config, {n: PortConfig(port=p) for n, p in ports.items() if n != "control"}, out,
-                          watchdog_ms=watchdog_ms, lockstep=clock == "lockstep")
+                          watchdog_ms=watchdog_ms, lockstep=clock == "lockstep", emulated=emulated)
 
         async def main() -> SessionResult:
             task = asyncio.create_task(session.run())

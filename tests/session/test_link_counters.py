@@ -58,7 +58,7 @@ def test_log_links_writes_every_counter_of_every_link() -> None:
 
 def test_a_gap_of_1000_ticks_is_logged_whole() -> None:
     log = Rows()
-    loop = ControlLoop(session_config(), driver=None, log=log, telemetry=None,  # type: ignore[arg-type]
+    loop = ControlLoop(session_config(), lambda tick, az, el: None, log=log, telemetry=None,  # type: ignore[arg-type]
                        duration_ticks=10**6, on_done=lambda: None)
     for tick in (7, 8, 1009, 1010):
         loop.on_sample(gyro(tick))

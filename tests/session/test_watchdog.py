@@ -1,4 +1,5 @@
-"""The watchdog trips on silence it saw itself; a wake-up the host delayed makes it look again first."""
+"""The watchdog trips on silence it saw itself; a look the host delayed looks again first; with a grace (emulated
+boards), a silence that ends with the emulator's CLOCK_LATE is a host stall, any other trips."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import asyncio
 import threading
 import time
 
-from hil.session import Watchdog
+from hil.watchdog import EventLoopWatchdog, Watchdog
 
 
 class HostClock:
@@ -26,21 +27,22 @@ class HostClock:
 
 
 async def watch(timeout_s: float, scenario, run_s: float = 0.08):  # type: ignore[no-untyped-def]
-    """Run a fed watchdog, play ``scenario(clock, dog, stalls)`` on the event loop, return (trips, stalls)."""
+    """Run a fed event-loop watchdog, play ``scenario(clock, dog)``, return (trips, stalls)."""
     trips: list[float] = []
     stalls: list[tuple[float, float]] = []
     clock = HostClock()
-    dog = Watchdog(timeout_s, trips.append, lambda late, silent: stalls.append((late, silent)), clock=clock)
-    dog.start()
+    dog = EventLoopWatchdog(timeout_s, trips.append, lambda late, silent, by: stalls.append((late, silent)),
+                            clock=clock)
+    dog.arm()
     try:
-        await scenario(clock, dog, stalls)
+        await scenario(clock, dog)
         await asyncio.sleep(run_s)
     finally:
         dog.close()
     return trips, stalls
 
 
-async def feed_for(dog: Watchdog, seconds: float) -> None:
+async def feed_for(dog: EventLoopWatchdog, seconds: float) -> None:
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         dog.feed()
@@ -48,34 +50,29 @@ async def feed_for(dog: Watchdog, seconds: float) -> None:
 
 
 def test_silence_trips_once() -> None:
-    async def scenario(clock: HostClock, dog: Watchdog, stalls: list) -> None:  # type: ignore[type-arg]
+    async def scenario(clock: HostClock, dog: EventLoopWatchdog) -> None:
         await feed_for(dog, 0.02)  # fed: no trip
 
     trips, stalls = asyncio.run(watch(0.005, scenario))
     assert len(trips) == 1 and 0.005 <= trips[0] < Watchdog.GIVE_UP * 0.005 + 0.01
-    if not stalls:  # no late look on the way (a quiet host): the trip came within ~2 ms of the timeout
+    if not stalls:  # no late look on the way (a quiet host): the trip came within a few ms of the timeout
         assert trips[0] < 0.005 + 0.02
 
 
 def test_a_late_look_reports_a_host_stall_and_gives_the_board_one_timeout_from_then() -> None:
-    async def looks() -> tuple[list, list]:  # type: ignore[type-arg]
-        stalls: list[tuple[float, float]] = []
-        dog = Watchdog(0.005, lambda s: None, lambda late, silent: stalls.append((late, silent)), clock=lambda: 0.0)
-        dog.last = 100.0
-        seen = [
-            dog.look(100.003, due=100.003),  # fed 3 ms ago: look again when the 5 ms are up
-            dog.look(100.006, due=100.006),  # 6 ms of silence, seen on time: trip
-            dog.look(100.025, due=100.005),  # 25 ms of silence, but this look is 20 ms late: a host stall
-        ]
-        dog.last = 100.026  # the samples queued during the stall come in
-        seen.append(dog.look(100.030, due=100.030))  # on time, 4 ms of silence: carry on
-        seen.append(dog.look(100.045, due=100.025))  # 19 ms of silence, 20 ms late: another host stall
-        seen.append(dog.look(100.050, due=100.050))  # still silent, and this look is on time: trip
-        seen.append(dog.look(100.080, due=100.010))  # 54 ms of silence: trip, however late the look
-        await asyncio.sleep(0)  # the stall reports reach the event loop
-        return seen, stalls
-
-    seen, stalls = asyncio.run(looks())
+    stalls: list[tuple[float, float]] = []
+    dog = Watchdog(0.005, lambda late, silent, by: stalls.append((late, silent)), clock=lambda: 0.0)
+    dog.last = 100.0
+    seen = [
+        dog.look(100.003, due=100.003),  # fed 3 ms ago: look again when the 5 ms are up
+        dog.look(100.006, due=100.006),  # 6 ms of silence, seen on time: trip
+        dog.look(100.025, due=100.005),  # 25 ms of silence, but this look is 20 ms late: a host stall
+    ]
+    dog.last = 100.026  # the samples queued during the stall come in
+    seen.append(dog.look(100.030, due=100.030))  # on time, 4 ms of silence: carry on
+    seen.append(dog.look(100.045, due=100.025))  # 19 ms of silence, 20 ms late: another host stall
+    seen.append(dog.look(100.050, due=100.050))  # still silent, and this look is on time: trip
+    seen.append(dog.look(100.080, due=100.010))  # 54 ms of silence: trip, however late the look
     assert seen[0] is not None and abs(seen[0] - 0.002) < 1e-9
     assert seen[1] is None
     assert seen[2] == 0.005  # one whole timeout from the late look
@@ -84,8 +81,26 @@ def test_a_late_look_reports_a_host_stall_and_gives_the_board_one_timeout_from_t
     assert [(round(late, 3), round(silent, 3)) for late, silent in stalls] == [(0.02, 0.025), (0.02, 0.019)]
 
 
+def test_with_a_grace_a_silence_is_held_and_only_the_boards_clock_late_excuses_it() -> None:
+    stalls: list[tuple[float, float]] = []
+    dog = Watchdog(0.005, lambda late, silent, by: stalls.append((late, silent)), grace_s=0.2, clock=lambda: 0.0)
+    dog.arm()
+    dog.last = 10.0
+    wait = dog.look(10.006, due=10.006)  # 6 ms of silence, on time: held, not a trip
+    assert dog.held and wait is not None and abs(wait - 0.05) < 1e-9
+    assert dog.release(10.040, board_late_s=0.039)  # the sample came with CLOCK_LATE: a stall of the shared host
+    assert not dog.held and [(round(a, 3), round(b, 3)) for a, b in stalls] == [(0.039, 0.04)]
+    dog.last = 11.0
+    assert dog.look(11.006, due=11.006) is not None and dog.held
+    assert not dog.release(11.030, board_late_s=0.0)  # the board was on time and silent: trip
+    assert len(stalls) == 1
+    dog.last = 12.0
+    assert dog.look(12.199, due=12.199) is not None  # still within the grace
+    assert dog.look(12.201, due=12.201) is None  # past the grace: trip, whatever comes later
+
+
 def test_a_board_that_stays_silent_after_a_host_stall_trips_at_the_next_on_time_look() -> None:
-    async def scenario(clock: HostClock, dog: Watchdog, stalls: list) -> None:  # type: ignore[type-arg]
+    async def scenario(clock: HostClock, dog: EventLoopWatchdog) -> None:
         await feed_for(dog, 0.01)
         clock.stall(0.02)
 
@@ -95,9 +110,22 @@ def test_a_board_that_stays_silent_after_a_host_stall_trips_at_the_next_on_time_
 
 
 def test_silence_past_the_give_up_limit_trips_without_looking_again() -> None:
-    async def scenario(clock: HostClock, dog: Watchdog, stalls: list) -> None:  # type: ignore[type-arg]
+    async def scenario(clock: HostClock, dog: EventLoopWatchdog) -> None:
         await feed_for(dog, 0.01)
         clock.stall(Watchdog.GIVE_UP * 0.005 + 0.01)
 
     trips, stalls = asyncio.run(watch(0.005, scenario))
     assert stalls == [] and len(trips) == 1 and trips[0] >= Watchdog.GIVE_UP * 0.005
+
+
+def test_an_event_loop_watchdog_rearms_any_number_of_times() -> None:
+    async def main() -> list[float]:
+        trips: list[float] = []
+        dog = EventLoopWatchdog(0.005, trips.append)
+        for _ in range(5):
+            dog.arm()
+            await asyncio.sleep(0.03)
+        dog.close()
+        return trips
+
+    assert len(asyncio.run(main())) == 5

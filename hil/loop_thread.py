@@ -1,0 +1,266 @@
+"""The realtime clock's 1 kHz loop in a thread of its own (docs/performance.md, "The loop thread").
+
+While it runs, :class:`LoopThread` owns the hot direction of two links: it reads the servo link's file descriptor
+(the event loop's transport stops reading it: ``pause_reading``) and writes DRIVE_CMD straight to the driver link's.
+Per sample: ``select`` on the servo fd with the watchdog's remaining time as the timeout, ``os.read``, the decoder's
+fixed-layout GYRO_SAMPLE path (:meth:`Decoder.fast_feed`), :meth:`ControlLoop.on_sample`, and DRIVE_CMD as one
+precompiled ``pack`` plus CRC (:class:`FramePacker`) and one ``os.write``. The log row and the telemetry sample are
+handed on without blocking (a bytearray append; a non-blocking pipe write).
+
+Everything else stays on the event loop: every other servo frame (ACKs, LOOP_TIMING, IDENT, CLOCK_LATE) is handed
+to it with ``call_soon_threadsafe`` and delivered by the link as if it had read it itself, and so are a trip, a
+host stall, a lost link and the end of the run. No lock is taken on the hot path: the two threads share only
+atomic operations (an ``itertools.count`` for sequence numbers, appends to a bytearray and a deque, single writes
+of whole frames, which the tty layer does not interleave).
+
+The watchdog (hil.watchdog) is the read timeout: the thread looks when its wait runs out, and also whenever it wakes
+after that moment (a wait the host stretched: a stopped process restarts ``select`` with the time it had left, so
+the silence must be judged on waking, whatever woke it). A silence past the timeout, seen on time, zeroes the drive
+from this thread at once (DRIVE_DISABLE on the driver fd), disarms, and asks the session for the fault and any
+recovery. A thread runs once; a recovery starts a new one (:meth:`stop` hands the servo link back to the event loop).
+
+GIL: the event loop's callbacks and this thread take turns on the interpreter. Python's default switch interval
+(5 ms) would let a callback that holds the GIL when a sample arrives delay the loop by up to 5 ms; while a loop
+thread runs, the interval is ``GIL_SWITCH_S`` (docs/performance.md, "The loop thread").
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import select
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from hil import host
+from hil.protocol import AxisMask, Board, ClockLate, DriveCmd, DriveDisable, Frame, GyroSample
+from hil.protocol.framing import FramePacker
+from hil.transport import LinkError, SerialLink
+from hil.watchdog import Watchdog
+
+READ_SIZE = 4096
+GIL_SWITCH_S = 50e-6  # sys.setswitchinterval while a loop thread runs (see the module docstring)
+
+
+def link_fd(link: SerialLink) -> int | None:
+    """The file descriptor under a serial link's transport, None for a link without one (the sim clock's)."""
+    ser = getattr(link.transport, "serial", None)
+    fd = getattr(ser, "fd", None)
+    return fd if isinstance(fd, int) and fd >= 0 else None
+
+
+def clock_late_s(frames: list[Frame], tick: int) -> float:
+    """How late the board said sample ``tick`` went out (its CLOCK_LATE follows the sample in the same write), 0 if
+    it did not say so."""
+    for frame in frames:
+        msg = frame.message
+        if msg.__class__ is ClockLate and msg.tick == tick:
+            return float(msg.late_us) * 1e-6
+    return 0.0
+
+
+class DriveWriter:
+    """DRIVE_CMD for the loop thread: one precompiled pack (sequence numbers shared with the link's encoder) and one
+    ``os.write`` on the driver fd. A write the fd does not take whole (its buffer full: the board stopped reading)
+    is counted in ``short_writes``; the board's decoder drops the broken frame and its stale timeout zeroes it."""
+
+    def __init__(self, link: SerialLink, fd: int) -> None:
+        self.fd = fd
+        self._drive = FramePacker(DriveCmd, link.encoder, Board.DRIVER).pack
+        self._disable = FramePacker(DriveDisable, link.encoder, Board.DRIVER).pack
+        self.short_writes = 0
+
+    def drive(self, tick: int, az_counts: int, el_counts: int) -> None:
+        self._write(self._drive(tick, az_counts, el_counts))
+
+    def disable_now(self) -> None:
+        self._write(self._disable(AxisMask.BOTH))
+
+    def _write(self, frame: bytes) -> None:
+        try:
+            if os.write(self.fd, frame) != len(frame):
+                self.short_writes += 1
+        except BlockingIOError:
+            self.short_writes += 1
+
+
+class LoopThread:
+    """One run of the 1 kHz loop on ``servo``'s samples (see the module docstring).
+
+    ``on_sample(g, t_rx_ns)`` is the control loop (its drive writes through ``writer``); ``is_armed()`` says whether
+    it drives. The event loop hears of a trip through ``on_trip(silent_s)``, of a stall through the watchdog's
+    ``on_host_stall``, of a lost servo link through ``servo.lost(exc)``. ``cpu``/``rt_priority``: the placement this
+    thread takes for itself (hil.host); what it could not take is reported through ``on_info``."""
+
+    def __init__(self, servo: SerialLink, writer: DriveWriter, dog: Watchdog, *,
+                 on_sample: Callable[[GyroSample, int], None], is_armed: Callable[[], bool],
+                 disarm: Callable[[], None], on_trip: Callable[[float], None],
+                 cpu: int | None = None, rt_priority: int = 0,
+                 on_info: Callable[..., None] | None = None) -> None:
+        fd = link_fd(servo)
+        if fd is None:
+            raise LinkError(f"{servo.name}: the loop thread needs a link with a file descriptor")
+        self.servo = servo
+        self.fd = fd
+        self.writer = writer
+        self.dog = dog
+        self.on_sample = on_sample
+        self.is_armed = is_armed
+        self.disarm_loop = disarm
+        self.on_trip = on_trip
+        self.cpu = cpu
+        self.rt_priority = rt_priority
+        self.on_info = on_info
+        self.aloop = asyncio.get_running_loop()
+        self._stop = False
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._thread = threading.Thread(target=self._main, name="hil-loop", daemon=True)
+        self._switch_before: float | None = None
+
+    # --- from the event loop -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Take the servo link's reading over from the event loop and start."""
+        assert self.servo.transport is not None
+        self.servo.transport.pause_reading()
+        self._switch_before = sys.getswitchinterval()
+        sys.setswitchinterval(GIL_SWITCH_S)
+        self._thread.start()
+
+    def arm_watchdog(self) -> None:
+        self.dog.arm()
+        self._wake()
+
+    def disarm_watchdog(self) -> None:
+        self.dog.disarm()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self, timeout_s: float = 1.0) -> None:
+        """End the thread and give the servo link's reading back to the event loop (if the link is still open)."""
+        self._stop = True
+        self._wake()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._wake_r = self._wake_w = -1
+        if self._switch_before is not None:
+            sys.setswitchinterval(self._switch_before)
+            self._switch_before = None
+        if self.servo.transport is not None and not self._thread.is_alive():
+            self.servo.transport.resume_reading()
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):  # closed, or already holds wake-ups
+            os.write(self._wake_w, b"w")
+
+    # --- the thread ------------------------------------------------------------------------------------
+
+    def _place(self) -> None:
+        if self.cpu is not None:
+            try:
+                host.pin_this_thread(self.cpu)
+            except OSError as exc:
+                self._info(loop_cpu=None, warning=f"loop thread not pinned to CPU {self.cpu}: {exc.strerror or exc}")
+        if self.rt_priority:
+            try:
+                host.set_fifo(self.rt_priority)
+                self._info(rt_priority=self.rt_priority, thread="hil-loop")
+            except OSError as exc:
+                self._info(rt_priority=0, warning=f"SCHED_FIFO {self.rt_priority} refused: {exc.strerror or exc}")
+
+    def _info(self, **detail: Any) -> None:
+        if self.on_info is not None:
+            self.aloop.call_soon_threadsafe(lambda: self.on_info(**detail))  # type: ignore[misc]
+
+    def _main(self) -> None:
+        post = self.aloop.call_soon_threadsafe
+        try:
+            self._place()
+            self._run(post)
+        except Exception as exc:  # a bug here must end the session safely, not the thread silently
+            self.disarm_loop()
+            self._disable()
+            post(self.servo.lost, LinkError(f"loop thread failed: {type(exc).__name__}: {exc}"))
+
+    def _run(self, post: Callable[..., Any]) -> None:
+        fd, wake = self.fd, self._wake_r
+        rlist = [fd, wake]
+        dog = self.dog
+        clock = dog.clock
+        feed = self.servo.decoder.fast_feed(GyroSample)
+        deliver = self.servo.deliver
+        on_sample = self.on_sample
+        monotonic_ns = time.monotonic_ns
+        due: float | None = None  # when the watchdog looks next (absolute, on its clock)
+        while not self._stop:
+            if not dog.armed:
+                due = None
+            elif due is None:
+                due = dog.last + dog.timeout_s
+            ready = select.select(rlist, (), (), None if due is None else max(0.0, due - clock()))[0]
+            if due is not None:
+                now = clock()
+                if now >= due:  # the wait ran out, or this thread was not run until after it did: look now
+                    wait = dog.look(now, due)
+                    if wait is None:
+                        self._trip(now - dog.last)
+                        due = None
+                        continue
+                    due = now + wait
+            if not ready:
+                continue
+            if wake in ready:
+                os.read(wake, 64)
+                if fd not in ready:
+                    continue
+            try:
+                data = os.read(fd, READ_SIZE)
+            except BlockingIOError:
+                continue
+            except OSError as exc:
+                self._lost(post, exc)
+                return
+            t_rx_ns = monotonic_ns()
+            if not data:
+                self._lost(post, None)
+                return
+            frames = feed(data)
+            for frame in frames:
+                msg = frame.message
+                if msg.__class__ is GyroSample:
+                    if dog.held and not dog.release(t_rx_ns * 1e-9, clock_late_s(frames, msg.tick)):
+                        self._trip(t_rx_ns * 1e-9 - dog.last)
+                        due = None
+                    dog.last = t_rx_ns * 1e-9
+                    on_sample(msg, t_rx_ns)
+                else:
+                    post(deliver, frame)
+
+    def _trip(self, silent_s: float) -> None:
+        """Silence past the watchdog, seen on time: zero the drive from here at once, then tell the session."""
+        self.dog.disarm()
+        was_armed = self.is_armed()
+        self.disarm_loop()
+        if was_armed:
+            self._disable()
+        self.aloop.call_soon_threadsafe(self.on_trip, silent_s)
+
+    def _disable(self) -> None:
+        with contextlib.suppress(OSError):
+            self.writer.disable_now()
+
+    def _lost(self, post: Callable[..., Any], exc: OSError | None) -> None:
+        self.disarm_loop()
+        self._disable()
+        post(self.servo.lost, LinkError(f"read failed: {exc}") if exc is not None else None)

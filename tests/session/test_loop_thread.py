@@ -1,0 +1,127 @@
+"""The realtime loop thread (hil.loop_thread): the watchdog is its read timeout, recoveries restart it any number of
+times, it takes the loop's CPU itself, and with emulated boards a stall of the shared host is told from a board fault
+by the emulator's own CLOCK_LATE."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import threading
+
+import pytest
+
+from firmware_stub.control import ControlClient
+from hil.loopback import EmulatorProcess
+from hil.session import Session
+from tests.session.helpers import logged_events, run_session, session_config, wait_cycles
+
+
+async def wait_armed(session: Session, timeout_s: float = 10.0) -> None:
+    """Until the loop drives and its watchdog watches (after a recovery, too); gives up if the session has ended."""
+    for _ in range(int(timeout_s / 0.002)):
+        if session.loop_ and session.loop_.armed and session.loop_thread and session.loop_thread.dog.armed:
+            return
+        if session._finished is not None and session._finished.done():
+            return
+        await asyncio.sleep(0.002)
+    raise TimeoutError("the session did not re-arm")
+
+
+def test_five_watchdog_trips_are_five_recoveries_each_with_a_new_loop_thread(tmp_path) -> None:
+    threads: list[object] = []
+
+    async def stall_five_times(emu: EmulatorProcess, session: Session) -> None:
+        await wait_cycles(session, 300)
+        with ControlClient(emu.ports["control"]) as ctl:
+            for _ in range(5):
+                await wait_armed(session)
+                threads.append(session.loop_thread)
+                ctl.call("inject", link="servo", kind="stall", duration_ms=60)
+                await asyncio.sleep(0.15)
+        await wait_armed(session)
+        threads.append(session.loop_thread)
+
+    safety = {"watchdog_ms": 20, "on_fault": "recover", "max_recoveries": 50, "recover_after_ms": 20}
+    run = run_session(session_config(duration_s=4.0, safety=safety), tmp_path, clock="realtime",
+                      during=stall_five_times)
+    assert run.result.status == "completed", run.result.message
+    faults = run.result.stats.faults
+    assert sum("watchdog" in f for f in faults) >= 5 and run.result.stats.recoveries == len(faults), faults
+    assert len({id(t) for t in threads}) == 6  # each recovery ran a loop thread of its own
+    assert not any(t.alive for t in threads)  # type: ignore[attr-defined]
+    kinds = [k for k, _ in logged_events(run.result.log_path)]
+    assert kinds.count("recovered") == run.result.stats.recoveries
+    assert not [t for t in threading.enumerate() if t.name == "hil-loop"]  # none left behind
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="placement needs two CPUs")
+def test_the_loop_thread_takes_the_loop_cpu_and_the_event_loop_goes_with_the_helpers(tmp_path) -> None:
+    cpus = sorted(os.sched_getaffinity(0))
+    before = os.sched_getaffinity(0)
+    seen: dict[str, set[int]] = {}
+
+    async def look(emulator: EmulatorProcess, session: Session) -> None:
+        await wait_cycles(session, 200)
+        assert session.loop_thread is not None and session.log is not None
+        seen["loop thread"] = os.sched_getaffinity(session.loop_thread._thread.native_id)  # type: ignore[arg-type]
+        seen["event loop"] = os.sched_getaffinity(0)
+        seen["writer"] = os.sched_getaffinity(session.log.writer_pid)
+
+    config = session_config(duration_s=1.0, host={"loop_cpu": -1}, emulator={"cpu": -1})
+    run = run_session(config, tmp_path, clock="realtime", during=look)
+    assert run.result.status == "completed", run.result.message
+    last = cpus[-1]
+    assert seen == {"loop thread": {last}, "event loop": set(cpus) - {last}, "writer": set(cpus) - {last}}
+    assert os.sched_getaffinity(0) == before
+
+
+def _freeze_emulator(times: int, ms: float):  # type: ignore[no-untyped-def]
+    """Stop the emulator's whole process ``times`` times for ``ms``: its clock comes back late, as on a busy host."""
+
+    async def during(emu: EmulatorProcess, session: Session) -> None:
+        assert emu.proc is not None
+        await wait_cycles(session, 300)
+        for _ in range(times):
+            await wait_armed(session)
+            os.kill(emu.proc.pid, signal.SIGSTOP)
+            await asyncio.sleep(ms / 1000)
+            os.kill(emu.proc.pid, signal.SIGCONT)
+            await asyncio.sleep(0.2)
+
+    return during
+
+
+def test_with_a_grace_an_emulator_the_host_did_not_run_is_a_stall_not_a_fault(tmp_path) -> None:
+    safety = {"watchdog_ms": 5, "on_fault": "stop", "emulator_stall_grace_ms": 500}
+    run = run_session(session_config(duration_s=2.0, safety=safety), tmp_path, clock="realtime",
+                      during=_freeze_emulator(3, 40), emulated=True)
+    assert run.result.status == "completed", run.result.message
+    assert run.result.stats.faults == []
+    stalls = [d for k, d in logged_events(run.result.log_path) if k == "host_stall" and d["late_by"] == "emulator"]
+    assert len(stalls) >= 3 and run.result.stats.host_stalls >= 3
+    assert all(35 <= d["late_ms"] <= 400 and d["silent_ms"] >= 35 for d in stalls[:3]), stalls
+    assert run.result.stats.clock_late >= 3  # the emulator said so itself, before each late sample
+
+
+def test_without_the_grace_the_same_freeze_trips_the_watchdog(tmp_path) -> None:
+    safety = {"watchdog_ms": 5, "on_fault": "stop"}
+    run = run_session(session_config(duration_s=2.0, safety=safety), tmp_path, clock="realtime",
+                      during=_freeze_emulator(1, 40), emulated=True)
+    assert run.result.status == "fault" and run.result.stats.faults[0].startswith("watchdog: no GYRO_SAMPLE")
+
+
+def test_with_a_grace_a_board_silent_on_its_own_clock_still_trips(tmp_path) -> None:
+    async def stall_link(emu: EmulatorProcess, session: Session) -> None:
+        await wait_cycles(session, 300)
+        await wait_armed(session)
+        with ControlClient(emu.ports["control"]) as ctl:  # the emulator's clock runs on; the link holds the samples
+            ctl.call("inject", link="servo", kind="stall", duration_ms=60)
+
+    safety = {"watchdog_ms": 5, "on_fault": "stop", "emulator_stall_grace_ms": 500}
+    run = run_session(session_config(duration_s=2.0, safety=safety), tmp_path, clock="realtime", during=stall_link,
+                      emulated=True)
+    assert run.result.status == "fault", run.result.message
+    assert run.result.stats.faults[0].startswith("watchdog: no GYRO_SAMPLE")
+    silent_ms = float(run.result.stats.faults[0].split("for ")[1].split(" ms")[0])
+    assert 5 <= silent_ms < 500  # when the held samples came, without CLOCK_LATE: not after the whole grace
