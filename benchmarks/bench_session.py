@@ -7,9 +7,11 @@ Each repeat runs, back to back and placed alike (the loop's end on the loop CPU,
 CPU, from profiles/sessions/demo.yaml unless overridden):
 
 1. floor: two bare processes ping-ponging 40 bytes over a pty at 1 kHz (no Python work but the calls);
-2. lean responder: the same emulator, answered by a thread that blocks in ``os.read`` on the servo pty, checks the
-   GYRO_SAMPLE's CRC and unpacks its tick with ``struct``, and writes DRIVE_CMD with one ``pack``, ``crc_hqx`` and
-   ``os.write``: the best a Python responder does here;
+2. lean responder: the same emulator, answered by one thread that waits in ``select`` on the four ptys, frames the
+   servo bytes with a minimal framer, checks the GYRO_SAMPLE's CRC and takes its tick, and writes DRIVE_CMD with one
+   ``struct.pack``, ``crc_hqx`` and ``os.write``; the other boards' bytes are read and dropped (a board link nobody
+   reads fills its pty, and the emulator's writes to it then stall its clock by milliseconds): the best a Python
+   responder does here;
 3. the session: the demo session (ESO+KF, tracking, logging, MQTT on a broker started here), the loop in its thread.
 
 Reported per repeat: board-measured GYRO_SAMPLE k written -> DRIVE_CMD k received (p50/p99/p99.9, as the emulated
@@ -111,18 +113,30 @@ def lean_responder(config: SessionConfig, seconds: float, cpu: int | None) -> di
 
     import serial
 
-    from hil.protocol import Board, Decoder, Encoder, HostAlive, ServoMode, StreamMode
+    from hil.protocol import (
+        CATALOGUE,
+        Board,
+        Decoder,
+        Encoder,
+        GyroSample,
+        HostAlive,
+        LoopTiming,
+        ServoMode,
+        StreamMode,
+    )
 
     emulator = EmulatorProcess(config.emulator.config, clock="realtime", seed=config.seed,
                                extra_args=config.emulator.process_args())
     ports = emulator.start()
     servo = serial.Serial(ports["servo"], 921_600, timeout=None)
     driver = serial.Serial(ports["driver"], 921_600, timeout=0)
+    others = [driver] + [serial.Serial(ports[name], 921_600, timeout=0) for name in ("image", "hexapod")]
     sfd, dfd = servo.fd, driver.fd
-    os.set_blocking(sfd, True)
     host = Encoder(Board.HOST)
     header = struct.Struct("<2sBBBBHBIhh")
     decoder = Decoder.for_link(Board.SERVO)
+    gyro_id = next(spec for spec in CATALOGUE if spec.cls is GyroSample).msg_id
+    timing_id = next(spec for spec in CATALOGUE if spec.cls is LoopTiming).msg_id
     frames: list = []  # type: ignore[type-arg]
     end = time.monotonic() + seconds
 
@@ -131,18 +145,40 @@ def lean_responder(config: SessionConfig, seconds: float, cpu: int | None) -> di
             os.sched_setaffinity(0, {cpu})
         seq = 0
         alive_at = 0.0
+        buf = b""
+        timing: list[bytes] = []  # LOOP_TIMING frames, decoded after the run
+        fds = [sfd] + [o.fd for o in others]
         while time.monotonic() < end:
-            data = os.read(sfd, 4096)
-            if len(data) >= 37 and data[5] == 0x10 and crc_hqx(data[2:35], 0xFFFF) == data[35] | data[36] << 8:
-                tick = int.from_bytes(data[13:17], "little")
-                body = header.pack(b"\xeb\x90", 1, Board.HOST, Board.DRIVER, 0x20, seq, 8, tick, 0, 0)
-                os.write(dfd, body + crc_hqx(body[2:], 0xFFFF).to_bytes(2, "little"))
-                seq = (seq + 1) & 0xFFFF
-            frames.extend(decoder.feed(data))  # LOOP_TIMING, after the answer
+            ready = select.select(fds, [], [], 0.1)[0]
+            for fd in ready[1:] if ready and ready[0] == sfd else ready:
+                os.read(fd, 4096)  # the other boards' frames, read as the session reads them, and dropped
+            if not ready or ready[0] != sfd:
+                continue
+            buf += os.read(sfd, 4096)
+            while len(buf) >= 9:  # a minimal framer: the pty may cut or join frames
+                if buf[0] != 0xEB or buf[1] != 0x90:
+                    start = buf.find(b"\xeb\x90", 1)
+                    buf = buf[start:] if start >= 0 else buf[-1:]
+                    continue
+                n = buf[8] + 11
+                if len(buf) < n:
+                    break
+                if crc_hqx(buf[2 : n - 2], 0xFFFF) == buf[n - 2] | buf[n - 1] << 8:
+                    if buf[5] == gyro_id:
+                        tick = int.from_bytes(buf[13:17], "little")  # the payload's second field
+                        body = header.pack(b"\xeb\x90", 1, Board.HOST, Board.DRIVER, 0x20, seq, 8, tick, 0, 0)
+                        os.write(dfd, body + crc_hqx(body[2:], 0xFFFF).to_bytes(2, "little"))
+                        seq = (seq + 1) & 0xFFFF
+                    elif buf[5] == timing_id:
+                        timing.append(buf[:n])
+                    buf = buf[n:]
+                else:
+                    buf = buf[1:]
             now = time.monotonic()
             if now - alive_at > 0.1:  # the servo board's host timer (docs/protocol.md, "Host liveness")
                 os.write(sfd, host.encode(HostAlive(0), Board.SERVO))
                 alive_at = now
+        frames.extend(decoder.feed(b"".join(timing)))
 
     try:
         os.write(sfd, host.encode(ServoMode(StreamMode.STREAM), Board.SERVO))
@@ -152,7 +188,8 @@ def lean_responder(config: SessionConfig, seconds: float, cpu: int | None) -> di
         os.write(sfd, host.encode(ServoMode(StreamMode.IDLE), Board.SERVO))
     finally:
         servo.close()
-        driver.close()
+        for o in others:
+            o.close()
         summary = emulator.stop()
     lat = board_latencies(frames)
     return {"board_us": quantiles(lat), "n": int(lat.size), "pacing": summary.get("servo", {}).get("pacing_late_us")}

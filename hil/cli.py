@@ -306,8 +306,8 @@ def _print_summary(s: dict) -> None:  # type: ignore[type-arg]
     if s.get("host_stalls"):
         emulator = s.get("host_stalls_emulator", 0)
         t.add_row("host stalls: count / longest silence", f"{s['host_stalls']} / {_fmt(s['host_stall_max_ms'], 1)}",
-                  f"ms; this host ran the bench late ({s['host_stalls'] - emulator}) or the emulator's clock late "
-                  f"({emulator}): not board faults")
+                  f"ms; this host ran the bench late ({s['host_stalls'] - emulator}), or held up the emulator or its "
+                  f"bytes ({emulator}): not board faults")
     console.print(t)
     if s.get("incomplete"):
         console.print(f"[bold yellow]incomplete:[/] {s['incomplete']}", highlight=False)

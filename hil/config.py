@@ -320,8 +320,9 @@ class SafetyConfig(Strict):
     emulator_stall_grace_ms: float = Field(
         0.0, ge=0, le=10_000,
         description="emulated boards only (--loopback, realtime): a silence past watchdog_ms that ends with the "
-        "emulator's CLOCK_LATE (the host it shares with the bench did not run its clock in time) is a host stall, "
-        "not a fault; a silence without it, or longer than this, still trips. 0 = off; refused with real ports")
+        "emulator's CLOCK_LATE (the host it shares with the bench did not run its clock in time), or with the next "
+        "sample and none lost (the host held the bytes up), is a host stall, not a fault; a silence that lost samples, "
+        "or is longer than this, still trips. 0 = off; refused with real ports")
 
 
 class HostConfig(Strict):

@@ -93,12 +93,13 @@ class LoopThread:
 
     ``on_sample(g, t_rx_ns)`` is the control loop (its drive writes through ``writer``); ``is_armed()`` says whether
     it drives. The event loop hears of a trip through ``on_trip(silent_s)``, of a stall through the watchdog's
-    ``on_host_stall``, of a lost servo link through ``servo.lost(exc)``. ``cpu``/``rt_priority``: the placement this
+    ``on_host_stall``, of a lost servo link through ``servo.lost(exc)``, of an exception in the loop (the drive is
+    disabled first) through ``on_error(reason)``. ``cpu``/``rt_priority``: the placement this
     thread takes for itself (hil.host); what it could not take is reported through ``on_info``."""
 
     def __init__(self, servo: SerialLink, writer: DriveWriter, dog: Watchdog, *,
                  on_sample: Callable[[GyroSample, int], None], is_armed: Callable[[], bool],
-                 disarm: Callable[[], None], on_trip: Callable[[float], None],
+                 disarm: Callable[[], None], on_trip: Callable[[float], None], on_error: Callable[[str], None],
                  cpu: int | None = None, rt_priority: int = 0,
                  on_info: Callable[..., None] | None = None) -> None:
         fd = link_fd(servo)
@@ -112,6 +113,7 @@ class LoopThread:
         self.is_armed = is_armed
         self.disarm_loop = disarm
         self.on_trip = on_trip
+        self.on_error = on_error
         self.cpu = cpu
         self.rt_priority = rt_priority
         self.on_info = on_info
@@ -191,7 +193,7 @@ class LoopThread:
         except Exception as exc:  # a bug here must end the session safely, not the thread silently
             self.disarm_loop()
             self._disable()
-            post(self.servo.lost, LinkError(f"loop thread failed: {type(exc).__name__}: {exc}"))
+            post(self.on_error, f"loop thread failed: {type(exc).__name__}: {exc}")
 
     def _run(self, post: Callable[..., Any]) -> None:
         fd, wake = self.fd, self._wake_r
@@ -203,6 +205,7 @@ class LoopThread:
         on_sample = self.on_sample
         monotonic_ns = time.monotonic_ns
         due: float | None = None  # when the watchdog looks next (absolute, on its clock)
+        last_tick: int | None = None  # of the last sample (a held silence that lost none is the host's)
         while not self._stop:
             if not dog.armed:
                 due = None
@@ -239,9 +242,12 @@ class LoopThread:
             for frame in frames:
                 msg = frame.message
                 if msg.__class__ is GyroSample:
-                    if dog.held and not dog.release(t_rx_ns * 1e-9, clock_late_s(frames, msg.tick)):
-                        self._trip(t_rx_ns * 1e-9 - dog.last)
-                        due = None
+                    if dog.held:
+                        lost = None if last_tick is None else (msg.tick - last_tick - 1) & 0xFFFFFFFF
+                        if not dog.release(t_rx_ns * 1e-9, clock_late_s(frames, msg.tick), lost):
+                            self._trip(t_rx_ns * 1e-9 - dog.last)
+                            due = None
+                    last_tick = msg.tick
                     dog.last = t_rx_ns * 1e-9
                     on_sample(msg, t_rx_ns)
                 else:

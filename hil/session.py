@@ -488,8 +488,8 @@ class Session:
 
         self.loop_thread = LoopThread(
             self.servo.link, writer, dog, on_sample=loop.on_sample, is_armed=lambda: loop.armed, disarm=disarm,
-            on_trip=self._watchdog_trip, cpu=self._loop_cpu, rt_priority=self.config.host.rt_priority,
-            on_info=lambda **detail: self.event("info", **detail))
+            on_trip=self._watchdog_trip, on_error=self.fault, cpu=self._loop_cpu,
+            rt_priority=self.config.host.rt_priority, on_info=lambda **detail: self.event("info", **detail))
         self.loop_thread.start()
 
     def _stop_loop_thread(self) -> None:

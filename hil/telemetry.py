@@ -278,7 +278,9 @@ def _safe_dumps(body: dict[str, Any], detail: dict[str, Any]) -> str:
 class Telemetry:
     """Publishes one session's telemetry, state and events; see the module docstring and docs/telemetry.md.
 
-    Use from the event loop's thread only (sample/event/state are not thread-safe).
+    Use from the event loop's thread only (sample/event/state are not thread-safe); the exception is
+    :class:`TelemetryProcess`, whose ``sample`` the realtime loop thread calls while the event loop sends
+    events and state (each message is one atomic pipe write; the decimation state is the loop thread's).
     """
 
     TASK_NAME: ClassVar[str] = "hil-telemetry"

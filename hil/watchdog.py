@@ -14,7 +14,7 @@ import asyncio
 import time
 from collections.abc import Callable
 
-StallReport = Callable[[float, float, str], None]  # (late_s, silent_s, by: "bench" | "emulator")
+StallReport = Callable[[float, float, str], None]  # (late_s, silent_s, by: "bench" | "emulator" | "host")
 
 
 class Watchdog:
@@ -29,9 +29,11 @@ class Watchdog:
 
     ``grace_s`` (emulated boards only, ``safety.emulator_stall_grace_ms``): a silence past the timeout is *held*
     instead of tripping, until ``grace_s``. If the next sample comes with the board's word that its own clock was
-    late (CLOCK_LATE: the emulator was not run by the host it shares with the bench), :meth:`release` reports a
-    host stall (``by="emulator"``); if it comes without it (the board was on time and silent), or nothing comes
-    within ``grace_s``, it trips.
+    late (CLOCK_LATE: the emulator was not run by the host it shares with the bench), or comes without a sample
+    lost before it (the bytes were held up on their way through the shared host), :meth:`release` reports a host
+    stall; if samples were lost (the board or its link failed), or nothing comes within ``grace_s``, it trips.
+    A link fault injected as a latency spike (samples held, none lost) is then a host stall too: fault-injection
+    sessions run without the grace.
     """
 
     LATE_S = 1e-3
@@ -78,14 +80,21 @@ class Watchdog:
             return min(self.grace_s - silent, 0.05)
         return None
 
-    def release(self, now: float, board_late_s: float) -> bool:
-        """A sample came while a silence was held: True if the board said its clock was ``board_late_s`` late (a
-        host stall, reported), False if not (trip: the board was silent on its own clock)."""
+    def release(self, now: float, board_late_s: float, lost: int | None) -> bool:
+        """A sample came while a silence was held. True (a host stall, reported) if the emulator said its clock was
+        ``board_late_s`` late (``by="emulator"``), or if no sample was lost on the way (``lost == 0``: the board sent
+        on time and the host it shares with the bench held the bytes up, ``by="host"``); False (trip) if samples
+        were lost (the board or its link failed) or it is not known (``lost`` None: the first sample of a run)."""
         self.held = False
-        if board_late_s <= 0:
+        silent = now - self.last
+        if board_late_s > 0:
+            by, late = "emulator", board_late_s
+        elif lost == 0:
+            by, late = "host", silent
+        else:
             return False
         if self.on_host_stall is not None:
-            self.on_host_stall(board_late_s, now - self.last, "emulator")
+            self.on_host_stall(late, silent, by)
         return True
 
 

@@ -151,3 +151,20 @@ def test_a_lockstep_session_needs_no_wall_clock_margin(tmp_path: Path) -> None:
     assert run.emulator["lockstep_timeouts"] <= 1  # at most the sample after the last one the bench took
     assert run.emulator["servo"]["missing_commands"] <= 1
     assert run.result.stats.cycles >= 3990
+
+
+def test_the_emulator_stall_grace_is_refused_with_real_ports(tmp_path: Path) -> None:
+    import yaml
+
+    data = yaml.safe_load(BASE_SESSION.read_text())
+    for key in ("controller", "profile", "hexapod_limits"):
+        data[key] = str((PROFILES / "sessions" / data[key]).resolve())
+    data["safety"] = {**data["safety"], "emulator_stall_grace_ms": 500}
+    data["ports"] = {name: {"port": str(tmp_path / f"tty-{name}")} for name in ("servo", "driver", "image", "hexapod")}
+    lab = tmp_path / "lab.yaml"
+    lab.write_text(yaml.safe_dump(data))
+    res = hil("run", str(lab), "--out", str(tmp_path))
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "safety.emulator_stall_grace_ms" in lines[0] and "--loopback" in lines[0], res.stderr
+    assert not list(tmp_path.glob("*.h5"))

@@ -125,3 +125,21 @@ def test_with_a_grace_a_board_silent_on_its_own_clock_still_trips(tmp_path) -> N
     assert run.result.stats.faults[0].startswith("watchdog: no GYRO_SAMPLE")
     silent_ms = float(run.result.stats.faults[0].split("for ")[1].split(" ms")[0])
     assert 5 <= silent_ms < 500  # when the held samples came, without CLOCK_LATE: not after the whole grace
+
+
+def test_an_exception_in_the_loop_thread_disables_the_drive_and_ends_the_session_as_a_fault(tmp_path) -> None:
+    async def break_the_loop(emu: EmulatorProcess, session: Session) -> None:
+        await wait_cycles(session, 300)
+        assert session.loop_ is not None
+
+        def broken(tick: int, az: int, el: int) -> None:
+            raise ZeroDivisionError("a bug in a controller")
+
+        session.loop_.drive = broken
+
+    run = run_session(session_config(duration_s=2.0, safety={"on_fault": "stop"}), tmp_path, clock="realtime",
+                      during=break_the_loop)
+    assert run.result.status == "fault"
+    assert run.result.message == "loop thread failed: ZeroDivisionError: a bug in a controller"
+    disables = [r for r in run.records if r["link"] == "driver" and r["kind"] == "drive_disable"]
+    assert disables  # the emulated driver saw the power stage disabled

@@ -88,12 +88,18 @@ def test_with_a_grace_a_silence_is_held_and_only_the_boards_clock_late_excuses_i
     dog.last = 10.0
     wait = dog.look(10.006, due=10.006)  # 6 ms of silence, on time: held, not a trip
     assert dog.held and wait is not None and abs(wait - 0.05) < 1e-9
-    assert dog.release(10.040, board_late_s=0.039)  # the sample came with CLOCK_LATE: a stall of the shared host
+    assert dog.release(10.040, board_late_s=0.039, lost=None)  # the sample came with CLOCK_LATE: the shared host
     assert not dog.held and [(round(a, 3), round(b, 3)) for a, b in stalls] == [(0.039, 0.04)]
     dog.last = 11.0
     assert dog.look(11.006, due=11.006) is not None and dog.held
-    assert not dog.release(11.030, board_late_s=0.0)  # the board was on time and silent: trip
+    assert not dog.release(11.030, board_late_s=0.0, lost=29)  # on time by its own clock, samples lost: trip
+    assert dog.look(11.040, due=11.040) is not None and dog.held
+    assert not dog.release(11.050, board_late_s=0.0, lost=None)  # not known: trip
     assert len(stalls) == 1
+    dog.last = 11.5
+    assert dog.look(11.508, due=11.508) is not None and dog.held
+    assert dog.release(11.512, board_late_s=0.0, lost=0)  # none lost, only held up on the way: the shared host
+    assert [(round(a, 3), round(b, 3)) for a, b in stalls][1:] == [(0.012, 0.012)]
     dog.last = 12.0
     assert dog.look(12.199, due=12.199) is not None  # still within the grace
     assert dog.look(12.201, due=12.201) is None  # past the grace: trip, whatever comes later
