@@ -28,8 +28,8 @@ def main() -> None:
     args = ap.parse_args()
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hogs)]
     print(f"# hil demo beside {args.hogs} CPU hogs, {args.repeat} runs")
-    print("| run | exit code | wall s | faults | host stalls (emulator or its bytes held up) | longest silence ms | late / missed "
-          "cycles |")
+    print("| run | exit code | wall s | faults | host stalls (emulator or its bytes held up) | longest silence ms | "
+          "late / missed cycles |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     try:
         for r in range(1, args.repeat + 1):
