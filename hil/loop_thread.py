@@ -146,6 +146,11 @@ class LoopThread:
     def alive(self) -> bool:
         return self._thread.is_alive()
 
+    @property
+    def native_id(self) -> int | None:
+        """The thread's id for the OS (its CPU affinity, its scheduling), None before it starts."""
+        return self._thread.native_id
+
     def stop(self, timeout_s: float = 1.0) -> None:
         """End the thread and give the servo link's reading back to the event loop (if the link is still open)."""
         self._stop = True
