@@ -19,6 +19,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 HIL = [sys.executable, "-m", "hil"]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_session import start_hogs  # noqa: E402
 
 
 def main() -> None:
@@ -26,7 +29,7 @@ def main() -> None:
     ap.add_argument("--hogs", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
-    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hogs)]
+    hogs = start_hogs(args.hogs)
     print(f"# hil demo beside {args.hogs} CPU hogs, {args.repeat} runs")
     print("| run | exit code | wall s | faults | host stalls (emulator or its bytes held up) | longest silence ms | "
           "late / missed cycles |")

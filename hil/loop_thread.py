@@ -34,7 +34,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from hil import host
 from hil.protocol import AxisMask, Board, ClockLate, DriveCmd, DriveDisable, Frame, GyroSample
@@ -88,18 +88,26 @@ class DriveWriter:
             self.short_writes += 1
 
 
+class ControlLoopLike(Protocol):
+    """What the thread needs of the session's control loop (hil.session.ControlLoop)."""
+
+    armed: bool
+
+    def on_sample(self, g: GyroSample, t_rx: int | None = None) -> None: ...
+
+
 class LoopThread:
     """One run of the 1 kHz loop on ``servo``'s samples (see the module docstring).
 
-    ``on_sample(g, t_rx_ns)`` is the control loop (its drive writes through ``writer``); ``is_armed()`` says whether
-    it drives. The event loop hears of a trip through ``on_trip(silent_s)``, of a stall through the watchdog's
-    ``on_host_stall``, of a lost servo link through ``servo.lost(exc)``, of an exception in the loop (the drive is
-    disabled first) through ``on_error(reason)``. ``cpu``/``rt_priority``: the placement this
-    thread takes for itself (hil.host); what it could not take is reported through ``on_info``."""
+    ``loop.on_sample(g, t_rx_ns)`` is the control loop (its drive writes through ``writer``); ``loop.armed`` says
+    whether it drives, and the thread clears it on a trip or an error. The event loop hears of a trip through
+    ``on_trip(silent_s)``, of a stall through the watchdog's ``on_host_stall``, of a lost servo link through
+    ``servo.lost(exc)``, of an exception in the loop (the drive is disabled first) through ``on_error(reason)``.
+    ``cpu``/``rt_priority``: the placement this thread takes for itself (hil.host); what it could not take is
+    reported through ``on_info``."""
 
-    def __init__(self, servo: SerialLink, writer: DriveWriter, dog: Watchdog, *,
-                 on_sample: Callable[[GyroSample, int], None], is_armed: Callable[[], bool],
-                 disarm: Callable[[], None], on_trip: Callable[[float], None], on_error: Callable[[str], None],
+    def __init__(self, servo: SerialLink, writer: DriveWriter, dog: Watchdog, loop: ControlLoopLike, *,
+                 on_trip: Callable[[float], None], on_error: Callable[[str], None],
                  cpu: int | None = None, rt_priority: int = 0,
                  on_info: Callable[..., None] | None = None) -> None:
         fd = link_fd(servo)
@@ -109,9 +117,7 @@ class LoopThread:
         self.fd = fd
         self.writer = writer
         self.dog = dog
-        self.on_sample = on_sample
-        self.is_armed = is_armed
-        self.disarm_loop = disarm
+        self.loop = loop
         self.on_trip = on_trip
         self.on_error = on_error
         self.cpu = cpu
@@ -196,7 +202,7 @@ class LoopThread:
             self._place()
             self._run(post)
         except Exception as exc:  # a bug here must end the session safely, not the thread silently
-            self.disarm_loop()
+            self.loop.armed = False
             self._disable()
             post(self.on_error, f"loop thread failed: {type(exc).__name__}: {exc}")
 
@@ -207,7 +213,7 @@ class LoopThread:
         clock = dog.clock
         feed = self.servo.decoder.fast_feed(GyroSample)
         deliver = self.servo.deliver
-        on_sample = self.on_sample
+        on_sample = self.loop.on_sample
         monotonic_ns = time.monotonic_ns
         due: float | None = None  # when the watchdog looks next (absolute, on its clock)
         last_tick: int | None = None  # of the last sample (a held silence that lost none is the host's)
@@ -261,8 +267,8 @@ class LoopThread:
     def _trip(self, silent_s: float) -> None:
         """Silence past the watchdog, seen on time: zero the drive from here at once, then tell the session."""
         self.dog.disarm()
-        was_armed = self.is_armed()
-        self.disarm_loop()
+        was_armed = self.loop.armed
+        self.loop.armed = False
         if was_armed:
             self._disable()
         self.aloop.call_soon_threadsafe(self.on_trip, silent_s)
@@ -272,6 +278,6 @@ class LoopThread:
             self.writer.disable_now()
 
     def _lost(self, post: Callable[..., Any], exc: OSError | None) -> None:
-        self.disarm_loop()
+        self.loop.armed = False
         self._disable()
         post(self.servo.lost, LinkError(f"read failed: {exc}") if exc is not None else None)

@@ -72,6 +72,7 @@ class LoopStats:
     recoveries: int = 0
     host_stalls: int = 0  # silences the host caused, not the board: the watchdog woke late, or the emulator's clock
     clock_late: int = 0  # CLOCK_LATE frames: the emulator's clock fired late (its host did not run it in time)
+    drive_short_writes: int = 0  # realtime: DRIVE_CMDs the driver's fd did not take whole (hil.loop_thread)
 
 
 class ControlLoop:
@@ -482,19 +483,17 @@ class Session:
         loop = self.loop_
         loop.drive = writer.drive
         dog = Watchdog(self.watchdog_s, self._stall_reporter(), grace_s=self.stall_grace_s)
-
-        def disarm() -> None:
-            loop.armed = False
-
         self.loop_thread = LoopThread(
-            self.servo.link, writer, dog, on_sample=loop.on_sample, is_armed=lambda: loop.armed, disarm=disarm,
-            on_trip=self._watchdog_trip, on_error=self.fault, cpu=self._loop_cpu,
+            self.servo.link, writer, dog, loop, on_trip=self._watchdog_trip, on_error=self.fault, cpu=self._loop_cpu,
             rt_priority=self.config.host.rt_priority, on_info=lambda **detail: self.event("info", **detail))
         self.loop_thread.start()
 
     def _stop_loop_thread(self) -> None:
-        if self.loop_thread is not None:
-            self.loop_thread.stop()
+        thread, self.loop_thread = self.loop_thread, None
+        if thread is not None:
+            thread.stop()
+            if self.loop_ is not None:  # DRIVE_CMDs the driver fd did not take whole (its buffer full)
+                self.loop_.stats.drive_short_writes += thread.writer.short_writes
 
     async def _recover(self) -> None:
         """Wait, reopen what was lost, restart the stream, re-arm with fresh controller states.
@@ -753,4 +752,5 @@ class Session:
         return {"cycles": st.cycles, "late": st.late, "missed": st.missed, "latency_us_p50": pick(0.5),
                 "latency_us_p99": pick(0.99), "faults": st.faults, "recoveries": st.recoveries,
                 "host_stalls": st.host_stalls, "clock_late": st.clock_late,
+                "drive_short_writes": st.drive_short_writes,
                 "link_errors": {n: link.decoder.counters.errors() for n, link in self.links.items()}}

@@ -20,7 +20,7 @@ StallReport = Callable[[float, float, str], None]  # (late_s, silent_s, by: "ben
 class Watchdog:
     """Trips on a silence it saw itself, on time.
 
-    ``feed`` (or a store to ``last``) on every sample. A driver looks (:meth:`look`) when the time it was told to
+    Its driver stores the time of every sample in ``last``. A driver looks (:meth:`look`) when the time it was told to
     wait has run out. A trip needs the silence to be seen by a look that was itself on time: a look more than
     ``late_s`` after it was due means the host did not run the bench (nor, on the same CPU, an emulator), so
     samples may be queued unread. It then reports ``on_host_stall(late_s, silent_s, "bench")`` and gives the board
@@ -49,9 +49,6 @@ class Watchdog:
         self.last = clock()
         self.armed = False
         self.held = False
-
-    def feed(self) -> None:
-        self.last = self.clock()
 
     def arm(self) -> None:
         """Start judging (again) from now: restartable any number of times."""

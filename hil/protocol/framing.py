@@ -142,9 +142,6 @@ class FramePacker:
 
         self.pack = packer
 
-    def __call__(self, *values: int) -> bytes:
-        return self.pack(*values)
-
 
 @dataclass
 class LinkCounters:
