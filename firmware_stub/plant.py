@@ -535,20 +535,15 @@ def _dcm_zyx(
 
 
 def _expm(a: np.ndarray) -> np.ndarray:
-    """Matrix exponential by scaling and squaring with a 20-term Taylor series (small matrices, construction only;
-    the tests check the result against scipy.linalg.expm and against analytic solutions)."""
-    n = a.shape[0]
-    norm = float(np.max(np.sum(np.abs(a), axis=1))) if n else 0.0
-    squarings = max(0, math.ceil(math.log2(norm / 0.25))) if norm > 0.25 else 0
-    a = a * 2.0**-squarings
-    result = np.eye(n)
-    term = np.eye(n)
-    for k in range(1, 21):
-        term = term @ a / k
-        result = result + term
-    for _ in range(squarings):
-        result = result @ result
-    return result
+    """Matrix exponential (construction only): ``scipy.linalg.expm`` of the balanced matrix. The augmented
+    ``[[A, B], [0, 0]] h`` of an axis with a structural mode has entries ten decades apart; balancing (a diagonal
+    scaling by powers of two, exact) keeps every entry of the result to ~1e-13 relative, where plain ``expm`` leaves
+    ~1e-9 on the smallest ones (current and voltage into the load rate and the angles). The tests check every
+    entry against a 50-digit series, and the plant against analytic solutions."""
+    from scipy.linalg import expm, matrix_balance
+
+    balanced, (scale, _) = matrix_balance(a, permute=False, separate=True)
+    return expm(balanced) * scale[:, None] / scale[None, :]
 
 
 def axis_matrices(cfg: PlantConfig, axis: Axis) -> tuple[np.ndarray, np.ndarray]:

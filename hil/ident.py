@@ -3,17 +3,19 @@
 The bench adds a swept sine ``r(t)`` (:class:`SweptSine`) to the rate command of the closed 1 kHz rate loop and logs,
 per tick, the command ``r`` (deg/s), the drive ``u`` (signed DAC counts) and the measured gyro rate ``y`` (deg/s).
 
-* :func:`estimate_frf`: Welch cross-spectra (Hann window, 50 % overlap, numpy only) and the *indirect* closed-loop
+* :func:`estimate_frf`: Welch cross-spectra (``scipy.signal``: Hann window, 50 % overlap) and the *indirect* closed-loop
   estimate ``P = S_ry / S_ru`` of the plant ``y/u``: both spectra are cross-spectra with the external excitation
   ``r``, which the gyro noise and the disturbances are not correlated with, so neither noise nor feedback bias it
   (the direct ``S_uy / S_uu`` tends to ``-1/C`` where noise dominates, because ``u`` carries the fed-back noise).
 * :func:`fit_plant`: ``P(s) = k_m / s * 1 / (1 + s / omega_c) * exp(-s T_d)`` (deg/s per count, ``k_m`` in
   deg/s^2 per count) by weighted least squares on ``ln P = ln|P| + j arg P`` over the coherent bins. For a fixed
-  ``omega_c`` the problem is linear (``ln k_m`` from the magnitude, ``T_d`` from the phase); ``omega_c`` is searched.
+  ``omega_c`` the problem is linear (``ln k_m`` from the magnitude, ``T_d`` from the phase); ``omega_c`` is searched
+  (a grid, then ``scipy.optimize.minimize_scalar``, bounded, on log frequency).
   By default the integrator is the exact sampled one the 1 ms loop sees, ``k_m dt / (e^{j w dt} - 1)`` (= ``k_m /
   (j w)`` times a half-sample delay and ``(w dt/2) / sin(w dt/2)``), so ``T_d`` is the gyro + transport delay
   without the zero-order hold's half sample.
-* :func:`bode_plot`: PNG of data, fit and coherence. :func:`identify_log`: the whole chain on a session log.
+* :func:`bode_plot`: PNG of data, fit and coherence, headed by the fitted figures (:func:`fit_caption`).
+  :func:`identify_log`: the whole chain on a session log.
 
 Docs: docs/ident.md.
 """
@@ -38,6 +40,7 @@ __all__ = [
     "SweptSine",
     "bode_plot",
     "estimate_frf",
+    "fit_caption",
     "fit_plant",
     "identify_log",
     "plant_response",
@@ -163,27 +166,29 @@ class Frf:
         return np.degrees(np.unwrap(np.angle(self.response)))
 
 
-def _segment_starts(n: int, nperseg: int) -> np.ndarray:
-    """Starts of segments overlapping by at least 50 % and covering the whole record, the last ending at ``n``
-    (a sweep's last frequencies must not fall off the end)."""
-    n_seg = math.ceil((n - nperseg) / (nperseg // 2)) + 1
-    return np.round(np.linspace(0, n - nperseg, n_seg)).astype(np.int64)
+def welch_layout(n: int, nperseg: int) -> tuple[int, int]:
+    """Where the Welch segments of an ``n``-sample record go: ``(skip, noverlap)`` for ``scipy.signal``'s
+    ``csd`` / ``welch`` / ``coherence`` on ``x[skip:]``.
+
+    The segments overlap by 50 % or slightly more, as few as cover the whole record at 50 %, and the last one ends
+    exactly at ``n`` (a sweep's last frequencies must not fall off the end); the segments step by a whole number
+    of samples, so the first ``skip`` samples (fewer than the number of segments) are left out."""
+    if not 0 < nperseg <= n:
+        raise ValueError(f"nperseg {nperseg} does not fit {n} samples")
+    span = n - nperseg
+    half = max(nperseg // 2, 1)
+    n_steps = math.ceil(span / half)
+    if n_steps == 0:
+        return 0, nperseg // 2
+    step = span // n_steps
+    return span - n_steps * step, nperseg - step
 
 
-def _segments(x: np.ndarray, nperseg: int, starts: np.ndarray) -> np.ndarray:
-    """Overlapping segments, each with its least-squares line removed (a ramp or slow drift leaks less)."""
-    seg = np.lib.stride_tricks.sliding_window_view(x, nperseg)[starts]
-    t = np.arange(nperseg) - 0.5 * (nperseg - 1)
-    mean = seg.mean(axis=1, keepdims=True)
-    slope = (seg @ t)[:, None] / float(t @ t)
-    return seg - mean - slope * t
-
-
-def windowed_spectra(x: np.ndarray, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
-    """The Welch building block shared by the FRF and the report's PSD: rfft of each detrended segment
-    (:func:`_segment_starts`) times a periodic Hann window; returns ``(spectra [n_seg, bins], window)``."""
-    win = 0.5 - 0.5 * np.cos(TWO_PI * np.arange(nperseg) / nperseg)
-    return np.fft.rfft(_segments(x, nperseg, _segment_starts(x.size, nperseg)) * win, axis=1), win
+def welch_options(nperseg: int, noverlap: int, fs_hz: float) -> dict[str, Any]:
+    """The ``scipy.signal`` spectral options shared by the FRF and the campaign report's PSD: periodic Hann
+    window, each segment's least-squares line removed (a ramp or slow drift leaks less); scipy's defaults for the
+    rest (one-sided, density, mean of the segments)."""
+    return {"fs": fs_hz, "window": "hann", "nperseg": nperseg, "noverlap": noverlap, "detrend": "linear"}
 
 
 def default_nperseg(n: int, dt_s: float, f_min_hz: float) -> int:
@@ -207,12 +212,14 @@ def estimate_frf(
     """Plant ``y/u`` from closed-loop data excited by ``r``: Welch (Hann, 50 % overlap), bins in [f_min, f_max].
 
     The segments (``nperseg`` long, default: ~4 bins below ``f_min_hz``) overlap by 50 % or slightly more so that
-    they end exactly at the end of the record.
+    they end exactly at the end of the record (:func:`welch_layout`); spectra and coherences by ``scipy.signal``.
 
     ``indirect`` (default): ``S_ry / S_ru``; the coherence is the one whose random error equals the sum of the two
     estimates': ``1 / (1/g_ry + 1/g_ru - 1)``. ``direct``: ``S_uy / S_uu`` with ``g_uy`` (biased under feedback
     with noise; kept for comparison).
     """
+    from scipy import signal
+
     rr, uu, yy = (np.asarray(v, dtype=float).ravel() for v in (r, u, y))
     n = rr.size
     if not (uu.size == n and yy.size == n):
@@ -221,33 +228,32 @@ def estimate_frf(
         raise ValueError("r, u, y must be finite")
     if not 0.0 < f_min_hz < f_max_hz:
         raise ValueError(f"need 0 < f_min_hz < f_max_hz (got {f_min_hz}, {f_max_hz})")
+    if method not in ("indirect", "direct"):
+        raise ValueError(f"method must be 'indirect' or 'direct' (got {method!r})")
     nper = nperseg or default_nperseg(n, dt_s, f_min_hz)
     if nper < 16 or nper > n:
         raise ValueError(f"nperseg {nper} does not fit {n} samples")
-    spec = {name: windowed_spectra(x, nper)[0] for name, x in (("r", rr), ("u", uu), ("y", yy))}
-    n_seg = spec["r"].shape[0]
+    skip, noverlap = welch_layout(n, nper)
+    rr, uu, yy = rr[skip:], uu[skip:], yy[skip:]
+    opts = welch_options(nper, noverlap, 1.0 / dt_s)
+    n_seg = (rr.size - noverlap) // (nper - noverlap)
 
-    def cross(a: str, b: str) -> np.ndarray:
-        return np.mean(np.conj(spec[a]) * spec[b], axis=0)
-
-    def auto(a: str) -> np.ndarray:
-        return np.mean(np.abs(spec[a]) ** 2, axis=0)
+    def coherence(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # 0 where a spectrum is exactly zero
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.nan_to_num(signal.coherence(a, b, **opts)[1], nan=0.0, posinf=0.0)
 
     tiny = np.finfo(float).tiny
     if method == "indirect":
-        s_ry, s_ru = cross("r", "y"), cross("r", "u")
-        s_rr, s_uu, s_yy = auto("r"), auto("u"), auto("y")
+        freq, s_ry = signal.csd(rr, yy, **opts)
+        s_ru = signal.csd(rr, uu, **opts)[1]
         resp = s_ry / np.where(s_ru == 0, tiny, s_ru)
-        g_ry = np.abs(s_ry) ** 2 / np.maximum(s_rr * s_yy, tiny)
-        g_ru = np.abs(s_ru) ** 2 / np.maximum(s_rr * s_uu, tiny)
+        g_ry, g_ru = coherence(rr, yy), coherence(rr, uu)
         coh = 1.0 / (1.0 / np.maximum(g_ry, 1e-12) + 1.0 / np.maximum(g_ru, 1e-12) - 1.0)
-    elif method == "direct":
-        s_uy, s_uu, s_yy = cross("u", "y"), auto("u"), auto("y")
-        resp = s_uy / np.maximum(s_uu, tiny)
-        coh = np.abs(s_uy) ** 2 / np.maximum(s_uu * s_yy, tiny)
     else:
-        raise ValueError(f"method must be 'indirect' or 'direct' (got {method!r})")
-    freq = np.fft.rfftfreq(nper, dt_s)
+        freq, s_uy = signal.csd(uu, yy, **opts)
+        s_uu = signal.welch(uu, **opts)[1]
+        resp = s_uy / np.maximum(s_uu, tiny)
+        coh = coherence(uu, yy)
     keep = (freq >= f_min_hz) & (freq <= f_max_hz) & (freq > 0)
     if not np.any(keep):
         raise ValueError(f"no frequency bin in [{f_min_hz}, {f_max_hz}] Hz with nperseg {nper}")
@@ -421,6 +427,7 @@ def fit_plant(
     shapes = _Shapes(w, dt)
     best = _fit_linear(shapes, p, wt, None)
     if lag:
+        from scipy.optimize import minimize_scalar
 
         def cost(log_fc: float) -> _Lin:
             return _fit_linear(shapes, p, wt, 10.0**log_fc)
@@ -428,20 +435,9 @@ def fit_plant(
         grid = np.linspace(math.log10(max(float(fs.min()), 0.05 * f_hi)), math.log10(50.0 * f_hi), 31)
         costs = [cost(x).cost for x in grid]
         i = int(np.argmin(costs))
-        a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-        gr = (math.sqrt(5.0) - 1.0) / 2.0  # golden section on log10(fc)
-        c, d = b - gr * (b - a), a + gr * (b - a)
-        fc_c, fc_d = cost(c).cost, cost(d).cost
-        while b - a > 1e-4:
-            if fc_c < fc_d:
-                b, d, fc_d = d, c, fc_c
-                c = b - gr * (b - a)
-                fc_c = cost(c).cost
-            else:
-                a, c, fc_c = c, d, fc_d
-                d = a + gr * (b - a)
-                fc_d = cost(d).cost
-        x = 0.5 * (a + b)
+        bounds = (float(grid[max(i - 1, 0)]), float(grid[min(i + 1, grid.size - 1)]))
+        x = float(minimize_scalar(lambda v: cost(v).cost, bounds=bounds, method="bounded",
+                                  options={"xatol": 1e-5}).x)  # Brent on log10(fc) around the grid's best
         cand = cost(x)
         fc = float(10.0**x)
         if cand.cost < best.cost and fc <= 2.0 * f_hi:
@@ -467,64 +463,66 @@ def fit_plant(
 # --- plot ----------------------------------------------------------------------------------------------------------
 
 
+def fit_caption(fit: PlantFit) -> str:
+    """The fitted figures, each once, on two lines: the model's parameters, then the fit's band and residuals (the
+    Bode plot's heading; :meth:`PlantFit.describe` is the one-line form)."""
+    bw = "n/a" if fit.gyro_bandwidth_hz is None else f"{fit.gyro_bandwidth_hz:.0f} Hz"
+    td = "n/a" if fit.delay_ms is None else f"{fit.delay_ms:.2f} ms"
+    lo, hi = fit.f_range_hz
+    return (f"k_m = {fit.k_m_dps2_per_count:.5g} deg/s\u00b2 per count, gyro bandwidth {bw}, delay {td}\n"
+            f"rms error {fit.rms_error_db:.2f} dB / {fit.rms_phase_deg:.1f} deg over {fit.n_bins} bins, "
+            f"{lo:.3g}\u2013{hi:.3g} Hz")
+
+
 def bode_plot(
     frf: Frf, fit: PlantFit | None, path: str | Path, *, title: str | None = None, coherence_min: float = 0.8
 ) -> Path:
     """Magnitude (dB) and phase (deg) against log frequency: data (grey below ``coherence_min``), fit (the fitted
-    band shaded), coherence; ``fit`` may be None. Returns the PNG's path (parent directories are created)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    band shaded), coherence; ``fit`` may be None. ``title`` (e.g. the session's name, default "plant
+    identification") heads the plot, the fitted figures (:func:`fit_caption`) under it; the page grows to hold the
+    whole heading (constrained layout, tight bounding box), and the PNG's Title and Description hold the same two
+    texts. Returns the PNG's path (parent directories are created)."""
+    from matplotlib.figure import Figure as MplFigure  # no pyplot: no global state, no GUI backend
 
     out = Path(path)
     f = frf.freq_hz
-    fig, (ax_m, ax_p) = plt.subplots(2, 1, sharex=True, figsize=(8.0, 6.5))
-    try:
-        mag, ph = frf.magnitude_db(), frf.phase_deg()
-        model = None
-        if fit is not None:  # data phase shown around the model's: no unwrapping through incoherent bins
-            model = fit.response(f)
-            ph_m = np.degrees(np.unwrap(np.angle(model)))
-            ph = ph_m + np.degrees(np.angle(frf.response / model))
-        ax_c = ax_m.twinx()
-        ax_c.fill_between(f, 0.0, frf.coherence, color="tab:green", alpha=0.12, step="mid", label="coherence")
-        ax_c.set_ylim(0.0, 1.05)
-        ax_c.set_ylabel("coherence", color="tab:green")
-        good = frf.coherence >= coherence_min
-        for ax, v in ((ax_m, mag), (ax_p, ph)):
-            ax.semilogx(f[good], v[good], ".", ms=2.5, color="tab:blue", label=f"data ({frf.method})")
-            ax.semilogx(f[~good], v[~good], ".", ms=2.0, color="0.7", label=f"coherence < {coherence_min:g}")
-        if fit is not None and model is not None:
-            ax_m.semilogx(f, 20.0 * np.log10(np.abs(model)), "-", color="tab:red", label="fit")
-            ax_p.semilogx(f, ph_m, "-", color="tab:red", label="fit")
-            lo, hi = fit.f_range_hz
-            for ax in (ax_m, ax_p):
-                ax.axvspan(lo, hi, color="0.5", alpha=0.06, lw=0)
-        ax_m.set_ylabel("|y/u| (dB re 1 deg/s per count)")
-        ax_p.set_ylabel("phase (deg)")
-        ax_p.set_xlabel("frequency (Hz)")
+    head = title or "plant identification"
+    caption = fit_caption(fit) if fit is not None else "no fit"
+    fig = MplFigure(figsize=(8.0, 6.5), layout="constrained")
+    ax_m, ax_p = fig.subplots(2, 1, sharex=True)
+    mag, ph = frf.magnitude_db(), frf.phase_deg()
+    model = None
+    if fit is not None:  # data phase shown around the model's: no unwrapping through incoherent bins
+        model = fit.response(f)
+        ph_m = np.degrees(np.unwrap(np.angle(model)))
+        ph = ph_m + np.degrees(np.angle(frf.response / model))
+    ax_c = ax_m.twinx()
+    ax_c.fill_between(f, 0.0, frf.coherence, color="tab:green", alpha=0.12, step="mid", label="coherence")
+    ax_c.set_ylim(0.0, 1.05)
+    ax_c.set_ylabel("coherence", color="tab:green")
+    good = frf.coherence >= coherence_min
+    for ax, v in ((ax_m, mag), (ax_p, ph)):
+        ax.semilogx(f[good], v[good], ".", ms=2.5, color="tab:blue", label=f"data ({frf.method})")
+        ax.semilogx(f[~good], v[~good], ".", ms=2.0, color="0.7", label=f"coherence < {coherence_min:g}")
+    if fit is not None and model is not None:
+        ax_m.semilogx(f, 20.0 * np.log10(np.abs(model)), "-", color="tab:red", label="fit")
+        ax_p.semilogx(f, ph_m, "-", color="tab:red", label="fit")
+        lo, hi = fit.f_range_hz
         for ax in (ax_m, ax_p):
-            ax.grid(True, which="both", alpha=0.3)
-            ax.set_zorder(ax_c.get_zorder() + 1 if ax is ax_m else ax.get_zorder())
-            ax.patch.set_visible(False)
-        ax_m.legend(loc="lower left", fontsize=8)
-        head = title or "plant identification"
-        if fit is not None:
-            head += f": k_m = {fit.k_m_dps2_per_count:.4g} deg/s^2 per count"
-            extra = []
-            if fit.gyro_bandwidth_hz is not None:
-                extra.append(f"gyro {fit.gyro_bandwidth_hz:.0f} Hz")
-            if fit.delay_ms is not None:
-                extra.append(f"delay {fit.delay_ms:.2f} ms")
-            if extra:
-                head += " (" + ", ".join(extra) + ")"
-        fig.suptitle(head, fontsize=10)
-        fig.tight_layout()
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out, dpi=110)
-    finally:
-        plt.close(fig)
+            ax.axvspan(lo, hi, color="0.5", alpha=0.06, lw=0)
+    ax_m.set_ylabel("|y/u| (dB re 1 deg/s per count)")
+    ax_p.set_ylabel("phase (deg)")
+    ax_p.set_xlabel("frequency (Hz)")
+    for ax in (ax_m, ax_p):
+        ax.grid(True, which="both", alpha=0.3)
+        ax.patch.set_visible(False)
+    ax_m.set_zorder(ax_c.get_zorder() + 1)  # data and legend over the coherence shading
+    ax_m.legend(loc="lower left", fontsize=8)
+    fig.suptitle(head, fontsize=11, fontweight="bold")
+    ax_m.set_title(caption, fontsize=9)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110, format="png", bbox_inches="tight", pad_inches=0.1,
+                metadata={"Title": head, "Description": caption})
     return out
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import base64
 import html
+import json
 import math
 import os
 from collections.abc import Callable
@@ -122,12 +123,17 @@ def _stat(result: CampaignResult, profile: str, controller: str, metric: str) ->
 
 
 def _num(x: float) -> str:
-    """Three significant digits, never an exponent: 0.281, 6.02, 15.6, 1234."""
+    """Three significant digits (all of them from 1000 up), never an exponent: 0.281, 6.02, 15.6, 1234; 9.996
+    rounds to 10.0 (not 10.00)."""
     if not math.isfinite(x):
         return "n/a"
     if x == 0:
         return "0"
-    return f"{x:.{max(0, 2 - math.floor(math.log10(abs(x))))}f}"
+    exponent = math.floor(math.log10(abs(x)))
+    digits = max(0, 2 - exponent)
+    if math.floor(math.log10(abs(round(x, digits)))) > exponent:  # rounding carried into the next decade
+        digits = max(0, digits - 1)
+    return f"{x:.{digits}f}"
 
 
 def _value(metric: str, x: float, fmt: Callable[[float], str] = _num) -> str:
@@ -135,9 +141,16 @@ def _value(metric: str, x: float, fmt: Callable[[float], str] = _num) -> str:
     return f"+-{fmt(x)}" if "_range_" in metric and math.isfinite(x) else fmt(x)
 
 
-def _ours(metric: str, s: Stat) -> str:
-    spread = f" ({_num(s.lo)}–{_num(s.hi)})" if s.n > 1 else ""
-    return _value(metric, s.mean) + spread
+def format_values(values: list[float], *, metric: str | None = None) -> str:
+    """One metric over the seeds of a cell of the tables, the same in the terminal, Markdown and HTML: the mean to
+    three significant digits (never an exponent), then ``(min–max)`` when more than one value, e.g.
+    ``0.290 (0.280–0.300)``; ``n/a`` when there is no finite value. Non-finite values are left out. With
+    ``metric`` a range metric gets the paper's ``+-`` (``+-0.290 (0.280–0.300)``)."""
+    v = [float(x) for x in values if math.isfinite(x)]
+    if not v:
+        return "n/a"
+    mean = _value(metric, float(np.mean(v))) if metric is not None else _num(float(np.mean(v)))
+    return mean + (f" ({_num(min(v))}–{_num(max(v))})" if len(v) > 1 else "")
 
 
 def gain_pct(value: float, ref: float, lower_is_better: bool = True) -> float:
@@ -241,7 +254,8 @@ def _metric_columns(result: CampaignResult, profile: str, metric: str) -> list[t
     meta, labels = METRICS[metric], _labels(result)
     stats = {c: _stat(result, profile, c, metric) for c in labels}
     best = _best(stats, meta.lower_is_better)
-    cols = [(f"{meta.label} [{meta.unit}]", [Cell(_ours(metric, stats[c]), best=c == best) for c in labels])]
+    cols = [(f"{meta.label} [{meta.unit}]",
+             [Cell(format_values(result.values(profile, c, metric), metric=metric), best=c == best) for c in labels])]
     paper = result.config.paper.get(profile, {})
     if any(metric in paper.get(c, {}) for c in labels):
         theirs = [paper.get(c, {}).get(metric) for c in labels]
@@ -308,6 +322,103 @@ def _run_info(result: CampaignResult, campaign_dir: Path) -> Bullets:
                     Item(f"Campaign directory: {campaign_dir}")])
 
 
+# --- provenance ------------------------------------------------------------------------------
+
+SOFTWARE = [("hil", "hil_version"), ("git commit", "git_commit"), ("Python", "python"), ("numpy", "numpy"),
+            ("h5py", "h5py"), ("HDF5", "hdf5"), ("scipy", "scipy"), ("numba", "numba")]
+NOT_RECORDED = "Not recorded: no cell log holds the software and parameters it ran with (logs written before " \
+               "the bench recorded them, or no log)."
+
+
+def _cell_log(campaign_dir: Path, log: str) -> Path:
+    return Path(log) if Path(log).is_absolute() else campaign_dir / log
+
+
+def cell_provenance(result: CampaignResult, campaign_dir: Path) -> list[tuple[str, str, dict[str, Any]]]:
+    """``(cell_id, controller label, provenance)`` of every run cell whose log recorded it, in run order
+    (``hil.log.provenance.read_provenance``; an old log, an unreadable one, or a bench without that module gives
+    nothing)."""
+    try:
+        from hil.log.provenance import read_provenance
+    except ImportError:
+        return []
+    from hil.log import LogError
+
+    out = []
+    for spec in result.config.cells():
+        cell = result.cell(spec.profile.label, spec.controller.label, spec.seed)
+        if cell is None or not cell.log:
+            continue
+        try:
+            record = read_provenance(_cell_log(campaign_dir, cell.log))
+        except (OSError, KeyError, ValueError, LogError):
+            continue
+        if isinstance(record, dict) and record:
+            out.append((cell.cell_id, cell.controller, record))
+    return out
+
+
+def _text(value: Any) -> str:
+    """A recorded value for the tables: floats to 12 significant digits (0.034**2 shows as 0.001156), JSON for
+    lists and mappings."""
+    if value is None:
+        return "n/a"
+    if isinstance(value, str):
+        return value
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.12g}"
+    return json.dumps(value, sort_keys=True)
+
+
+def _software(record: dict[str, Any]) -> tuple[Any, ...]:
+    return (*(record.get(key) for _, key in SOFTWARE), record.get("plant"))
+
+
+def _plant_text(plant: Any) -> str:
+    if not isinstance(plant, dict):
+        return "none recorded (the real lab, or the emulator's plant file unreadable)"
+    return f"{plant.get('path')} (SHA-256 {plant.get('sha256')})"
+
+
+def provenance_blocks(result: CampaignResult, campaign_dir: Path) -> list[Block]:
+    """The "Software and parameters" section: the software versions, git commit and plant file once (from the
+    first cell log that recorded them; cells that ran with other software are named), then per controller the
+    effective parameters it ran with, defaults included. "Not recorded" for logs that predate provenance."""
+    records = cell_provenance(result, campaign_dir)
+    doc: list[Block] = [Heading(2, "Software and parameters")]
+    if not records:
+        return [*doc, Text(NOT_RECORDED)]
+    first_id, _, first = records[0]
+    rows = [[Cell(name), Cell(_text(first.get(key)))] for name, key in SOFTWARE]
+    rows.append([Cell("plant file"), Cell(_plant_text(first.get("plant")))])
+    doc += [Text(f"Software, from the log of cell {first_id}:"), Table(["item", "recorded"], rows, "ll")]
+    others = [cid for cid, _, rec in records[1:] if _software(rec) != _software(first)]
+    if others:
+        doc.append(Text(f"Other software or plant file in {len(others)} cell{'s' * (len(others) != 1)}: "
+                        f"{', '.join(others)} (a resumed campaign?)."))
+    for entry in result.config.controllers:
+        doc.append(Heading(3, f"{entry.label} ({entry.name}): effective parameters"))
+        mine = [(cid, rec["controller"]) for cid, label, rec in records
+                if label == entry.label and isinstance(rec.get("controller"), dict)]
+        if not mine:
+            doc.append(Text("Not recorded."))
+            continue
+        cid, ctrl = mine[0]
+        params = ctrl.get("params") if isinstance(ctrl.get("params"), dict) else {}
+        doc.append(Table(["parameter", "value"], [[Cell(k), Cell(_text(v))] for k, v in params.items()], "ll")
+                   if params else Text("No parameters recorded."))
+        if "error" in ctrl:
+            doc.append(Text(f"As given, not resolved: {ctrl['error']}"))
+        differ = [c for c, other in mine[1:] if other.get("params") != ctrl.get("params")]
+        if differ:
+            doc.append(Text(f"From cell {cid}; other values in {', '.join(differ)}."))
+    return doc
+
+
 def build_document(result: CampaignResult, campaign_dir: Path, figures: dict[str, list[Figure]],
                    extra: list[Figure]) -> list[Block]:
     cfg = result.config
@@ -322,6 +433,7 @@ def build_document(result: CampaignResult, campaign_dir: Path, figures: dict[str
             Bullets([Item(r.rule, "pass" if r.passed else "fail", r.details) for r in result.acceptance]
                     or [Item("no acceptance rules configured")]),
             Heading(2, "Cells"), Text(_thresholds(result)), cells_table(result),
+            *provenance_blocks(result, campaign_dir),
             Heading(2, "Run"), _run_info(result, campaign_dir)]
     return doc
 
@@ -441,18 +553,19 @@ def render_html(doc: list[Block]) -> str:
 
 
 def welch(x: np.ndarray, fs: float, nperseg: int = PSD_SEGMENT) -> tuple[np.ndarray, np.ndarray]:
-    """One-sided power spectral density (unit²/Hz): the segments and window of hil.ident's FRF (Hann, >= 50 %
-    overlap, each segment detrended), periodograms averaged."""
-    from hil.ident import windowed_spectra
+    """One-sided power spectral density (unit²/Hz) by ``scipy.signal.welch`` with the segments and window of
+    hil.ident's FRF (Hann, >= 50 % overlap ending at the record's end, each segment detrended)."""
+    from scipy import signal
+
+    from hil.ident import welch_layout, welch_options
 
     x = np.asarray(x, dtype=float)
     n = min(nperseg, x.size)
     if n < 8:
         return np.zeros(0), np.zeros(0)
-    spectra, w = windowed_spectra(x, n)
-    spec = np.abs(spectra) ** 2 / (fs * np.sum(w**2))
-    spec[:, 1 : None if n % 2 else -1] *= 2  # one-sided: fold the negative frequencies (not DC, not Nyquist)
-    return np.fft.rfftfreq(n, 1.0 / fs), spec.mean(axis=0)
+    skip, noverlap = welch_layout(x.size, n)
+    f, pxx = signal.welch(x[skip:], **welch_options(n, noverlap, fs))
+    return f, pxx
 
 
 @dataclass(frozen=True)
@@ -497,9 +610,8 @@ def _read_trace(result: CampaignResult, campaign_dir: Path, profile: str, contro
         cell = result.cell(profile, controller, seed)
         if cell is None or not cell.log:
             continue
-        path = Path(cell.log) if Path(cell.log).is_absolute() else campaign_dir / cell.log
         try:
-            data = read_log(path)
+            data = read_log(_cell_log(campaign_dir, cell.log))
         except (OSError, KeyError, ValueError, LogError):
             continue
         loop = data.groups.get("loop", {})
@@ -529,6 +641,13 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
+def _legend_below(fig: Any, ax: Any) -> None:
+    """The legend of ``ax``'s lines under the axes, outside them (constrained layout makes room): never over data."""
+    handles, labels = ax.get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(len(handles), 4), frameon=False)
+
+
 def plot_rate_error(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
     fig, ax = _figure()
     for tr in traces:
@@ -537,7 +656,7 @@ def plot_rate_error(result: CampaignResult, profile: str, traces: list[Trace], p
                       label=f"{tr.controller} (seed {tr.seed})")
     ax[0, 0].set(title=f"{profile}: elevation rate error (command - gyro)", xlabel="time [s]",
                  ylabel="rate error [deg/s]")
-    ax[0, 0].legend(loc="upper right")
+    _legend_below(fig, ax[0, 0])
     ax[0, 0].grid(alpha=0.3)
     return _save(fig, path)
 
@@ -563,7 +682,7 @@ def plot_miss(result: CampaignResult, profile: str, traces: list[Trace], path: P
         a.grid(alpha=0.3)
     ax[0, 0].set(title=f"{profile}: miss distance (valid frames)")
     ax[1, 0].set(xlabel="time [s]")
-    ax[0, 0].legend(loc="upper right")
+    _legend_below(fig, ax[0, 0])
     return _save(fig, path)
 
 
@@ -571,16 +690,17 @@ def plot_psd(result: CampaignResult, profile: str, traces: list[Trace], path: Pa
     fig, ax = _figure()
     for tr in traces:
         f, p = welch(tr.loop["rate_err_el_dps"][tr.settled()], tr.fs)
-        if f.size > 1:
-            ax[0, 0].semilogy(f[1:], p[1:], lw=0.9, color=_color(result, tr.controller), label=tr.controller)
+        if f.size > 1:  # DC left out: no place on a log axis
+            ax[0, 0].loglog(f[1:], p[1:], lw=0.9, color=_color(result, tr.controller), label=tr.controller)
     ax[0, 0].set(title=f"{profile}: PSD of the elevation rate error (Welch)", xlabel="frequency [Hz]",
                  ylabel="PSD [(deg/s)²/Hz]")
-    ax[0, 0].legend(loc="upper right")
+    _legend_below(fig, ax[0, 0])
     ax[0, 0].grid(alpha=0.3, which="both")
     return _save(fig, path)
 
 
-def _bars(ax: Any, result: CampaignResult, profile: str, metric: str) -> None:
+def _bars(ax: Any, result: CampaignResult, profile: str, metric: str) -> bool:
+    """One metric's bars (mean, min–max over seeds) and the paper's values as diamonds; True if it drew any."""
     labels = _labels(result)
     stats = [_stat(result, profile, c, metric) for c in labels]
     x = np.arange(len(labels))
@@ -590,11 +710,11 @@ def _bars(ax: Any, result: CampaignResult, profile: str, metric: str) -> None:
     paper = result.config.paper.get(profile, {})
     px = [i for i, c in enumerate(labels) if metric in paper.get(c, {})]
     if px:
-        ax.plot(px, [paper[labels[i]][metric] for i in px], "kD", ms=7, label="paper")
-        ax.legend(loc="upper right")
+        ax.plot(px, [paper[labels[i]][metric] for i in px], "kD", ms=7, label="the paper's value", zorder=3)
     ax.set_xticks(x, labels, rotation=20)
     ax.set(title=METRICS[metric].label.replace("+-", "±"), ylabel=METRICS[metric].unit)
     ax.grid(alpha=0.3, axis="y")
+    return bool(px)
 
 
 def plot_metrics(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
@@ -602,11 +722,12 @@ def plot_metrics(result: CampaignResult, profile: str, traces: list[Trace], path
     cols = min(3, len(metrics))
     rows = -(-len(metrics) // cols)
     fig, ax = _figure(rows, cols, height=3.4)
-    for a, metric in zip(ax.flat, metrics, strict=False):
-        _bars(a, result, profile, metric)
+    with_paper = [a for a, metric in zip(ax.flat, metrics, strict=False) if _bars(a, result, profile, metric)]
     for a in list(ax.flat)[len(metrics) :]:
         a.set_visible(False)
-    fig.suptitle(f"{profile}: mean over seeds (bars: min–max; diamonds: the paper)")
+    fig.suptitle(f"{profile}: mean over seeds (error bars: min–max)")
+    if with_paper:  # one legend for every panel, below them
+        _legend_below(fig, with_paper[0])
     return _save(fig, path)
 
 
@@ -625,13 +746,14 @@ def plot_filters(result: CampaignResult, profile: str, traces: list[Trace], path
         raw = tr.loop["gyro_y_dps"].astype(float)
         keep = tr.window(_filter_window_s(result, tr))
         t = tr.t[keep]
-        a.plot(t, raw[keep], lw=0.7, color="0.6", label="raw gyro")
-        a.plot(t, low_pass(raw)[keep], lw=1.2, color="C1", label="150 Hz low-pass")
-        a.plot(t, tr.loop["rate_fb_el_dps"][keep], lw=1.2, color="C0", label="KF (fed back)")
+        # raw: each 1 ms sample a dot, so it shows where the filters follow it closely; the filters thin, on top
+        a.plot(t, raw[keep], ".-", lw=0.5, ms=3.0, color="0.25", zorder=1, label="raw gyro (each sample)")
+        a.plot(t, low_pass(raw)[keep], lw=1.0, color="C1", alpha=0.9, zorder=2, label="150 Hz low-pass")
+        a.plot(t, tr.loop["rate_fb_el_dps"][keep], lw=1.0, color="C0", alpha=0.9, zorder=3, label="KF (fed back)")
         a.set(title=f"{profile}, {tr.controller} (seed {tr.seed})", ylabel="EL rate [deg/s]")
         a.grid(alpha=0.3)
-        a.legend(loc="upper right")
     ax[-1, 0].set(xlabel="time [s]")
+    _legend_below(fig, ax[0, 0])
     return _save(fig, path)
 
 

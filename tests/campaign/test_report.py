@@ -11,8 +11,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from hil.campaign import METRICS, report
 from hil.campaign.model import CampaignConfig, CampaignResult, CellResult
-from hil.campaign.report import gain_pct, profile_table, welch, write_report
+from hil.campaign.report import format_values, gain_pct, profile_table, welch, write_report
 from hil.campaign.runner import CAMPAIGN_JSON, judge
 from hil.log import SCHEMA, SessionLog
 from hil.log.schema import group_by_name
@@ -207,10 +208,11 @@ def test_partial_campaign_renders_and_says_partial(tmp_path):
     assert all(p.read_bytes()[:8] == PNG_MAGIC for p in files.pngs)
 
 
-@pytest.mark.parametrize(("analysis", "log_config"), [("static_noise", {}),
-                                                      ("filter_lag", {"excitation": {"axis": "el", "freq_hz": 15.0,
-                                                                                     "amplitude_dps": 5.0}})])
-def test_filter_analyses_add_their_plot(tmp_path, analysis, log_config):
+LAG_LOG = {"excitation": {"axis": "el", "freq_hz": 15.0, "amplitude_dps": 5.0}}
+
+
+def filter_campaign(tmp_path: Path, analysis: str, log_config: dict[str, Any]) -> Path:
+    """A one-cell campaign of a filter analysis (static_noise or filter_lag) with its log."""
     config = campaign_config(tmp_path, analysis=analysis, profiles=[{"label": "static", "path":
                              "profiles/swing/static.yaml"}], controllers=[{"label": "ESO+KF", "name": "eso_kf"}],
                              seeds=[3], baseline=None, acceptance=[], paper={}, thresholds={},
@@ -221,11 +223,25 @@ def test_filter_analyses_add_their_plot(tmp_path, analysis, log_config):
     write_log(tmp_path / c.log, noise=0.2, seed=3, n=1500, config=log_config)
     result = CampaignResult(config=config, cells=[c], jobs=1, wall_s=2.0, complete=True)
     (tmp_path / CAMPAIGN_JSON).write_text(result.model_dump_json())
-    files = write_report(tmp_path)
-    assert (tmp_path / "report" / "static-filters.png").read_bytes()[:8] == PNG_MAGIC
-    md = files.markdown.read_text()
+    return tmp_path
+
+
+@pytest.mark.parametrize(("analysis", "log_config"), [("static_noise", {}), ("filter_lag", LAG_LOG)])
+def test_filter_analyses_add_their_plot(tmp_path, monkeypatch, analysis, log_config):
+    """The filter plot shows the raw gyro (a dot per sample, underneath) and the two filters (thin, on top)."""
+    fig = _figures(filter_campaign(tmp_path, analysis, log_config), monkeypatch)["static-filters.png"]
+    assert (tmp_path / "spied" / "static-filters.png").read_bytes()[:8] == PNG_MAGIC
+    md = (tmp_path / "spied" / "report.md").read_text()
     assert "Verdict: ESO+KF (one controller, no comparison)" in md and "Acceptance: PASS" in md
     assert "| ESO+KF | 1/1 | 1.50 | 1.50 |" in md and "vs " not in md.split("## static\n", 1)[1].splitlines()[0]
+    _legend_clear_of_the_data(fig)
+    raw, lpf, kf = fig.axes[0].get_lines()
+    assert raw.get_label().startswith("raw gyro") and lpf.get_label() == "150 Hz low-pass"
+    assert kf.get_label() == "KF (fed back)"
+    assert raw.get_zorder() < lpf.get_zorder() < kf.get_zorder()  # filters drawn over the raw samples
+    assert raw.get_marker() == "." and raw.get_markersize() >= 2.5  # each raw sample a dot, visible around them
+    assert raw.get_xdata().size == lpf.get_xdata().size > 100
+    assert lpf.get_linewidth() <= 1.0 and kf.get_linewidth() <= 1.0
 
 
 def test_welch_matches_white_noise_and_finds_a_sine():
@@ -245,3 +261,131 @@ def test_gain_pct():
     assert gain_pct(0.28, 0.72) == pytest.approx(61.11, abs=0.01)
     assert gain_pct(2.0, 1.0, lower_is_better=False) == pytest.approx(100.0)
     assert np.isnan(gain_pct(1.0, 0.0)) and np.isnan(gain_pct(float("nan"), 1.0))
+
+
+# --- numbers alike in the terminal, Markdown and HTML ------------------------------------------------------------
+
+
+def test_format_values():
+    assert format_values([0.28, 0.30, 0.29]) == "0.290 (0.280–0.300)"
+    assert format_values([0.28, 0.30, 0.29], metric="rate_err_el_range_dps") == "+-0.290 (0.280–0.300)"
+    assert format_values([6.02], metric="miss_std_px") == "6.02"  # one seed: no spread
+    assert format_values([1234.4, 1300.0]) == "1267 (1234–1300)"  # never an exponent
+    assert format_values([0.000512]) == "0.000512"
+    assert format_values([9.996]) == "10.0" and format_values([0.09996]) == "0.100"  # the rounding's digits
+    assert format_values([999.7]) == "1000"
+    assert format_values([-0.0123, 0.0]) == "-0.00615 (-0.0123–0)"
+    assert format_values([2.0, float("nan")]) == "2.00"  # a NaN seed is left out
+    assert format_values([]) == "n/a" and format_values([float("nan")]) == "n/a"
+
+
+def test_every_metric_cell_is_format_values(full):
+    out, files = full
+    result = report.load_results(out)
+    page = files.html.read_text()
+    for profile in (P1, P3):
+        table = profile_table(result, profile)
+        for metric in result.config.metrics:
+            col = table.header.index(f"{METRICS[metric].label} [{METRICS[metric].unit}]")
+            for row in table.rows:
+                values = result.values(profile, row[0].text, metric)
+                assert len(values) == 2
+                assert row[col].text == format_values(values, metric=metric)
+                assert report._esc(row[col].text) in page
+    assert "| **+-0.290 (0.280–0.300)** |" in files.markdown.read_text()
+
+
+# --- provenance ----------------------------------------------------------------------------------------------------
+
+
+def _provenance(controller: str, omega: float, commit: str = "0123abcd" * 5) -> dict[str, Any]:
+    return {"hil_version": "0.1.0", "git_commit": commit, "python": "3.11.7", "numpy": "2.4.6", "h5py": "3.16.0",
+            "scipy": "1.17.1", "numba": "0.68.1", "plant": {"path": "/lab/profiles/plant/default.yaml",
+                                                            "sha256": "95fa" + "0" * 60},
+            "controller": {"name": controller, "params": {"omega_o_rad_s": omega, "b0_dps2_per_count": 0.023,
+                                                          "r_dps2": 0.034**2, "steady_state": True,
+                                                          "u_max_counts": 32767}}}
+
+
+def test_software_and_parameters_section(full, monkeypatch):
+    from hil.log import provenance
+
+    out = full[0]
+    seen: list[Path] = []
+
+    def fake(path: Path) -> dict[str, Any]:
+        seen.append(Path(path))
+        if "eso-kf" in Path(path).parent.name:
+            return _provenance("eso_kf", 300.0, commit="fedc" * 10 if "3-deg" in str(path) else "0123abcd" * 5)
+        return _provenance("eso", 150.0)
+
+    monkeypatch.setattr(provenance, "read_provenance", fake)
+    files = write_report(out, out / "report-provenance")
+    assert len(seen) == 8 and all(p.is_file() for p in seen)  # every cell's log, nothing else
+    md = files.markdown.read_text()
+    section = md.split("## Software and parameters\n", 1)[1].split("\n## ", 1)[0]
+    assert "Software, from the log of cell 1-deg-1-hz--eso--s1:" in section
+    assert section.count("0123abcd" * 5) == 1 and section.count("| numpy | 2.4.6 |") == 1
+    assert "| plant file | /lab/profiles/plant/default.yaml (SHA-256 95fa" in section
+    # the ESO+KF cells of the 3 deg profile ran from another commit: named, not hidden
+    assert "Other software or plant file in 2 cells: 3-deg-1-hz--eso-kf--s1, 3-deg-1-hz--eso-kf--s2" in section
+    eso = section.split("### ESO (eso): effective parameters\n", 1)[1].split("###", 1)[0]
+    kf = section.split("### ESO+KF (eso_kf): effective parameters\n", 1)[1]
+    assert "| omega_o_rad_s | 150 |" in eso and "| omega_o_rad_s | 300 |" in kf
+    assert "| r_dps2 | 0.001156 |" in kf and "| steady_state | true |" in kf and "| u_max_counts | 32767 |" in kf
+    assert md.index("## Cells") < md.index("## Software and parameters") < md.index("## Run")
+    page = files.html.read_text()
+    assert "<h2>Software and parameters</h2>" in page and "<h3>ESO+KF (eso_kf): effective parameters</h3>" in page
+    assert '<td class="l">omega_o_rad_s</td><td class="l">150</td>' in page
+
+
+def test_logs_without_provenance_say_not_recorded(full, monkeypatch):
+    out, files = full
+    md = files.markdown.read_text()  # the synthetic logs predate provenance: read_provenance gives {}
+    assert "## Software and parameters\n\n" + report.NOT_RECORDED in md
+    assert "effective parameters" not in md
+    monkeypatch.setitem(__import__("sys").modules, "hil.log.provenance", None)  # a bench without the module
+    again = write_report(out, out / "report-again")
+    assert report.NOT_RECORDED in again.markdown.read_text() and report.NOT_RECORDED in again.html.read_text()
+
+
+# --- plots ---------------------------------------------------------------------------------------------------------
+
+
+def _figures(campaign_dir: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
+    """Write the report and keep each PNG's matplotlib figure, laid out as saved."""
+    figures: dict[str, Any] = {}
+    save = report._save
+
+    def spy(fig: Any, path: Path) -> Path:
+        figures[path.name] = fig
+        return save(fig, path)
+
+    monkeypatch.setattr(report, "_save", spy)
+    write_report(campaign_dir, campaign_dir / "spied")
+    for fig in figures.values():
+        fig.draw_without_rendering()
+    return figures
+
+
+def _legend_clear_of_the_data(fig: Any) -> None:
+    axes = [a for a in fig.axes if a.get_visible()]
+    assert all(a.get_legend() is None for a in axes)  # no legend inside an axes
+    assert len(fig.legends) == 1
+    box = fig.legends[0].get_window_extent()
+    assert box.y1 <= min(a.get_window_extent().y0 for a in axes)  # below every axes
+    assert box.y0 >= 0 and box.x0 >= 0 and box.x1 <= fig.bbox.x1  # inside the page
+
+
+def test_legends_are_below_the_axes_and_the_psd_is_on_log_axes(full, monkeypatch):
+    figures = _figures(full[0], monkeypatch)
+    for kind in ("rate-error", "miss", "psd", "metrics"):
+        fig = figures[f"1-deg-1-hz-{kind}.png"]
+        _legend_clear_of_the_data(fig)
+    labels = [t.get_text() for t in figures["1-deg-1-hz-metrics.png"].legends[0].get_texts()]
+    assert labels == ["the paper's value"]
+    assert "3-deg-1-hz-metrics.png" in figures and not figures["3-deg-1-hz-metrics.png"].legends  # no paper values
+    psd = figures["1-deg-1-hz-psd.png"].axes[0]
+    assert psd.get_xscale() == "log" and psd.get_yscale() == "log"
+    f_lo = min(float(np.min(line.get_xdata())) for line in psd.get_lines())
+    assert f_lo == pytest.approx(1000.0 / 1024)  # the first bin above DC

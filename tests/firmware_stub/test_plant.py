@@ -4,6 +4,7 @@ calibration against the paper (seed 000), config errors."""
 from __future__ import annotations
 
 import math
+from decimal import Decimal, localcontext
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,8 @@ from firmware_stub.plant import (
     Plant,
     PlantConfig,
     PlantConfigError,
+    axis_matrices,
+    axis_zoh,
     carrier_state,
     imbalance_torques,
     load_plant_config,
@@ -118,6 +121,54 @@ def test_sine_drive_matches_the_analytic_response(rigid: PlantConfig) -> None:
         peak = max(peak, abs(e))
     assert peak > 1.0
     assert max(abs(x) for x in errs) < 1e-3 * peak
+
+
+def _expm_50_digits(a: np.ndarray) -> np.ndarray:
+    """Reference matrix exponential in 50-digit decimal arithmetic: scaling to a norm under 0.01, 40 Taylor terms
+    (truncation < 1e-80), squaring back; rounding to float64 only at the end."""
+    n = a.shape[0]
+    squarings = max(0, math.ceil(math.log2(float(np.max(np.sum(np.abs(a), axis=1))) / 0.01)))
+
+    def mul(x: list[list[Decimal]], y: list[list[Decimal]]) -> list[list[Decimal]]:
+        return [[sum((x[i][k] * y[k][j] for k in range(n)), Decimal(0)) for j in range(n)] for i in range(n)]
+
+    with localcontext(prec=50):
+        m = [[Decimal(float(v)) / Decimal(2) ** squarings for v in row] for row in a]
+        term = [[Decimal(int(i == j)) for j in range(n)] for i in range(n)]
+        total = [row[:] for row in term]
+        for k in range(1, 41):
+            term = [[v / k for v in row] for row in mul(term, m)]
+            total = [[t + v for t, v in zip(tr, vr, strict=True)] for tr, vr in zip(total, term, strict=True)]
+        for _ in range(squarings):
+            total = mul(total, total)
+        return np.array([[float(v) for v in row] for row in total])
+
+
+@pytest.mark.parametrize("path", [RIGID_PLANT_CONFIG, DEFAULT_PLANT_CONFIG], ids=["rigid", "default"])
+def test_zoh_matrices_are_exact_in_every_entry(path: Path) -> None:
+    """Phi and Gamma of each axis against a 50-digit matrix exponential of ``[[A, B], [0, 0]] h``, every entry to
+    1e-12 relative: the structural mode's augmented matrix has entries ten decades apart, and the smallest entries
+    of its exponential (current into angle, ~1e-10) are the ones a plain float64 expm gets wrong first (~1e-9)."""
+    cfg = load_plant_config(path)
+    h = cfg.internal_step_s
+    for axis in ("az", "el"):
+        a, b = axis_matrices(cfg, axis)
+        n = 3 if cfg.structure_of(axis) is None else 5
+        aug = np.zeros((n + 4, n + 4))
+        aug[:n, :n], aug[:n, n:] = a[:n, :n] * h, b[:n] * h
+        ref = _expm_50_digits(aug)
+        phi, gam = axis_zoh(cfg, axis, h)
+        got = np.hstack([phi[:n, :n], gam[:n]])
+        want = ref[:n]
+        assert np.count_nonzero(want) > 2 * n
+        nonzero = want != 0
+        assert np.all(got[~nonzero] == 0.0), axis
+        rel = np.abs(got[nonzero] - want[nonzero]) / np.abs(want[nonzero])
+        assert rel.max() < 1e-12, (path.name, axis, rel.max())
+        if n == 3:  # rigid: the load rows are the motor's, bit for bit
+            assert np.array_equal(phi[3:5], phi[1:3]) and np.array_equal(gam[3:5], gam[1:3])
+        else:
+            assert np.min(np.abs(want[nonzero])) < 1e-9  # the small entries are there to be checked
 
 
 def test_internal_step_converges(rigid: PlantConfig) -> None:

@@ -24,9 +24,11 @@ from hil.ident import (
     SweptSine,
     bode_plot,
     estimate_frf,
+    fit_caption,
     fit_plant,
     identify_log,
     plant_response,
+    welch_layout,
 )
 from hil.log import SCHEMA, LogData, SessionLog, read_log
 from hil.log.schema import group_by_name
@@ -197,13 +199,41 @@ def test_fit_of_exact_model_data_is_exact() -> None:
     for bw, td, dt in ((150.0, 0.7e-3, DT), (None, 1.3e-3, DT), (120.0, 0.4e-3, None)):
         frf = Frf(f, plant_response(f, 0.031, bandwidth_hz=bw, delay_s=td, dt_s=dt), np.full(f.size, 0.99), DT, 8)
         fit = fit_plant(frf, lag=bw is not None, sampled_integrator=dt is not None)
-        assert fit.k_m_dps2_per_count == pytest.approx(0.031, rel=1e-4)
-        assert fit.delay_ms == pytest.approx(td * 1e3, abs=1e-3)
+        assert fit.k_m_dps2_per_count == pytest.approx(0.031, rel=1e-5)
+        assert fit.delay_ms == pytest.approx(td * 1e3, abs=1e-5)
         if bw is None:
             assert fit.gyro_bandwidth_hz is None
-        else:
-            assert fit.gyro_bandwidth_hz == pytest.approx(bw, rel=1e-3)
-        assert fit.rms_error_db < 1e-3
+        else:  # the bounded search on log10(fc) ends within 1e-5 of the minimum
+            assert fit.gyro_bandwidth_hz == pytest.approx(bw, rel=1e-5)
+        assert fit.rms_error_db < 1e-4
+
+
+@pytest.mark.parametrize(("n", "nperseg"), [(11000, 4096), (10997, 4096), (12345, 1024), (6999, 2048), (4096, 4096),
+                                            (20, 16)])
+def test_welch_segments_cover_the_record_and_end_at_its_end(n: int, nperseg: int) -> None:
+    skip, noverlap = welch_layout(n, nperseg)
+    step = nperseg - noverlap
+    n_seg = (n - skip - noverlap) // step  # what scipy.signal makes of x[skip:]
+    starts = skip + step * np.arange(n_seg)
+    assert starts[-1] + nperseg == n  # the last segment ends at the last sample
+    assert noverlap >= nperseg // 2  # at least 50 % overlap
+    assert n_seg == math.ceil((n - nperseg) / (nperseg // 2)) + 1  # as few as cover the record at 50 %
+    assert 0 <= skip < max(n_seg, 1)  # at most a few samples left out at the start
+    with pytest.raises(ValueError, match="does not fit"):
+        welch_layout(nperseg - 1, nperseg)
+
+
+def test_frf_with_a_few_samples_left_out_at_the_start() -> None:
+    """10997 samples: the 5 segments step by 1725 samples, so the first sample is left out; the FRF is as good."""
+    r, u, y = simulate_loop(SYNTH_SWEEP, noise_dps=0.03)
+    assert welch_layout(10997, 4096) == (1, 4096 - 1725)
+    frf = estimate_frf(r[:10997], u[:10997], y[:10997], DT, f_min_hz=1.0, f_max_hz=300.0)
+    assert frf.n_segments == 5
+    true = plant_response(frf.freq_hz, K_M, bandwidth_hz=200.0, delay_s=0.5e-3, dt_s=DT)
+    band = (frf.freq_hz >= 2.0) & (frf.freq_hz <= 100.0)
+    err_db = frf.magnitude_db()[band] - 20.0 * np.log10(np.abs(true[band]))
+    assert abs(np.median(err_db)) < 0.05 and np.median(np.abs(err_db)) < 0.3
+    assert fit_plant(frf, f_min_hz=2.0).k_m_dps2_per_count == pytest.approx(K_M, rel=0.02)
 
 
 def test_noise_does_not_bias_the_indirect_estimate_but_biases_the_direct_one() -> None:
@@ -316,3 +346,41 @@ def test_fit_result_types(synth_frf: Frf) -> None:
     resp = fit.response(synth_frf.freq_hz)
     assert resp.shape == synth_frf.freq_hz.shape and np.iscomplexobj(resp)
     assert isinstance(fit.k_m_dps2_per_count, float) and isinstance(fit.n_bins, int)
+
+
+def test_bode_plot_is_headed_by_the_name_and_each_fitted_figure_once(
+    synth_frf: Frf, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from matplotlib.figure import Figure
+    from matplotlib.text import Text
+    from PIL import Image
+
+    fit = fit_plant(synth_frf, f_min_hz=2.0)
+    assert fit.gyro_bandwidth_hz is not None and fit.delay_ms is not None
+    drawn: list[str] = []
+    savefig = Figure.savefig
+
+    def spy(self: Figure, *args: object, **kwargs: object) -> None:
+        drawn.extend(t.get_text() for t in self.findobj(Text) if t.get_text())
+        savefig(self, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", spy)
+    png = bode_plot(synth_frf, fit, tmp_path / "bode.png", title="demo-ident-el")
+    text = "\n".join(drawn)
+    assert "demo-ident-el" in drawn  # the name alone is the title
+    assert text.count("k_m") == 1
+    for figure in (f"k_m = {fit.k_m_dps2_per_count:.5g} deg/s", f"gyro bandwidth {fit.gyro_bandwidth_hz:.0f} Hz",
+                   f"delay {fit.delay_ms:.2f} ms", f"rms error {fit.rms_error_db:.2f} dB"):
+        assert text.count(figure) == 1, (figure, drawn)
+    meta = Image.open(png).text  # the same texts in the PNG's metadata
+    assert meta["Title"] == "demo-ident-el" and meta["Description"] == fit_caption(fit)
+    assert "\n" in fit_caption(fit) and fit_caption(fit).count("k_m = 0.0229") == 1
+
+    # nothing clipped: a title wider than the figure widens the page, and its edges stay background
+    wide = np.asarray(Image.open(bode_plot(synth_frf, fit, tmp_path / "wide.png", title="W" * 150)).convert("L"))
+    plain = np.asarray(Image.open(png).convert("L"))
+    assert wide.shape[1] > plain.shape[1] + 100
+    for img in (plain, wide):
+        for edge in (img[:3], img[-3:], img[:, :3], img[:, -3:]):
+            assert edge.min() == 255
+    assert Image.open(bode_plot(synth_frf, None, tmp_path / "nofit.png")).text["Title"] == "plant identification"
