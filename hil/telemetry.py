@@ -17,6 +17,11 @@ The rule of this module is that telemetry never blocks, slows down or crashes th
   counted, and a warning is logged. Nothing is dropped without being counted.
 - `stop()` publishes the retained ``offline`` status and disconnects cleanly, in at most 2 s
   even with no broker; whatever could not be sent by then is counted as dropped.
+- Units: the retained ``meta`` message gives the unit of every channel the telemetry carries. A
+  channel named like a session-log channel gets the log schema's unit (hil.log.schema, the one
+  source of channel units), found by the publisher when a channel first appears, never in `sample()`.
+- Slow channels: `miss()` holds the image board's latest miss distance (camera rate); every due
+  sample carries it as ``miss_x_px``/``miss_y_px``, so it is published at the telemetry rate.
 """
 
 from __future__ import annotations
@@ -34,9 +39,11 @@ import signal
 import subprocess
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, ClassVar, Self
 from urllib.parse import parse_qsl, unquote, urlsplit
 
@@ -64,7 +71,9 @@ __all__ = [
     "TelemetryProcess",
     "TelemetryStats",
     "meta_topic",
+    "schema_units",
     "session_topic",
+    "sparkline",
     "status_topic",
     "watch",
 ]
@@ -79,6 +88,22 @@ _CHILD_NICE = 5  # the publisher child must not preempt the 1 kHz loop or the lo
 _BURST = 25  # telemetry messages handed to paho per loop step when a backlog has built up
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")
 _NAME_RULE = "1-64 characters from A-Z a-z 0-9 _ . - starting with a letter or digit (topic-safe: no / + # or spaces)"
+MISS_X, MISS_Y = "miss_x_px", "miss_y_px"  # the miss distance's channels (named as in the log's image group)
+
+
+@cache
+def schema_units() -> Mapping[str, str]:
+    """Channel name -> unit, from the session log's schema (hil.log.schema): the units telemetry publishes.
+
+    A name that appears in several groups (``t_host_ns``, ``tick``) has the same unit in each; the first wins.
+    """
+    from hil.log.schema import SCHEMA  # imports numpy: paid by the publisher, when a channel first appears
+
+    units: dict[str, str] = {}
+    for group in SCHEMA:
+        for channel in group.channels:
+            units.setdefault(channel.name, channel.unit)
+    return MappingProxyType(units)
 
 
 def _check_name(what: str, value: str) -> str:
@@ -290,6 +315,8 @@ class Telemetry:
         self.session_id = _check_name("session_id", session_id)
         self.stats = TelemetryStats()
         self._units: dict[str, str] = dict(units or {})
+        self._described: set[str] = set()  # channels whose unit has been looked up (by the publisher)
+        self._miss: tuple[float, float] | None = None  # latest miss distance (x, y) px, set by miss()
         self._period = 1.0 / config.telemetry_hz
         self._eps = self._period * 1e-6  # absorbs float error in t_s = k * 0.001
         self._due = -math.inf  # exact board time the next sample is due
@@ -343,12 +370,29 @@ class Telemetry:
             self.stats.dropped += 1
             self.stats.last_error = f"sample(): {type(exc).__name__}: {exc}"
             return
+        miss = self._miss  # one read: miss() replaces the tuple whole, from any thread
+        if miss is not None:
+            data[MISS_X], data[MISS_Y] = miss
         self._enqueue_sample(t_s, data)
 
     def _enqueue_sample(self, t_s: float, data: dict[str, float]) -> None:
         self._telemetry.append((t_s, data))
         if not self._wake.is_set():
             self._wake.set()
+
+    def miss(self, x_px: float, y_px: float, track_valid: bool = True) -> None:
+        """The image board's latest miss distance (px), at camera rate; published with every due sample.
+
+        Every telemetry message from the next due sample on carries ``miss_x_px`` and ``miss_y_px``, the
+        values of the latest call (held until the next frame), so the miss distance goes out at the telemetry
+        rate whatever the camera rate. ``track_valid=False`` (no target: the values are meaningless) sends
+        both as null. Costs one tuple assignment; safe to call from another thread than ``sample()``'s.
+        Never raises (a value that is not a number is sent as null).
+        """
+        try:
+            self._miss = (float(x_px), float(y_px)) if track_valid else (math.nan, math.nan)
+        except (TypeError, ValueError):
+            self._miss = (math.nan, math.nan)
 
     def event(self, kind: str, /, **detail: Any) -> None:
         """Publish an event (QoS 1, not retained). Queued while disconnected; a drop is counted and logged."""
@@ -369,7 +413,7 @@ class Telemetry:
             self._wake.set()
 
     def set_units(self, units: Mapping[str, str]) -> None:
-        """Channel -> unit, published retained on ``.../meta`` (again now if connected)."""
+        """Channel -> unit, published retained on ``.../meta`` (again now if connected); wins over the schema's."""
         self._units.update(units)
         self._meta_dirty = True
         if not self._wake.is_set():
@@ -593,7 +637,28 @@ class Telemetry:
                 self._wake.clear()
                 await self._wake.wait()
 
+    def _describe(self, data: dict[str, Any]) -> None:
+        """Units of channels seen for the first time: from the log schema unless given; meta again if any."""
+        known: Mapping[str, str]
+        try:
+            known = schema_units()
+        except Exception as exc:  # the units are a convenience: telemetry goes on without them
+            known = {}
+            self.stats.last_error = f"units from the log schema: {type(exc).__name__}: {exc}"
+        for name in ("t_s", *data):
+            if name in self._described:
+                continue
+            self._described.add(name)
+            unit = known.get(name) if isinstance(name, str) else None
+            if unit is not None and name not in self._units:
+                self._units[name] = unit
+                self._meta_dirty = True
+        if self._meta_dirty and not self._wake.is_set():
+            self._wake.set()
+
     def _telemetry_payload(self, t_s: float, data: dict[str, Any]) -> str | None:
+        if not self._described.issuperset(data):  # a new channel (the first sample, a slow channel's start)
+            self._describe(data)
         body: dict[str, Any] = {"t_s": t_s}
         body.update(data)
         try:
@@ -825,6 +890,7 @@ async def _child_run(config: MqttConfig, session_id: str, units: dict[str, str],
     tm._on_connected, tm._on_disconnected, tm._on_error = connected, disconnected, error  # type: ignore[method-assign]
     os.set_blocking(0, False)
     await tm.start()
+    warm = loop.run_in_executor(None, schema_units)  # its import (~0.1 s) overlaps the first connection
     loop.add_reader(0, on_input)
     try:
         while not done.done():
@@ -834,6 +900,8 @@ async def _child_run(config: MqttConfig, session_id: str, units: dict[str, str],
         loop.remove_reader(0)
         await tm.stop()
         report("final")
+        with contextlib.suppress(Exception):
+            await warm
 
 
 def _paho_of(client: aiomqtt.Client) -> paho.Client | None:
@@ -844,11 +912,37 @@ def _paho_of(client: aiomqtt.Client) -> paho.Client | None:
 
 # --- hil watch --------------------------------------------------------------------------------
 
+SPARK_BLOCKS = "▁▂▃▄▅▆▇█"
+SPARK_POINTS = 50  # values kept per channel for the sparkline (1 s at 50 Hz); fewer on a narrow terminal
+
+
+def sparkline(values: Iterable[Any], width: int | None = None) -> str:
+    """One block character per value (the last ``width`` of them), scaled to their own min..max.
+
+    The minimum is ``▁``, the maximum ``█``, the others in 8 steps between (rounded). A constant window is a
+    flat line of ``▁``. A value that is not a finite number (null, NaN, a string) is a space and takes no part
+    in the scaling; booleans count as 0 and 1. ``sparkline([0, 1, 2, 3, 4, 5, 6, 7]) == "▁▂▃▄▅▆▇█"``.
+    """
+    window = list(values)
+    if width is not None:
+        window = window[-width:] if width > 0 else []
+    nums = [float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None for v in window]
+    finite = [v for v in nums if v is not None]
+    if not finite:
+        return " " * len(nums)
+    lo = min(finite) / 2  # halves: hi - lo stays finite for any two floats
+    span = max(finite) / 2 - lo
+    top = len(SPARK_BLOCKS) - 1
+    if not span > 0:
+        return "".join(" " if v is None else SPARK_BLOCKS[0] for v in nums)
+    return "".join(" " if v is None else SPARK_BLOCKS[min(top, int((v / 2 - lo) / span * top + 0.5))] for v in nums)
+
 
 @dataclass
 class _SessionView:
     values: dict[str, Any]
     units: dict[str, str]
+    history: dict[str, deque[Any]]  # channel -> its last SPARK_POINTS values, for the sparkline
     arrivals: deque[float]
     events: deque[dict[str, Any]]
     t_s: float | None = None
@@ -858,7 +952,7 @@ class _SessionView:
 
     @classmethod
     def new(cls) -> _SessionView:
-        return cls(values={}, units={}, arrivals=deque(maxlen=2000), events=deque(maxlen=5))
+        return cls(values={}, units={}, history={}, arrivals=deque(maxlen=2000), events=deque(maxlen=5))
 
 
 class _WatchView:
@@ -866,7 +960,7 @@ class _WatchView:
 
     RATE_WINDOW_S = 2.0
 
-    def __init__(self, config: MqttConfig, session: str | None) -> None:
+    def __init__(self, config: MqttConfig, session: str | None, spark_width: int = SPARK_POINTS) -> None:
         self.config = config
         self.pinned = session
         self.status: dict[str, Any] | None = None
@@ -874,6 +968,7 @@ class _WatchView:
         self.connected = False
         self.note = ""
         self.bad = 0
+        self.spark_width = max(1, min(SPARK_POINTS, spark_width))
         self._prefix = f"{TOPIC_ROOT}/{config.bench_id}/"
 
     def followed(self) -> str | None:
@@ -903,6 +998,12 @@ class _WatchView:
         if leaf == "telemetry":
             view.t_s = body.pop("t_s", None)
             view.values.update(body)
+            history = view.history
+            for name, value in body.items():
+                trend = history.get(name)
+                if trend is None:
+                    trend = history[name] = deque(maxlen=SPARK_POINTS)
+                trend.append(value)
             view.arrivals.append(now)
             view.count += 1
             view.last_seen = now
@@ -959,13 +1060,21 @@ class _WatchView:
             f"  messages {view.count}",
             ("  (stale)", "yellow") if age > 2.0 and view.count else "",
         )
+        parts: list[RenderableType] = [head, info]
+        if MISS_X in view.values or MISS_Y in view.values:  # the image board's, latest frame (null: no target)
+            parts.append(Text.assemble(
+                ("miss ", "bold"), "x ", _fmt(view.values.get(MISS_X)), "  y ", _fmt(view.values.get(MISS_Y)),
+                f" {view.units.get(MISS_X, 'px')}",
+            ))
         table = Table(title=None, expand=False)
         table.add_column("channel")
         table.add_column("value", justify="right")
         table.add_column("unit")
+        table.add_column("trend", no_wrap=True, overflow="crop")
         for name in sorted(view.values):
-            table.add_row(name, _fmt(view.values[name]), view.units.get(name, ""))
-        parts: list[RenderableType] = [head, info, table]
+            trend = sparkline(view.history.get(name, ()), self.spark_width)
+            table.add_row(name, _fmt(view.values[name]), view.units.get(name, ""), trend)
+        parts.append(table)
         if view.events:
             ev = Table(title="last events", expand=False)
             ev.add_column("time")
@@ -980,28 +1089,45 @@ class _WatchView:
 
 
 def _fmt(v: Any) -> str:
-    if isinstance(v, bool) or v is None:
+    if v is None:  # null: NaN on the bench, or a miss distance with no valid target
+        return "-"
+    if isinstance(v, bool):
         return str(v)
     if isinstance(v, (int, float)):
         return f"{v:.6g}"
     return str(v)[:40]
 
 
-async def watch(config: MqttConfig, *, seconds: float | None, console: Console, session: str | None = None) -> int:
+async def watch(
+    config: MqttConfig,
+    *,
+    seconds: float | None,
+    console: Console,
+    session: str | None = None,
+    err_console: Console | None = None,
+) -> int:
     """Show the bench's live telemetry from the broker (until ``seconds`` elapse, or forever).
 
-    Returns 0; or 1 after printing one line if the broker cannot be reached at the start. A broker
-    lost later is shown as disconnected and reconnected to with backoff.
+    The live view goes to ``console``; errors and warnings go to ``err_console`` (default: a Console on
+    stderr). Returns 0; or 1 after printing one error line if the broker cannot be reached at the start. A
+    broker lost later is one warning line, shown as disconnected and reconnected to with backoff.
     """
+    from rich.console import Console as RichConsole
     from rich.live import Live
 
+    if err_console is None:
+        err_console = RichConsole(stderr=True)
     if session is not None:
         _check_name("session", session)
     loop = asyncio.get_running_loop()
     deadline = None if seconds is None else loop.time() + seconds
-    view = _WatchView(config, session)
+    view = _WatchView(config, session, spark_width=console.width - 48)  # room for channel, value, unit
     prefix = f"{TOPIC_ROOT}/{config.bench_id}"
     topics = [f"{prefix}/#"] if session is None else [status_topic(config.bench_id), f"{prefix}/session/{session}/#"]
+    where = f"{config.host}:{config.port}"
+
+    def complain(text: str) -> None:
+        err_console.print(text, highlight=False, markup=False, soft_wrap=True)
 
     def make_client() -> aiomqtt.Client:
         return aiomqtt.Client(
@@ -1019,13 +1145,7 @@ async def watch(config: MqttConfig, *, seconds: float | None, console: Console, 
     try:
         await client.__aenter__()
     except aiomqtt.MqttError as exc:
-        msg = str(exc).replace("\n", " ") or type(exc).__name__
-        console.print(
-            f"error: cannot reach the MQTT broker at {config.host}:{config.port}: {msg}",
-            highlight=False,
-            markup=False,
-            soft_wrap=True,
-        )
+        complain(f"error: cannot reach the MQTT broker at {where}: {_one_line(exc)}")
         return 1
 
     async def consume(c: aiomqtt.Client) -> None:
@@ -1036,42 +1156,64 @@ async def watch(config: MqttConfig, *, seconds: float | None, console: Console, 
             payload = m.payload if isinstance(m.payload, bytes) else str(m.payload).encode()
             view.handle(str(m.topic), payload, loop.time())
 
-    with Live(view.render(loop.time()), console=console, auto_refresh=False, transient=False) as live:
+    def new_live() -> Live:
+        # redirect_stderr=False: the Live would otherwise catch what err_console writes and print it on console
+        live = Live(view.render(loop.time()), console=console, auto_refresh=False, transient=False,
+                    redirect_stderr=False)
+        live.start(refresh=True)
+        return live
 
-        async def repaint() -> None:
-            while True:
-                live.update(view.render(loop.time()), refresh=True)
-                await asyncio.sleep(0.25)
+    live = new_live()
 
-        painter = loop.create_task(repaint())
-        delay = config.reconnect_min_s
-        try:
-            async with asyncio.timeout_at(deadline):
-                while True:
-                    try:
-                        try:
-                            await consume(client)
-                        finally:
-                            with contextlib.suppress(aiomqtt.MqttError):
-                                await client.__aexit__(None, None, None)
-                    except aiomqtt.MqttError as exc:
-                        view.connected, view.note = False, f"lost: {exc}; reconnecting"
-                    while True:
-                        await asyncio.sleep(delay)
-                        delay = min(delay * 2, config.reconnect_max_s)
-                        client = make_client()
-                        try:
-                            await client.__aenter__()
-                        except aiomqtt.MqttError as exc:
-                            view.note = f"cannot reconnect: {exc}"
-                            continue
-                        delay = config.reconnect_min_s
-                        break
-        except TimeoutError:
-            pass
-        finally:
-            painter.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await painter
+    def warn(text: str) -> None:
+        nonlocal live
+        if console.is_terminal and err_console.is_terminal:  # one screen, most likely: keep the view whole
+            live.stop()  # the view so far stays above the warning; a new one starts below it
+            complain(text)
+            live = new_live()
+        else:
+            complain(text)
+
+    async def repaint() -> None:
+        while True:
             live.update(view.render(loop.time()), refresh=True)
+            await asyncio.sleep(0.25)
+
+    painter = loop.create_task(repaint())
+    delay = config.reconnect_min_s
+    try:
+        async with asyncio.timeout_at(deadline):
+            while True:
+                try:
+                    try:
+                        await consume(client)
+                    finally:
+                        with contextlib.suppress(aiomqtt.MqttError):
+                            await client.__aexit__(None, None, None)
+                except aiomqtt.MqttError as exc:
+                    view.connected, view.note = False, f"lost: {exc}; reconnecting"
+                    warn(f"warning: lost the MQTT broker at {where}: {_one_line(exc)}; reconnecting")
+                while True:
+                    await asyncio.sleep(delay)
+                    delay = min(delay * 2, config.reconnect_max_s)
+                    client = make_client()
+                    try:
+                        await client.__aenter__()
+                    except aiomqtt.MqttError as exc:
+                        view.note = f"cannot reconnect: {exc}"
+                        continue
+                    delay = config.reconnect_min_s
+                    break
+    except TimeoutError:
+        pass
+    finally:
+        painter.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await painter
+        live.update(view.render(loop.time()), refresh=True)
+        live.stop()
     return 0
+
+
+def _one_line(exc: BaseException) -> str:
+    return str(exc).replace("\n", " ") or type(exc).__name__
