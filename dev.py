@@ -46,8 +46,14 @@ def ensure_env() -> None:
             sys.exit("[dev.py] `python3 -m venv` failed. On Debian/Ubuntu: apt-get install python3-venv")
     say("installing the project and its test tools into .venv (first run only, about a minute)")
     pip = [PY, "-m", "pip", "install", "--quiet", "--disable-pip-version-check"]
-    if run([*pip, "--upgrade", "pip"]) != 0 or run([*pip, "-e", ".[test]"]) != 0:
-        sys.exit("[dev.py] pip install failed (see above); fix it and run the same command again")
+    log = VENV / "pip-install.log"  # the build backend's chatter goes here; it is shown only if pip fails
+    with log.open("w") as out:
+        ok = run([*pip, "--upgrade", "pip"], stdout=out, stderr=subprocess.STDOUT) == 0 and run(
+            [*pip, "-e", ".[test]"], stdout=out, stderr=subprocess.STDOUT) == 0
+    if not ok:
+        print(log.read_text()[-8000:], file=sys.stderr)
+        sys.exit(f"[dev.py] pip install failed (above; the whole output is in {log}); fix it and run the same "
+                 "command again")
     warm_plant()
     STAMP.write_text(want + "\n")
 

@@ -2,15 +2,23 @@
 
 A real board on /dev/ttyUSB0 and an emulated one on a pty are the same thing here: a serial port
 speaking the protocol, so the session never knows which it has. The hexapod sits behind its own
-:class:`HexapodDriver` interface, so a vendor controller (typically an ASCII command set over TCP or
-serial) can be added by implementing four methods, without touching the session.
+:class:`HexapodDriver` interface, chosen by name in the session file and found through the entry-point group
+``hil.hexapod_drivers``, so a vendor controller (typically an ASCII command set over TCP or serial) or a
+pure-software table is a package of its own, installed beside the bench, without touching the session
+(docs/hexapod-drivers.md).
 """
 
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable, Sequence
-from typing import Any
+import asyncio
+import contextlib
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from importlib.metadata import EntryPoint, entry_points
+from typing import Any, ClassVar
+
+from pydantic import BaseModel, ConfigDict
 
 from hil.protocol import (
     CATALOGUE,
@@ -22,6 +30,8 @@ from hil.protocol import (
     DriveEnable,
     Frame,
     HexapodStart,
+    HexapodState,
+    HexapodStatus,
     HexapodStop,
     HostAlive,
     Ident,
@@ -155,39 +165,154 @@ class ImageBoard(BoardClient):
         await self.command(TrackCmd(TrackMode.TRACK if enabled else TrackMode.OFF, gate_px))
 
 
-class HexapodDriver(abc.ABC):
-    """A six-axis swing table. Implement these for a vendor controller; poses go to ``on_pose``."""
+HEXAPOD_DRIVERS = "hil.hexapod_drivers"  # the entry-point group a hexapod driver registers in (docs/hexapod-drivers.md)
 
-    name = "hexapod"
-    on_pose: Callable[[float, tuple[float, ...]], None] | None = None  # (t_profile_s, pose6)
+PoseCallback = Callable[[float, tuple[float, ...]], None]  # (t_profile_s, pose6: x y z mm, roll pitch yaw deg)
+
+
+class HexapodOptions(BaseModel):
+    """Base of a driver's options: the session's ``hexapod`` section without its ``driver`` key. As every config
+    model of the bench: unknown fields refused, immutable, NaN and infinities refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class HexapodDriver(abc.ABC):
+    """A six-axis swing table, as the session drives it (docs/hexapod-drivers.md).
+
+    A session names its driver in ``hexapod: {driver: NAME, ...options}``; NAME is looked up in the entry-point
+    group ``hil.hexapod_drivers`` (:func:`load_hexapod_driver`), where the bench's own :class:`ProtocolHexapod` is
+    ``protocol``. The session validates the options with :attr:`Options`, builds the driver with :meth:`create`,
+    and calls it from its event loop only: :meth:`identify` at connect, :meth:`load` before the gimbal is armed,
+    :meth:`start`, then :meth:`stop` and :meth:`wait_home` at the end (``stop`` also on every fault and signal).
+    It holds the driver behind a :class:`GuardedHexapod`, so once the session has begun to end, ``load`` and
+    ``start`` never reach the driver again. A driver moves the table only when ``start`` is called.
+
+    The driver reports each pose it learns of through :attr:`on_pose`, from the session's event loop, and a loss
+    of its own connection through :attr:`on_fault` (the session then disarms as for a lost link).
+    """
+
+    Options: ClassVar[type[HexapodOptions]] = HexapodOptions
+    uses_link: ClassVar[bool] = False  # True: the session opens the bench's hexapod link (ports.hexapod) for it
+    on_pose: PoseCallback | None = None
+    on_fault: Callable[[str], None] | None = None
+
+    @classmethod
+    def create(cls, options: HexapodOptions, link: SerialLink | None, interlock: Interlock) -> HexapodDriver:
+        """The driver of one session. ``options``: an instance of :attr:`Options`. ``link``: the bench's hexapod
+        link, opened, if :attr:`uses_link` (else None). ``interlock``: the session's (it is enforced on ``load``
+        and ``start`` whatever the driver does). Default: ``cls(options)``."""
+        return cls(options)  # type: ignore[call-arg]
 
     @abc.abstractmethod
-    async def identify(self) -> Any: ...
+    async def identify(self) -> Any:
+        """Connect if needed and check that the controller is the one expected; raise LinkError naming why not."""
 
     @abc.abstractmethod
     async def load(self, segments: Sequence[Segment]) -> None:
         """Upload a profile; raises LinkError naming the limit if the controller refuses it."""
 
     @abc.abstractmethod
-    async def start(self) -> None: ...
+    async def start(self) -> None:
+        """Start the loaded profile (profile time 0 is now)."""
 
     @abc.abstractmethod
     async def stop(self) -> None:
-        """Ramp down and return home."""
+        """Ramp down and return home. Accepted in any state, also when nothing moves, and on every path out."""
+
+    @property
+    @abc.abstractmethod
+    def running(self) -> bool:
+        """True while the table moves: swinging, or ramping down after ``stop``."""
+
+    @property
+    def state(self) -> str:
+        """The controller's state in a word, for the log."""
+        return "running" if self.running else "idle"
+
+    @property
+    def connected(self) -> bool:
+        """False once the driver's connection is gone (``stop`` is then not attempted)."""
+        return True
+
+    async def wait_home(self, timeout_s: float) -> bool:
+        """Wait until the table rests (``running`` false), at most ``timeout_s``; True if it does."""
+        give_up = time.monotonic() + timeout_s
+        while self.running:
+            left = give_up - time.monotonic()
+            if left <= 0:
+                return False
+            await asyncio.sleep(min(left, 0.01))
+        return True
+
+    def handle(self, frame: Frame) -> None:  # noqa: B027 (an optional hook)
+        """A frame from the bench's hexapod link (drivers that set :attr:`uses_link`)."""
+
+    def alive(self, uptime_ms: int) -> None:  # noqa: B027 (an optional hook)
+        """Called every 0.1 s with the bench's HOST_ALIVE (the realtime clock and real boards, not lockstep or
+        sim): a keep-alive of the driver's own goes here."""
 
     def ident_dict(self) -> dict[str, Any]:
+        """What the log records of the controller (its ``ident`` attribute): firmware, serial number, address."""
         return {}
+
+    async def close(self) -> None:  # noqa: B027 (an optional hook)
+        """The session is over: release the connection, stop timers (after ``stop``; never moves anything)."""
 
 
 class ProtocolHexapod(BoardClient, HexapodDriver):
-    """A hexapod controller speaking this bench's protocol (as the emulator's does)."""
+    """A hexapod controller speaking this bench's protocol (as the emulator's does), on the bench's hexapod link:
+    the ``protocol`` driver, and the default."""
 
     board_id = Board.HEXAPOD
+    uses_link = True
+
+    def __init__(self, link: SerialLink, interlock: Interlock | None = None) -> None:
+        super().__init__(link, interlock)
+        self.hex_state: int = HexapodState.IDLE  # the last HEXAPOD_STATUS
+        self._changed = asyncio.Event()
+
+    @classmethod
+    def create(cls, options: HexapodOptions, link: SerialLink | None, interlock: Interlock) -> ProtocolHexapod:
+        if link is None:
+            raise LinkError("hexapod: the protocol driver needs the bench's hexapod link")
+        return cls(link, interlock)
 
     def handle(self, frame: Frame) -> None:
         msg = frame.message
-        if type(msg) is Pose and self.on_pose is not None:
+        kind = type(msg)
+        if kind is HexapodStatus:
+            self.hex_state = msg.state
+            self._changed.set()
+        elif kind is Pose and self.on_pose is not None:
             self.on_pose(msg.t_ms / 1000, msg[1:])
+
+    @property
+    def running(self) -> bool:
+        return self.hex_state in (HexapodState.RUNNING, HexapodState.STOPPING)
+
+    @property
+    def state(self) -> str:
+        try:
+            return HexapodState(self.hex_state).name
+        except ValueError:
+            return str(self.hex_state)
+
+    @property
+    def connected(self) -> bool:
+        return self.link.transport is not None
+
+    async def wait_home(self, timeout_s: float) -> bool:
+        """Until HEXAPOD_STATUS says it rests, at most ``timeout_s`` (checked at least every 0.1 s)."""
+        give_up = time.monotonic() + timeout_s
+        while self.running:
+            left = give_up - time.monotonic()
+            if left <= 0:
+                return False
+            self._changed.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), min(left, 0.1))
+        return True
 
     async def load(self, segments: Sequence[Segment]) -> None:
         for msg in segments_to_messages(list(segments)):
@@ -199,3 +324,128 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
 
     async def stop(self) -> None:
         await self.command(HexapodStop())
+
+
+class GuardedHexapod(HexapodDriver):
+    """The session's hold on its driver, whichever it is.
+
+    The interlock's one-way rule is enforced here, not left to the driver: once the session has begun to end,
+    ``load`` and ``start`` raise :class:`InterlockClosed` without calling the driver (``stop``, ``wait_home`` and
+    ``close`` always pass). A driver's own exceptions become :class:`LinkError` naming the driver, so the session's
+    safety paths treat a failing vendor controller as they treat a lost link."""
+
+    def __init__(self, driver: HexapodDriver, interlock: Interlock, name: str) -> None:
+        self.driver = driver
+        self.interlock = interlock
+        self.driver_name = name
+
+    def replace(self, driver: HexapodDriver) -> None:
+        """Another instance of the driver (its link was reopened by a recovery), with the same callbacks."""
+        driver.on_pose, driver.on_fault = self.driver.on_pose, self.driver.on_fault
+        self.driver = driver
+
+    @property  # type: ignore[override]
+    def uses_link(self) -> bool:
+        return self.driver.uses_link
+
+    @property  # type: ignore[override]
+    def on_pose(self) -> PoseCallback | None:
+        return self.driver.on_pose
+
+    @on_pose.setter
+    def on_pose(self, callback: PoseCallback | None) -> None:
+        self.driver.on_pose = callback
+
+    @property  # type: ignore[override]
+    def on_fault(self) -> Callable[[str], None] | None:
+        return self.driver.on_fault
+
+    @on_fault.setter
+    def on_fault(self, callback: Callable[[str], None] | None) -> None:
+        self.driver.on_fault = callback
+
+    async def _call(self, what: str, step: Awaitable[Any]) -> Any:
+        try:
+            return await step
+        except LinkError:
+            raise
+        except Exception as exc:
+            raise LinkError(f"hexapod driver {self.driver_name!r}: {what}: {type(exc).__name__}: "
+                            f"{' '.join(str(exc).split())}") from exc
+
+    async def identify(self) -> Any:
+        return await self._call("identify", self.driver.identify())
+
+    async def load(self, segments: Sequence[Segment]) -> None:
+        self.interlock.check("hexapod profile upload")
+        await self._call("load", self.driver.load(segments))
+
+    async def start(self) -> None:
+        self.interlock.check("hexapod start")
+        await self._call("start", self.driver.start())
+
+    async def stop(self) -> None:
+        await self._call("stop", self.driver.stop())
+
+    async def wait_home(self, timeout_s: float) -> bool:
+        return bool(await self._call("wait_home", self.driver.wait_home(timeout_s)))
+
+    async def close(self) -> None:
+        await self._call("close", self.driver.close())
+
+    @property
+    def running(self) -> bool:
+        return self.driver.running
+
+    @property
+    def state(self) -> str:
+        return self.driver.state
+
+    @property
+    def connected(self) -> bool:
+        return self.driver.connected
+
+    def handle(self, frame: Frame) -> None:
+        self.driver.handle(frame)
+
+    def alive(self, uptime_ms: int) -> None:
+        self.driver.alive(uptime_ms)
+
+    def ident_dict(self) -> dict[str, Any]:
+        return {"driver": self.driver_name, **self.driver.ident_dict()}
+
+
+def installed_hexapod_drivers() -> dict[str, EntryPoint]:
+    """The hexapod drivers installed here: name -> entry point of the group ``hil.hexapod_drivers`` (of two with one
+    name, the first on ``sys.path``). Read afresh at each call, so a package installed meanwhile is seen."""
+    found: dict[str, EntryPoint] = {}
+    for ep in entry_points(group=HEXAPOD_DRIVERS):
+        found.setdefault(ep.name, ep)
+    return found
+
+
+def load_hexapod_driver(name: str) -> type[HexapodDriver]:
+    """The driver class registered as ``name``; ValueError (one line: what is wrong, and the installed names) if
+    none is, or it cannot be imported, or it is not a complete :class:`HexapodDriver`.
+
+    ``protocol`` is registered by this project; from a source tree that was never installed (no entry points at
+    all) it still resolves, to :class:`ProtocolHexapod`."""
+    eps = installed_hexapod_drivers()
+    ep = eps.get(name)
+    if ep is None:
+        if name == "protocol":
+            return ProtocolHexapod
+        installed = ", ".join(sorted({*eps, "protocol"}))
+        raise ValueError(f"{name!r} is not an installed hexapod driver (installed: {installed})")
+    where = f"{name!r} ({ep.value})"
+    try:
+        cls = ep.load()
+    except Exception as exc:  # a third-party package's import error, whatever it is
+        raise ValueError(f"{where} cannot be loaded: {type(exc).__name__}: {' '.join(str(exc).split())}") from None
+    if not (isinstance(cls, type) and issubclass(cls, HexapodDriver)):
+        raise ValueError(f"{where} is not a hil.boards.HexapodDriver subclass")
+    if cls.__abstractmethods__:
+        raise ValueError(f"{where} does not implement {', '.join(sorted(cls.__abstractmethods__))}")
+    if not (isinstance(cls.Options, type) and issubclass(cls.Options, BaseModel)):
+        raise ValueError(f"{where}: its Options is not a pydantic model")
+    return cls

@@ -25,10 +25,14 @@ from pydantic import (
     ConfigDict,
     Discriminator,
     Field,
+    PrivateAttr,
+    SerializationInfo,
+    SerializerFunctionWrapHandler,
     Tag,
     ValidationError,
     ValidationInfo,
     field_validator,
+    model_serializer,
     model_validator,
 )
 
@@ -218,7 +222,9 @@ class PortsConfig(Strict):
     servo: PortConfig
     driver: PortConfig
     image: PortConfig
-    hexapod: PortConfig
+    hexapod: PortConfig | None = Field(
+        None, description="the hexapod controller's link; needed only by a hexapod driver that uses the bench's "
+        "link (the protocol driver, the default), never opened otherwise")
 
 
 class ControllerConfig(Strict):
@@ -293,6 +299,59 @@ class HexapodLimits(Strict):
                         tuple(a.accel for a in axes))
 
 
+class HexapodConfig(BaseModel):
+    """The session's ``hexapod`` section: which driver moves the swing table, with that driver's options
+    (docs/hexapod-drivers.md). ``driver`` names an entry point of the group ``hil.hexapod_drivers``; every other key
+    is an option of that driver, checked by the driver's own ``Options`` model (a fault names ``hexapod.FIELD``).
+
+    Dumps and repr show the validated options (defaults included) as the driver's model dumps them, so an option
+    the driver declares as ``SecretStr`` is ``'**********'`` in the session log's ``config`` attribute."""
+
+    model_config = ConfigDict(extra="allow", frozen=True, allow_inf_nan=False)
+
+    driver: str = Field("protocol", min_length=1, max_length=128,
+                        description="an installed hexapod driver: protocol (this bench's protocol on the hexapod "
+                        "link, the default) or a driver package's entry point in hil.hexapod_drivers")
+    _driver_class: Any = PrivateAttr(None)
+    _options: Any = PrivateAttr(None)
+
+    @model_validator(mode="after")
+    def _driver_and_options(self, info: ValidationInfo) -> HexapodConfig:
+        from pydantic_core import InitErrorDetails, PydanticCustomError
+
+        from hil.boards import load_hexapod_driver  # the driver's package is imported here, not with the bench
+
+        try:
+            cls = load_hexapod_driver(self.driver)
+        except ValueError as exc:
+            raise ValidationError.from_exception_data(type(self).__name__, [InitErrorDetails(
+                type=PydanticCustomError("value_error", str(exc)), loc=("driver",), input=self.driver)]) from None
+        self._driver_class = cls
+        self._options = cls.Options.model_validate(self.model_extra or {}, context=info.context)
+        return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: SerializerFunctionWrapHandler, info: SerializationInfo) -> dict[str, Any]:
+        if self._options is None:
+            return handler(self)
+        return {"driver": self.driver, **self._options.model_dump(mode=info.mode)}
+
+    def __repr_args__(self) -> Any:
+        yield "driver", self.driver
+        if self._options is not None:
+            yield from self._options.__repr_args__()
+
+    @property
+    def driver_class(self) -> Any:
+        """The driver's class (a ``hil.boards.HexapodDriver``), resolved when the section was validated."""
+        return self._driver_class
+
+    @property
+    def options(self) -> Any:
+        """The driver's options: an instance of its ``Options`` model."""
+        return self._options
+
+
 class TrackingConfig(Strict):
     """The outer loop: miss distance (px) at camera rate -> rate command (deg/s) per axis."""
 
@@ -358,6 +417,22 @@ def require_regular_file(path: Path) -> Path:
     return path
 
 
+def require_writable_dir(path: Path, what: str) -> Path:
+    """``path`` if it is a directory we may write into, or one we may create (nothing is created here);
+    ConfigError naming ``what`` (the option or field) otherwise."""
+    target = Path(path).absolute()
+    if target.exists() and not target.is_dir():
+        raise ConfigError(f"{what} {path}: exists and is not a directory")
+    parent = target
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{what} {path}: {parent} is not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{what} {path}: {parent} is not writable")
+    return Path(path)
+
+
 class EmulatorRef(Strict):
     """What `hil run --loopback` starts in place of the lab."""
 
@@ -419,6 +494,8 @@ class SessionConfig(Strict):
     tracking: TrackingConfig = TrackingConfig()
     profile: SwingProfile = SwingProfile()
     hexapod_limits: HexapodLimits
+    hexapod: HexapodConfig = Field(default_factory=HexapodConfig,
+                                   description="the swing table's driver and its options (docs/hexapod-drivers.md)")
     safety: SafetyConfig = SafetyConfig()
     logging: LoggingConfig = LoggingConfig()
     host: HostConfig = HostConfig()
@@ -442,6 +519,13 @@ class SessionConfig(Strict):
         violation = check_envelope(self.profile.protocol_segments(), self.hexapod_limits.envelope())
         if violation:
             raise ValueError(f"profile: {violation.describe()}")
+        return self
+
+    @model_validator(mode="after")
+    def _hexapod_port(self) -> SessionConfig:
+        if self.ports is not None and self.ports.hexapod is None and self.hexapod.driver_class.uses_link:
+            raise ValueError(f"ports.hexapod: the hexapod driver {self.hexapod.driver!r} talks over the bench's "
+                             "hexapod link; give its serial port")
         return self
 
 

@@ -5,7 +5,8 @@ While it runs, :class:`LoopThread` owns the hot direction of two links: it reads
 Per sample: ``select`` on the servo fd with the watchdog's remaining time as the timeout, ``os.read``, the decoder's
 fixed-layout GYRO_SAMPLE path (:meth:`Decoder.fast_feed`), :meth:`ControlLoop.on_sample`, and DRIVE_CMD as one
 precompiled ``pack`` plus CRC (:class:`FramePacker`) and one ``os.write``. The log row and the telemetry sample are
-handed on without blocking (a bytearray append; a non-blocking pipe write).
+handed on without blocking (a bytearray append; a non-blocking pipe write). With a capture on the links (hil.capture),
+each read and each DRIVE_CMD written is queued for it as one tuple on a deque (its writer thread formats and writes).
 
 Everything else stays on the event loop: every other servo frame (ACKs, LOOP_TIMING, IDENT, CLOCK_LATE) is handed
 to it with ``call_soon_threadsafe`` and delivered by the link as if it had read it itself, and so are a trip, a
@@ -37,6 +38,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from hil import host
+from hil.capture import RX, TX
 from hil.protocol import AxisMask, Board, ClockLate, DriveCmd, DriveDisable, Frame, GyroSample
 from hil.protocol.framing import FramePacker
 from hil.transport import LinkError, SerialLink
@@ -73,6 +75,9 @@ class DriveWriter:
         self._drive = FramePacker(DriveCmd, link.encoder, Board.DRIVER).pack
         self._disable = FramePacker(DriveDisable, link.encoder, Board.DRIVER).pack
         self.short_writes = 0
+        cap = link.capture  # the driver link's capture: each write queued as (t_ns, link id, TX, bytes)
+        self._capture = None if cap is None else cap.append
+        self._capture_id = 0 if cap is None else cap.id
 
     def drive(self, tick: int, az_counts: int, el_counts: int) -> None:
         self._write(self._drive(tick, az_counts, el_counts))
@@ -81,11 +86,18 @@ class DriveWriter:
         self._write(self._disable(AxisMask.BOTH))
 
     def _write(self, frame: bytes) -> None:
+        capture = self._capture
+        t_ns = time.monotonic_ns() if capture is not None else 0  # stamped before the write: captures sort by time
         try:
-            if os.write(self.fd, frame) != len(frame):
-                self.short_writes += 1
+            n = os.write(self.fd, frame)
         except BlockingIOError:
             self.short_writes += 1
+            return
+        if n != len(frame):
+            self.short_writes += 1
+            frame = frame[:n]
+        if capture is not None:
+            capture((t_ns, self._capture_id, TX, frame))
 
 
 class ControlLoopLike(Protocol):
@@ -215,6 +227,9 @@ class LoopThread:
         deliver = self.servo.deliver
         on_sample = self.loop.on_sample
         monotonic_ns = time.monotonic_ns
+        cap = self.servo.capture  # the servo link's capture: each read queued as (t_ns, link id, RX, bytes)
+        capture = None if cap is None else cap.append
+        cap_id = 0 if cap is None else cap.id
         due: float | None = None  # when the watchdog looks next (absolute, on its clock)
         last_tick: int | None = None  # of the last sample (a held silence that lost none is the host's)
         while not self._stop:
@@ -249,6 +264,8 @@ class LoopThread:
             if not data:
                 self._lost(post, None)
                 return
+            if capture is not None:
+                capture((t_rx_ns, cap_id, RX, data))
             frames = feed(data)
             for frame in frames:
                 msg = frame.message

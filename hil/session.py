@@ -20,6 +20,7 @@ import contextlib
 import dataclasses
 import gc
 import signal
+import threading
 import time
 import traceback
 from array import array
@@ -31,7 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from hil import __version__, host
-from hil.boards import DriverBoard, ImageBoard, Interlock, InterlockClosed, ProtocolHexapod, ServoBoard
+from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, InterlockClosed, ServoBoard
+from hil.capture import Capture
 from hil.config import PortConfig, SessionConfig
 from hil.control.controller import RateController
 from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
@@ -45,8 +47,6 @@ from hil.protocol import (
     DriveStatus,
     Frame,
     GyroSample,
-    HexapodState,
-    HexapodStatus,
     Ident,
     LoopTiming,
     MissDistance,
@@ -60,6 +60,7 @@ LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[Seri
 LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
 HOST_ALIVE_S = 0.1  # HOST_ALIVE on every link this often (docs/protocol.md, "Host liveness")
 EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
+HEXAPOD_HOME_S = 5.0  # wind-down: the hexapod ramps down (1 s on the emulator) and rests within this
 
 
 @dataclass
@@ -205,6 +206,8 @@ class ControlLoop:
         t_exp_us = m.t_exposure_us + (self.t_wraps << 32)
         self.log.append("image", (m.frame, t_exp_us / 1e6, time.monotonic_ns(), m.miss_x_px, m.miss_y_px,
                                   int(m.track_valid), self.last_tick or 0))
+        if self.telemetry is not None:
+            self.telemetry.miss(m.miss_x_px, m.miss_y_px, m.track_valid)
         self.frames.append((t_exp_us + self.apply_after_us, m))
 
     def _use_frame(self, m: MissDistance) -> None:
@@ -231,12 +234,14 @@ class SessionResult:
 
 
 class Session:
-    """One run of a session config against four serial ports (real or emulated)."""
+    """One run of a session config against the boards' serial ports (real or emulated) and its hexapod driver
+    (``config.hexapod``: the protocol one on the fourth port, or a driver package's; docs/hexapod-drivers.md)."""
 
     def __init__(self, config: SessionConfig, ports: dict[str, PortConfig], out_dir: Path, *,
                  watchdog_ms: float | None = None, progress: Callable[[int, int], None] | None = None,
                  log_attrs: dict[str, Any] | None = None, lockstep: bool = False,
-                 open_link: LinkOpener | None = None, watchdog: bool = True, emulated: bool = False) -> None:
+                 open_link: LinkOpener | None = None, watchdog: bool = True, emulated: bool = False,
+                 capture_dir: Path | None = None) -> None:
         """``lockstep``: the boards are an emulator in lockstep (its world waits for the bench). The bench then
         sends no HOST_ALIVE, which would land at wall-clock moments and change the bytes of the run; the
         emulator judges host liveness by the lockstep itself (docs/protocol.md, "Host liveness").
@@ -245,7 +250,8 @@ class Session:
         port); the ``sim`` clock passes one that connects to an in-process world (hil.sim). ``watchdog``: run
         the sample watchdog (off only in ``sim``, where the world advances with the loop and wall time means
         nothing). ``emulated``: the boards are the emulator on this host, so ``safety.emulator_stall_grace_ms`` applies
-        (hil.watchdog); ignored otherwise.
+        (hil.watchdog); ignored otherwise. ``capture_dir``: record every link's bytes, both directions, in a capture
+        file there (hil.capture, docs/capture.md); ValueError with ``open_link`` (the sim clock's links carry no bytes).
 
         The loop runs in its own thread (hil.loop_thread) unless ``lockstep`` or ``open_link`` is given: lockstep and
         sim keep it on the event loop, where the boards wait for it and a run's bytes are reproducible."""
@@ -259,11 +265,11 @@ class Session:
         self.servo: ServoBoard | None = None
         self.driver: DriverBoard | None = None
         self.image: ImageBoard | None = None
-        self.hexapod: ProtocolHexapod | None = None
+        self.hexapod: GuardedHexapod | None = None  # the session's driver (config.hexapod), behind the interlock
+        self.hexapod_uses_link = config.hexapod.driver_class.uses_link  # else ports.hexapod is never opened
         self.log: SessionLog | None = None
         self.loop_: ControlLoop | None = None
         self.telemetry: Telemetry | None = None
-        self.hexapod_state = HexapodState.IDLE
         self.stop_reason: str | None = None
         self.exit_code = EXIT_OK
         self.log_path: Path | None = None
@@ -278,12 +284,16 @@ class Session:
         self.loop_thread: LoopThread | None = None
         self.event_watchdog: EventLoopWatchdog | None = None
         self._loop_cpu: int | None = None
-        self._hexapod_changed = asyncio.Event()
         self.interlock = Interlock()  # closed for good when the session starts to end (finish)
         self._tasks: set[asyncio.Task[Any]] = set()
         self._recovery: asyncio.Task[Any] | None = None
         self._swing_started = False
         self._t0 = time.monotonic()
+        if capture_dir is not None and open_link is not None:
+            raise ValueError("capture: these links pass messages, not bytes (the sim clock): nothing to capture; "
+                             "run on the lockstep clock for the same run over ptys")
+        self.capture_dir = capture_dir
+        self.capture: Capture | None = None  # opened with the first link, closed after the last (_shutdown)
 
     # --- frames from the boards ---------------------------------------------------------------------
 
@@ -317,11 +327,7 @@ class Session:
             self.loop_.on_miss(frame.message)
 
     def _on_hexapod(self, frame: Frame) -> None:
-        msg = frame.message
-        if type(msg) is HexapodStatus:
-            self.hexapod_state = msg.state
-            self._hexapod_changed.set()
-        elif self.hexapod is not None:
+        if self.hexapod is not None:  # the driver keeps its state (HEXAPOD_STATUS) and reports poses
             self.hexapod.handle(frame)
 
     # --- phases -------------------------------------------------------------------------------------
@@ -329,20 +335,43 @@ class Session:
     async def connect(self) -> None:
         handlers = {"servo": self._on_servo, "driver": self._on_driver, "image": self._on_image,
                     "hexapod": self._on_hexapod}
-        for name in LINKS:
+        for name in self._bench_links():
             await self._open(name, handlers[name])
+        if not self.hexapod_uses_link:  # a driver with a connection of its own (or none): no link to open for it
+            await self._hexapod_driver(None).identify()
+
+    def _bench_links(self) -> tuple[str, ...]:
+        """The links this session opens: the hexapod's only if its driver talks over it."""
+        return LINKS if self.hexapod_uses_link else tuple(n for n in LINKS if n != "hexapod")
+
+    def _hexapod_driver(self, link: SerialLink | None) -> GuardedHexapod:
+        """The session's hexapod driver, built from ``config.hexapod`` (on ``link`` if it uses the bench's link). A
+        recovery that reopened the link builds a new one in place of the old, with the same callbacks."""
+        cfg = self.config.hexapod
+        driver = cfg.driver_class.create(cfg.options, link, self.interlock)
+        if self.hexapod is None:
+            self.hexapod = GuardedHexapod(driver, self.interlock, cfg.driver)
+            self.hexapod.on_fault = lambda reason: self.fault(f"hexapod: {reason}")
+        else:
+            self.hexapod.replace(driver)
+        return self.hexapod
 
     async def _open(self, name: str, handler: Callable[[Frame], None]) -> None:
         port = self.ports[name]
         if self.open_link is not None:
             link = await self.open_link(name, port, handler)
         else:
-            link = await SerialLink.open(name, port.port, port.baudrate, handler)
+            if self.capture_dir is not None and self.capture is None:
+                self.capture = Capture.for_session(self.capture_dir, self.config, lockstep=self.lockstep)
+            link = await SerialLink.open(name, port.port, port.baudrate, handler, capture=self.capture)
         if self.lockstep:  # a resend would change the bytes of a lockstep run (docs/protocol.md, 6.1)
             link.retry_interval_s = 1.0
         self.links[name] = link
         link.closed.add_done_callback(lambda fut, name=name: self._link_lost(name, fut))
-        kinds = {"servo": ServoBoard, "driver": DriverBoard, "image": ImageBoard, "hexapod": ProtocolHexapod}
+        if name == "hexapod":
+            await self._hexapod_driver(link).identify()
+            return
+        kinds = {"servo": ServoBoard, "driver": DriverBoard, "image": ImageBoard}
         board = kinds[name](link, self.interlock)
         setattr(self, name, board)
         await board.identify()
@@ -356,9 +385,13 @@ class Session:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.log_path = self.out_dir / f"{self.config.name}-{now:%Y%m%d-%H%M%S}.h5"
         idents = {name: getattr(self, name).ident_dict() for name in LINKS}
+        from hil.log.provenance import collect_provenance  # versions, commit, plant hash, full controller params
+
+        emulated = self.extra_attrs.get("loopback", self.lockstep or self.open_link is not None)
         attrs = {"config": self.config.model_dump(mode="json"), "ident": idents, "software_version": __version__,
                  "seed": self.config.seed, "start_time_utc": now.isoformat(), "session_name": self.config.name,
-                 "controller": self.config.controller.name, **self.extra_attrs}
+                 "controller": self.config.controller.name, **({"clock": "lockstep"} if self.lockstep else {}),
+                 "provenance": collect_provenance(self.config, emulated=bool(emulated)), **self.extra_attrs}
         self.log = SessionLog(self.log_path, attrs=attrs, flush_interval_s=self.config.logging.flush_interval_s,
                               fsync=self.config.logging.fsync)
 
@@ -507,7 +540,7 @@ class Session:
             await asyncio.sleep(self.config.safety.recover_after_ms / 1000)
             handlers = {"servo": self._on_servo, "driver": self._on_driver, "image": self._on_image,
                         "hexapod": self._on_hexapod}
-            for name in LINKS:
+            for name in self._bench_links():
                 link = self.links.get(name)
                 if link is None or link.transport is None:
                     for _ in range(50):
@@ -583,7 +616,10 @@ class Session:
     async def run(self) -> SessionResult:
         aloop = asyncio.get_running_loop()
         self._finished = aloop.create_future()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        # Signals reach only the main thread's loop; a session run from a worker thread (hil.run inside a
+        # notebook's loop) ends on its caller's terms instead.
+        signals = (signal.SIGINT, signal.SIGTERM) if threading.current_thread() is threading.main_thread() else ()
+        for sig in signals:
             aloop.add_signal_handler(sig, self._on_signal, sig)
         status, message = "fault", ""
         try:
@@ -652,7 +688,7 @@ class Session:
         finally:
             self.finish(status, message)
             await self._shutdown()
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in signals:
                 aloop.remove_signal_handler(sig)
         if status == "fault" and self.exit_code == EXIT_OK:
             self.exit_code = EXIT_FAULT
@@ -667,14 +703,8 @@ class Session:
             with contextlib.suppress(LinkError):
                 await self.hexapod.stop()
                 self.event("state", state="swing stopping")
-                give_up = time.monotonic() + 5.0  # the controller ramps down (1 s on the emulator), at most 5 s
-                while self.hexapod_state in (HexapodState.RUNNING, HexapodState.STOPPING):
-                    left = give_up - time.monotonic()
-                    if left <= 0:
-                        break
-                    self._hexapod_changed.clear()
-                    with contextlib.suppress(TimeoutError):
-                        await asyncio.wait_for(self._hexapod_changed.wait(), min(left, 0.1))
+                if not await self.hexapod.wait_home(HEXAPOD_HOME_S):
+                    self.event("info", hexapod=f"still {self.hexapod.state} {HEXAPOD_HOME_S:g} s after the stop")
 
     async def _shutdown(self) -> None:
         """Driver first, then the swing, the stream, telemetry and the log. Never raises.
@@ -712,6 +742,10 @@ class Session:
             if self.log is not None:
                 self.log.event("telemetry", self.loop_.last_tick or 0 if self.loop_ else 0,
                                dataclasses.asdict(self.telemetry.stats))
+        if self.hexapod is not None:  # its last reports stop here: nothing reaches a closed log
+            self.hexapod.on_pose = self.hexapod.on_fault = None
+            with contextlib.suppress(LinkError, OSError):
+                await self.hexapod.close()
         if self.log is not None:
             self.log.close()
         for link in self.links.values():
@@ -719,6 +753,8 @@ class Session:
         closing = [link.closed for link in self.links.values() if not link.closed.done()]
         if closing:  # the transport closes its port in an executor: wait, or its descriptors outlive the session
             await asyncio.wait(closing, timeout=2.0)
+        if self.capture is not None:  # every link closed: the capture has all their bytes
+            self.capture.close()
         if self._placement_before is not None:  # the process may go on (a test, a script): give the thread back
             with contextlib.suppress(OSError):
                 host.restore_placement(self._placement_before)
@@ -734,7 +770,7 @@ class Session:
     async def _stop_swing(self) -> str:
         if not self._swing_started:
             return "never started"
-        if self.hexapod is None or self.hexapod.link.transport is None:
+        if self.hexapod is None or not self.hexapod.connected:
             return "no link"
         await self.hexapod.stop()  # always accepted, also when it has already stopped
         return "stopped"

@@ -28,6 +28,8 @@ if TYPE_CHECKING:
     from hil.session import SessionResult
 
 TICKS_PER_YIELD = 20  # world ticks between two yields to the event loop (a sim tick is ~20-40 us)
+CAPTURE_REFUSED = ("--capture: the sim clock's links pass messages, not bytes, so there is nothing to capture; "
+                   "use --clock lockstep (the same run over ptys)")
 
 
 class _SimTransport(asyncio.Transport):
@@ -199,10 +201,16 @@ def sim_ports() -> dict[str, PortConfig]:
 
 
 async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Callable[[int, int], None] | None = None,
-                          log_attrs: dict[str, Any] | None = None) -> tuple[SessionResult, dict[str, Any]]:
+                          log_attrs: dict[str, Any] | None = None,
+                          capture_dir: Path | None = None) -> tuple[SessionResult, dict[str, Any]]:
     """Run one session against the emulated lab of ``config.emulator`` in this process (the ``sim`` clock).
-    Returns the session's result and the emulator's summary. A bad emulator or plant file raises ConfigError."""
+    Returns the session's result and the emulator's summary. A bad emulator or plant file raises ConfigError.
+    ``capture_dir`` is refused (ValueError, before anything starts): the sim clock's links pass messages as
+    objects, so there are no bytes to capture; the lockstep clock runs the same session over ptys."""
     from hil.session import Session
+
+    if capture_dir is not None:
+        raise ValueError(CAPTURE_REFUSED)
 
     lab = SimLab(config.emulator.config, seed=config.seed)
     session = Session(config, sim_ports(), out_dir, progress=progress, lockstep=True, open_link=lab.open_link,

@@ -3,19 +3,26 @@
 Incoming bytes are decoded chunk by chunk in ``data_received`` and each frame is handed to the
 link's ``on_frame`` callback right there, so a reaction (such as DRIVE_CMD k for GYRO_SAMPLE k)
 is written within the same event-loop callback that read the sample: no timer is involved.
+
+A link given a capture (hil.capture: ``SerialLink.open(..., capture=...)``) records every chunk it reads and every
+frame it writes, with its time; the realtime loop thread records what it reads and writes on the link's behalf.
 """
 
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import serial
 import serial_asyncio_fast
 
 from hil.protocol import CATALOGUE, Ack, Board, Decoder, Encoder, Frame, Nack
 from hil.protocol.framing import frame_seq
+
+if TYPE_CHECKING:
+    from hil.capture import Capture, LinkCapture
 
 DEFAULT_BAUD = 921_600
 RETRY_INTERVAL_S = 0.05  # docs/protocol.md section 6: resend after 50 ms without a reply ...
@@ -39,10 +46,11 @@ class SerialLink(asyncio.Protocol):
     "image", "hexapod"), so its decoder delivers only what that board may send the host
     (:meth:`Decoder.for_link`); a link of another name decodes everything. ``retry_interval_s``
     and ``max_resends`` govern :meth:`request`'s resends (lockstep emulation sets a longer interval).
+    ``capture``: this link's handle on a capture file (hil.capture), None for none.
     """
 
     def __init__(self, name: str, on_frame: Callable[[Frame], None] | None = None, src: int = Board.HOST,
-                 board: int | None = None) -> None:
+                 board: int | None = None, *, capture: LinkCapture | None = None) -> None:
         self.name = name
         self.on_frame = on_frame
         self.encoder = Encoder(src)
@@ -55,18 +63,21 @@ class SerialLink(asyncio.Protocol):
         self.closed = asyncio.get_running_loop().create_future()
         self._lost_exc: Exception | None = None
         self._waiters: list[tuple[Callable[[Frame], bool], asyncio.Future[Frame]]] = []
+        self.capture = capture
 
     @classmethod
     async def open(
         cls, name: str, port: str, baudrate: int = DEFAULT_BAUD, on_frame: Callable[[Frame], None] | None = None,
-        *, board: int | None = None,
+        *, board: int | None = None, capture: Capture | None = None,
     ) -> SerialLink:
         """Open ``port`` (a device such as /dev/ttyUSB0, or an emulator's pty) to ``board``
-        (default: the board the link name designates)."""
+        (default: the board the link name designates). With ``capture``, the link's bytes go to that capture
+        file under the link's name, from the moment it is open."""
         loop = asyncio.get_running_loop()
+        handle = None if capture is None else capture.link(name)
         try:
             _, link = await serial_asyncio_fast.create_serial_connection(
-                loop, lambda: cls(name, on_frame, board=board), port, baudrate=baudrate
+                loop, lambda: cls(name, on_frame, board=board, capture=handle), port, baudrate=baudrate
             )
         except (serial.SerialException, OSError) as exc:
             raise LinkError(f"{name}: cannot open {port}: {exc}") from None
@@ -81,8 +92,13 @@ class SerialLink(asyncio.Protocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
+        if self.capture is not None:  # before any byte: a decoder of the capture starts afresh here
+            ser = getattr(transport, "serial", None)
+            self.capture.note(event="open", port=getattr(ser, "port", None), baudrate=getattr(ser, "baudrate", None))
 
     def data_received(self, data: bytes) -> None:
+        if self.capture is not None:
+            self.capture.rx(data)
         for frame in self.decoder.feed(data):
             self.deliver(frame)
 
@@ -104,6 +120,8 @@ class SerialLink(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         exc = exc or self._lost_exc
         self.transport = None
+        if self.capture is not None:
+            self.capture.note(event="close", reason=str(exc) if exc is not None else "")
         if not self.closed.done():
             self.closed.set_result(exc)
         for _, fut in self._waiters:
@@ -117,8 +135,20 @@ class SerialLink(asyncio.Protocol):
         if self.transport is None:
             raise LinkError(f"{self.name}: link is closed")
         data = self.encoder.encode(message, dst)
-        self.transport.write(data)
+        self._write(data)
         return frame_seq(data)
+
+    def _write(self, data: bytes) -> None:
+        """Write ``data`` (the transport is open), and capture it, stamped before the write: two threads write the
+        driver link, and the stamps keep the order their bytes went out in."""
+        assert self.transport is not None
+        capture = self.capture
+        if capture is None:
+            self.transport.write(data)
+            return
+        t_ns = time.monotonic_ns()
+        self.transport.write(data)
+        capture.tx(data, t_ns)
 
     def _wake_waiters(self, frame: Frame) -> None:
         keep = []
@@ -184,7 +214,7 @@ class SerialLink(asyncio.Protocol):
                     break
                 if self.transport is None:
                     raise LinkError(f"{self.name}: link is closed")
-                self.transport.write(data)
+                self._write(data)
                 until = t0 + (total_s if k == self.max_resends else (k + 1) * interval_s)
                 await asyncio.wait((fut,), timeout=max(0.0, until - loop.time()))
             if not fut.done():

@@ -3,6 +3,7 @@
 Each name has a pydantic parameter model (units in the field names, defaults for the default plant
 k_m = 0.023 deg/s^2 per count) and builds one :class:`RateController` per axis. An unknown name or
 parameter raises :class:`ControllerConfigError` with one line that names it and lists what exists.
+:func:`effective_params` gives the full parameter set a config runs with (a session log records it).
 
 Every parameter has a valid range (its Field bounds; NaN and infinities refused) and the derived
 quantities are checked too (docs/reliability.md has the table, tested against these models):
@@ -13,7 +14,7 @@ range inside the 1 kHz loop.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -240,3 +241,24 @@ def build_controller(name: str, params: dict[str, Any] | RateLoopParams | None =
     p = controller_params(name, params)
     imbalance = _imbalance(p) if isinstance(p, EsoKfUkfFfParams) else None
     return RateController(estimator=REGISTRY[name].estimator(p), loop=p.loop(), imbalance=imbalance)
+
+
+def effective_params(controller_config: Any) -> dict[str, Any]:
+    """Every parameter controller ``name`` runs with: the config's overrides over the registry's defaults.
+
+    ``controller_config``: a ``hil.config.ControllerConfig``, a mapping ``{"name": ..., "params": {...}}`` (as a
+    session log's ``config["controller"]`` holds it) or a controller name alone. The name's own defaults count:
+    ``eso_kf_high_gain`` gives ``omega_o_rad_s`` 1000, not the 300 of ``eso_kf``. Returns plain JSON types, in
+    the parameter model's field order. Raises :class:`ControllerConfigError` for an unknown name or parameter.
+    """
+    if isinstance(controller_config, str):
+        name, params = controller_config, None
+    elif isinstance(controller_config, Mapping):
+        name, params = controller_config.get("name"), controller_config.get("params")
+    else:
+        name, params = getattr(controller_config, "name", None), getattr(controller_config, "params", None)
+    if not isinstance(name, str):
+        raise ControllerConfigError(f"controller name missing or not a string (got {name!r})")
+    if isinstance(params, RateLoopParams):
+        params = params.model_dump(exclude_unset=True)
+    return controller_params(name, dict(params or {})).model_dump(mode="json")

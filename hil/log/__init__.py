@@ -1,11 +1,15 @@
 """Session logs: HDF5 (SWMR, crash-safe), one group per rate, one 1-D dataset per channel.
 
-Layout and semantics: docs/log-format.md. Write with ``SessionLog``; read with ``read_log``;
-repair a file left by a crash with ``recover_log`` (``hil recover LOG``); export with
-``export_log`` (``hil export LOG --format parquet|csv``).
+Layout and semantics: docs/log-format.md. Write with ``SessionLog``; read with ``read_log`` (numpy)
+or ``read_log_frames`` (pandas DataFrames, for notebooks); repair a file left by a crash with
+``recover_log`` (``hil recover LOG``); export with ``export_log`` (``hil export LOG --format
+parquet|csv``). ``collect_provenance`` is what a session records of its software, plant and
+controller, ``read_provenance`` reads it back.
 """
 
-from hil.log.reader import LogData, RecoverReport, export_log, read_log, recover_log
+from hil.log.frames import LogFrames, read_log_frames
+from hil.log.provenance import collect_provenance, read_provenance
+from hil.log.reader import LogData, RecoverReport, export_log, read_attrs, read_log, recover_log, units_path
 from hil.log.schema import ATTRS, LOG_FORMAT_VERSION, SCHEMA, AttrSpec, Channel, Group
 from hil.log.writer import LogError, SessionLog
 
@@ -18,9 +22,15 @@ __all__ = [
     "Group",
     "LogData",
     "LogError",
+    "LogFrames",
     "RecoverReport",
     "SessionLog",
+    "collect_provenance",
     "export_log",
+    "read_attrs",
     "read_log",
+    "read_log_frames",
+    "read_provenance",
     "recover_log",
+    "units_path",
 ]

@@ -7,6 +7,7 @@
 * ``recover_log``: copies a crashed file through a SWMR reader into a new file with the same
   layout and attributes, trimmed, and puts it in the original's place (the original is kept as
   ``<name>.crashed.h5``). ``hil recover LOG``.
+* ``read_attrs``: only the file attributes (quick on a long log).
 * ``export_log``: one Parquet or CSV file per group, units included. ``hil export LOG``.
 """
 
@@ -206,6 +207,19 @@ def read_log(path: str | Path, *, groups: Iterable[str] | None = None) -> LogDat
     return data
 
 
+def read_attrs(path: str | Path) -> dict[str, Any]:
+    """The file attributes of a session log (JSON ones decoded), without reading any rows.
+
+    Like ``read_log``, it opens a closed, live or crashed log. Raises ``LogError`` if the file is
+    missing or unreadable, ``NotASessionLog`` if it is HDF5 but not a session log.
+    """
+    path = Path(path)
+    f, _ = _open(path)
+    with f:
+        _require_session_log(f, path)
+        return _decode_attrs(dict(f.attrs))
+
+
 def _text(v: Any) -> str:
     return v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)
 
@@ -341,10 +355,14 @@ def recover_log(path: str | Path, *, output: Path | None = None) -> RecoverRepor
 def export_log(path: str | Path, fmt: Literal["parquet", "csv"], out_dir: Path | None = None) -> list[Path]:
     """One file per group, ``<stem>.<group>.parquet|csv``, in ``out_dir`` (default: beside the log).
 
+    Returns every file written, in group order (for CSV each group's file, then its units file).
+
     Parquet: each field carries ``unit`` and ``doc`` metadata; the schema metadata holds
     ``hil.units`` and ``hil.docs`` (JSON by channel), ``hil.group``, ``hil.rate``, ``hil.source``
-    and ``hil.attrs`` (the file attributes as JSON). CSV: line 1 is ``# units: u1,u2,...`` (one unit
-    per column, in column order), line 2 the channel names, then the rows.
+    and ``hil.attrs`` (the file attributes as JSON), and ``PANDAS_ATTRS``, which pandas restores as
+    ``df.attrs``: ``pandas.read_parquet(p).attrs["units"]`` is ``{channel: unit}``. CSV: one header
+    row of channel names, then the rows, so a plain ``pandas.read_csv(p)`` reads it; the units go in
+    ``<stem>.<group>.units.json`` beside it (``{channel: unit}``, in column order).
     """
     if fmt not in ("parquet", "csv"):
         raise ValueError(f"unknown export format {fmt!r} (parquet or csv)")
@@ -404,6 +422,8 @@ def _write_groups(data: LogData, path: Path, fmt: str, out_dir: Path, written: l
             "hil.attrs": json.dumps(data.attrs, default=str),
             "hil.log_format_version": str(data.attrs.get("log_format_version", LOG_FORMAT_VERSION)),
         }
+        if fmt == "parquet":  # pandas.read_parquet restores this as df.attrs (as read_log_frames sets it)
+            meta["PANDAS_ATTRS"] = json.dumps(frame_attrs(g, data))
         table = pa.table([pa.array(v) for v in cols.values()], schema=pa.schema(fields, metadata=meta))
         out = out_dir / f"{path.stem}.{g}.{fmt}"
         written.append(out)
@@ -411,5 +431,19 @@ def _write_groups(data: LogData, path: Path, fmt: str, out_dir: Path, written: l
             pq.write_table(table, out)
         else:
             with open(out, "wb") as fh:
-                fh.write(("# units: " + ",".join(units[c] for c in cols) + "\n").encode())
                 pacsv.write_csv(table, fh)
+            sidecar = units_path(out)
+            written.append(sidecar)
+            sidecar.write_text(json.dumps({c: units[c] for c in cols}, indent=1) + "\n")
+
+
+def units_path(csv_path: str | Path) -> Path:
+    """The units file of an exported CSV: ``<stem>.<group>.units.json`` beside ``<stem>.<group>.csv``."""
+    csv_path = Path(csv_path)
+    return csv_path.with_name(csv_path.name.removesuffix(".csv") + ".units.json")
+
+
+def frame_attrs(group: str, data: LogData) -> dict[str, Any]:
+    """What a group's DataFrame carries in ``df.attrs``: ``units`` and ``docs`` by column, the group and its rate."""
+    return {"units": dict(data.units.get(group, {})), "docs": dict(data.docs.get(group, {})), "group": group,
+            "rate": data.rates.get(group, "")}

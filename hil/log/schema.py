@@ -39,7 +39,8 @@ class Group(NamedTuple):
 class AttrSpec(NamedTuple):
     name: str
     type: str  # as stored in the file: 'str', 'int', 'float', 'JSON text'
-    source: str  # 'caller' (required in SessionLog's attrs), 'caller or writer' (default filled in), 'writer'
+    source: str  # 'caller' (required in SessionLog's attrs), 'caller or writer' (default filled in), 'writer',
+    # 'session' (hil.session writes it; optional for other SessionLog users), 'recover'
     doc: str
 
 
@@ -191,6 +192,22 @@ ATTRS: tuple[AttrSpec, ...] = (
     AttrSpec("seed", "int", "caller", "the session's random seed"),
     AttrSpec("software_version", "str", "caller or writer", "bench software version (default: hil.__version__)"),
     AttrSpec("start_time_utc", "str", "caller or writer", "session start, ISO 8601 UTC (default: when the log opened)"),
+    AttrSpec("session_name", "str", "session", "the session's `name` (the log's file name starts with it)"),
+    AttrSpec("controller", "str", "session", "the controller's registry name; its full parameters are in `provenance`"),
+    AttrSpec(
+        "clock",
+        "str",
+        "session",
+        "what ran the boards' clock: `hardware` (the lab), or the emulator's `realtime`, `lockstep` or `sim`",
+    ),
+    AttrSpec("loopback", "JSON text", "session", "`true` when the boards were the emulator (`--loopback`)"),
+    AttrSpec(
+        "provenance",
+        "JSON text",
+        "session",
+        "software and library versions, git commit, plant file and its SHA-256, every controller parameter "
+        "(see [Provenance](#provenance))",
+    ),
     AttrSpec("log_created_unix_ns", "int", "writer", "wall-clock time (time.time_ns) when the log was created"),
     AttrSpec(
         "log_created_monotonic_ns",

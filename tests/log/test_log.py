@@ -28,6 +28,7 @@ from hil.log import (
     export_log,
     read_log,
     recover_log,
+    units_path,
 )
 from hil.log.schema import DETAIL_LEN, group_by_name, schema_from_json, schema_to_json
 from tests.log.crash_writer import ATTRS as CRASH_ATTRS
@@ -119,7 +120,7 @@ def test_round_trip_every_group_units_and_attrs(tmp_path):
     assert data.attrs["software_version"] == __version__
     assert data.attrs["start_time_utc"].endswith("+00:00")
     for a in ATTRS:
-        if a.source != "recover":
+        if a.source not in ("recover", "session"):  # hil.session writes those; a bare SessionLog need not
             assert a.name in data.attrs, a.name
     for g in SCHEMA:
         assert data.units[g.name] == {c.name: c.unit for c in g.channels}
@@ -369,6 +370,7 @@ def test_flush_cadence_on_disk_lags_appends_by_about_100ms(tmp_path):
 
 
 def test_export_parquet_and_csv_round_trip_with_units(tmp_path):
+    import pandas as pd
     import pyarrow.csv as pacsv
     import pyarrow.parquet as pq
 
@@ -386,6 +388,7 @@ def test_export_parquet_and_csv_round_trip_with_units(tmp_path):
         meta = table.schema.metadata
         assert json.loads(meta[b"hil.units"]) == {c.name: c.unit for c in g.channels}
         assert json.loads(meta[b"hil.attrs"])["seed"] == 42
+        assert pd.read_parquet(path).attrs["units"] == {c.name: c.unit for c in g.channels}  # PANDAS_ATTRS
         for c in g.channels:
             field = table.schema.field(c.name)
             assert field.metadata[b"unit"].decode() == c.unit
@@ -398,11 +401,14 @@ def test_export_parquet_and_csv_round_trip_with_units(tmp_path):
                 np.testing.assert_array_equal(got, want)
 
     out = export_log(p, "csv", out_dir=tmp_path / "csv")
-    for g, path in zip(SCHEMA, out, strict=True):
-        assert path.name == f"sess.{g.name}.csv"
+    assert [x.name for x in out] == [f"sess.{g.name}.{ext}" for g in SCHEMA for ext in ("csv", "units.json")]
+    for g, path, units in zip(SCHEMA, out[::2], out[1::2], strict=True):
+        assert units == units_path(path)
+        assert json.loads(units.read_text()) == {c.name: c.unit for c in g.channels}
+        assert list(json.loads(units.read_text())) == [c.name for c in g.channels]  # column order
         first = path.read_text().splitlines()[0]
-        assert first == "# units: " + ",".join(c.unit for c in g.channels)
-        table = pacsv.read_csv(path, read_options=pacsv.ReadOptions(skip_rows=1))
+        assert first == ",".join(f'"{c.name}"' for c in g.channels)  # one header row, no comment line
+        table = pacsv.read_csv(path)
         assert table.column_names == [c.name for c in g.channels]
         for c in g.channels:
             want = data.groups[g.name][c.name]

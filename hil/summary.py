@@ -6,11 +6,17 @@ and the drive ripple (standard deviation of the drive, counts). Plus the loop's 
 p50/p99 (bench side and as the board measured it), late and missed cycles, link errors. The first
 ``settle_s`` seconds of the run are left out of the control metrics (the swing ramps in, the
 controllers converge).
+
+On the ``lockstep`` and ``sim`` clocks the emulator waits for the bench, so the board measures no latency:
+``board_latency_us`` then holds ``None`` and an ``na_reason``. Empty figures are NaN; ``json_safe``
+turns them into ``None`` for JSON. ``provenance`` is what the session recorded of its software, plant and
+controller (hil.log.provenance).
 """
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -89,9 +95,7 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     out["latency_us"] = {"p50": _pct(lat, 50), "p99": _pct(lat, 99), "max": float(np.max(lat)) if lat.size else 0.0}
     out["late_cycles"] = int(np.sum(lat > 1000.0))
     out["missed_cycles"] = missed_cycles(loop)
-    board = timing.get("board_latency_us", np.zeros(0))
-    out["board_latency_us"] = {"p50": _pct(board, 50), "p99": _pct(board, 99), "p99.9": _pct(board, 99.9),
-                               "missing": int(np.sum(~np.isfinite(board)))}
+    out["board_latency_us"] = board_latency(timing.get("board_latency_us", np.zeros(0)), data.attrs.get("clock"))
     errors = {}
     for name in ("servo", "driver", "image", "hexapod"):
         cols = [f"{name}_{c}" for c in LINK_ERROR_COUNTERS]
@@ -112,7 +116,55 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     out["complete"] = "summary" in kinds
     if not out["complete"]:
         out["incomplete"] = INCOMPLETE
+    provenance = data.attrs.get("provenance")
+    out["provenance"] = provenance if isinstance(provenance, dict) else {}  # {} in logs written before it existed
     return out
+
+
+# why a log's board-measured latency is no measurement: by the log's clock attribute, or by what the board sent
+NO_BOARD_LATENCY = {
+    "lockstep": "lockstep: the emulator waits for each command, so there is no board-measured latency",
+    "sim": "sim: the emulated boards run in the bench's process and wait for each command, so there is no "
+           "board-measured latency",
+}
+NO_BOARD_REPORT = "the servo board reported no loop timing"
+NO_BOARD_COMMAND = "the servo board received no command on any tick it reported"
+ZERO_BOARD_LATENCY = "the servo board reported 0 us on every tick (as an emulator in lockstep does): no measurement"
+
+
+def board_latency(board: np.ndarray, clock: object = None) -> dict[str, Any]:
+    """The board-measured latency's p50 / p99 / p99.9 (us) and the ticks without a command (``missing``).
+
+    When there is no measurement, ``{"p50": None, "p99": None, "na_reason": ...}``: on the ``lockstep`` and
+    ``sim`` clocks (the emulator waits for the bench, so the board measures nothing), or when the board reported
+    nothing (no LOOP_TIMING rows, no tick with a command, or 0 on every tick)."""
+    board = np.asarray(board)
+    finite = board[np.isfinite(board)]
+    reason = NO_BOARD_LATENCY.get(str(clock)) if clock is not None else None
+    if reason is None and board.size == 0:
+        reason = NO_BOARD_REPORT
+    elif reason is None and finite.size == 0:
+        reason = NO_BOARD_COMMAND
+    elif reason is None and not np.any(finite):
+        reason = ZERO_BOARD_LATENCY
+    if reason is not None:
+        return {"p50": None, "p99": None, "na_reason": reason}
+    return {"p50": _pct(board, 50), "p99": _pct(board, 99), "p99.9": _pct(board, 99.9),
+            "missing": int(board.size - finite.size)}
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` (a summary) with NaN and infinities as None and numpy scalars as Python numbers, so that
+    ``json.dumps`` writes valid JSON (``null``, never ``NaN``)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 INCOMPLETE = "the bench stopped without a summary (killed or crashed): the figures cover what was logged"

@@ -1,0 +1,319 @@
+"""The bench as a library: what the `hil` command line does, for notebooks and scripts (docs/api.md).
+
+Every function here raises :class:`hil.config.ConfigError` (a ValueError with a one-line message naming the field
+or option) for bad input, before anything reaches a board; the command line prints that line and exits 2.
+
+    import hil
+    result = hil.run("profiles/sessions/demo.yaml", clock="sim")     # or: await hil.run_async(...)
+    log = result.log                                                  # hil.read_log(result.log_path)
+    log.loop.plot(x="t_s", y=["rate_err_el_dps", "rate_err_az_dps"])
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import functools
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from hil.config import ConfigError, SessionConfig, load_session, require_regular_file, require_writable_dir
+
+if TYPE_CHECKING:
+    from hil.campaign import CampaignConfig, CampaignResult, CellResult
+    from hil.campaign.report import ReportFiles
+    from hil.log.frames import LogData
+    from hil.session import SessionResult
+
+Clock = Literal["realtime", "lockstep", "sim"]
+CLOCKS: tuple[str, ...] = ("realtime", "lockstep", "sim")
+Progress = Callable[[int, int], None]  # (cycles done, cycles in the session)
+
+__all__ = ["CampaignRun", "RunResult", "check_file", "load_session", "read_log", "report", "run", "run_async",
+           "run_campaign"]
+
+
+@dataclasses.dataclass
+class RunResult:
+    """What a session ended with. ``status``: completed | fault | interrupted; ``exit_code`` as the command line's
+    (0 completed, 1 fault, 130/143 a signal); ``log`` opens the log as DataFrames."""
+
+    status: str
+    exit_code: int
+    message: str
+    log_path: Path | None
+    clock: str
+    session: SessionResult = dataclasses.field(repr=False)
+    emulator: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)  # the emulator's own summary
+
+    @functools.cached_property
+    def log(self) -> LogData:
+        """The session's log (:func:`read_log`)."""
+        if self.log_path is None:
+            raise ConfigError(f"this session wrote no log ({self.status}: {self.message})")
+        return read_log(self.log_path)
+
+    def summary(self, settle_s: float = 1.0) -> dict[str, Any]:
+        """The metrics `hil report LOG` prints: rate error, miss distance, drive ripple, latency, link errors."""
+        from hil.summary import summarize_log
+
+        if self.log_path is None or not self.log_path.exists():
+            return {}
+        return summarize_log(self.log_path, settle_s)
+
+
+def _session_config(config: SessionConfig | str | Path) -> SessionConfig:
+    return config if isinstance(config, SessionConfig) else load_session(config)
+
+
+def prepare_run(config: SessionConfig | str | Path, *, loopback: bool = True, clock: Clock | None = None,
+                out: str | Path | None = None) -> tuple[SessionConfig, str, Path]:
+    """Check a run's inputs without starting anything: (config, clock, log directory). ConfigError otherwise."""
+    config = _session_config(config)
+    if clock is not None and clock not in CLOCKS:
+        raise ConfigError(f"clock: {clock!r} is not realtime, lockstep or sim")
+    out_dir = Path(out) if out is not None else config.logging.dir
+    require_writable_dir(out_dir, "--out" if out is not None else "logging.dir")
+    if not loopback:
+        if clock == "sim":
+            raise ConfigError("--clock sim: runs the emulated lab in this process; add --loopback")
+        if config.ports is None:
+            raise ConfigError("ports: not set in the session file; give the lab's serial ports, or pass --loopback")
+        if config.safety.emulator_stall_grace_ms:
+            raise ConfigError("safety.emulator_stall_grace_ms: only for emulated boards (--loopback); real boards "
+                              "are never late, so remove it from a lab session")
+        return config, "hardware", out_dir
+    try:  # the emulator validates it; a missing one is refused here, before anything starts
+        require_regular_file(config.emulator.config)
+    except ValueError as exc:
+        raise ConfigError(f"emulator.config: {exc}") from None
+    return config, clock or config.emulator.clock, out_dir
+
+
+async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True, clock: Clock | None = None,
+                    out: str | Path | None = None, capture: str | Path | None = None,
+                    progress: Progress | None = None) -> RunResult:
+    """Run one session and return its :class:`RunResult`; awaitable inside a running event loop (Jupyter).
+
+    ``config``: a :class:`SessionConfig` or the path of a session YAML. ``loopback``: against the emulated lab
+    (started here) rather than the lab's ports. ``clock`` (loopback): ``realtime`` (paced 1 kHz over ptys),
+    ``lockstep`` (the full protocol over ptys, byte-reproducible) or ``sim`` (boards and plant in this process;
+    the same log as lockstep); default the session's ``emulator.clock``. ``out``: the log directory (default
+    ``logging.dir``). ``capture``: a directory for every link's raw bytes (docs/capture.md)."""
+    from hil.config import PortConfig
+    from hil.session import Session
+
+    config, clock_name, out_dir = prepare_run(config, loopback=loopback, clock=clock, out=out)
+    capture_dir = Path(capture) if capture is not None else None
+    if capture_dir is not None:
+        require_writable_dir(capture_dir, "--capture")
+    if clock_name == "sim":
+        from firmware_stub.config import ConfigError as EmulatorConfigError
+        from hil.sim import run_sim_session
+
+        try:
+            result, emulator = await run_sim_session(config, out_dir, progress=progress, **_capture(capture_dir))
+        except EmulatorConfigError as exc:
+            raise ConfigError(str(exc)) from None
+        return _result(result, "sim", emulator)
+    if not loopback:
+        assert config.ports is not None
+        ports = {name: getattr(config.ports, name) for name in ("servo", "driver", "image", "hexapod")}
+        session = Session(config, ports, out_dir, progress=progress,
+                          log_attrs={"loopback": False, "clock": "hardware"}, **_capture(capture_dir))
+        return _result(await session.run(), "hardware", {})
+    from hil.loopback import EmulatorProcess
+    from hil.transport import LinkError
+
+    emulator = EmulatorProcess(config.emulator.config, clock=clock_name, seed=config.seed,
+                               extra_args=config.emulator.process_args())
+    try:
+        started = await asyncio.to_thread(emulator.start)
+    except LinkError as exc:
+        raise ConfigError(str(exc)) from None
+    try:
+        ports = {name: PortConfig(port=path) for name, path in started.items() if name != "control"}
+        # lockstep: the emulator waits for us, and we may wait for a descheduled emulator
+        watchdog_ms = max(config.safety.watchdog_ms, 1000.0) if clock_name == "lockstep" else None
+        session = Session(config, ports, out_dir, watchdog_ms=watchdog_ms, progress=progress,
+                          log_attrs={"loopback": True, "clock": clock_name}, lockstep=clock_name == "lockstep",
+                          emulated=True, **_capture(capture_dir))
+        result = await session.run()
+    finally:
+        summary = await asyncio.to_thread(emulator.stop)
+    return _result(result, clock_name, summary)
+
+
+def _capture(capture_dir: Path | None) -> dict[str, Any]:
+    return {} if capture_dir is None else {"capture_dir": capture_dir}
+
+
+def _result(result: SessionResult, clock: str, emulator: dict[str, Any]) -> RunResult:
+    return RunResult(status=result.status, exit_code=result.exit_code, message=result.message,
+                     log_path=result.log_path, clock=clock, session=result, emulator=emulator)
+
+
+def _in_running_loop() -> bool:
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return False
+    return True
+
+
+def _sync(coro_fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """Run a coroutine function to completion: here if no event loop runs in this thread, else (a notebook's
+    loop) in a worker thread with its own loop, so the caller's loop is not re-entered."""
+    if not _in_running_loop():
+        return asyncio.run(coro_fn(*args, **kwargs))
+    loop = asyncio.new_event_loop()
+    task: asyncio.Task[Any] | None = None
+
+    def in_worker() -> Any:
+        nonlocal task
+        asyncio.set_event_loop(loop)
+        task = loop.create_task(coro_fn(*args, **kwargs))
+        try:
+            return loop.run_until_complete(task)
+        finally:
+            loop.close()
+
+    with ThreadPoolExecutor(1, thread_name_prefix="hil-run") as pool:
+        future = pool.submit(in_worker)
+        try:
+            return future.result()
+        except KeyboardInterrupt:  # the notebook's interrupt: end the session the safe way (disarm, log closed)
+            if task is not None and not loop.is_closed():
+                loop.call_soon_threadsafe(task.cancel)
+            with contextlib.suppress(asyncio.CancelledError):
+                future.result()
+            raise
+
+
+def run(config: SessionConfig | str | Path, *, loopback: bool = True, clock: Clock | None = None,
+        out: str | Path | None = None, capture: str | Path | None = None,
+        progress: Progress | None = None) -> RunResult:
+    """:func:`run_async`, blocking; works in a script and inside a running event loop (a notebook cell)."""
+    return _sync(run_async, config, loopback=loopback, clock=clock, out=out, capture=capture, progress=progress)
+
+
+def read_log(path: str | Path) -> LogData:
+    """A session log as pandas DataFrames: ``.loop``, ``.image``, ``.hexapod``, ... (units in ``df.attrs["units"]``),
+    ``.config``, ``.events``, ``.provenance``. Works on a log still being written and on a recovered one."""
+    from hil.log.frames import read_log_frames
+
+    return read_log_frames(path)
+
+
+@dataclasses.dataclass
+class CampaignRun:
+    """A campaign's outcome: ``result`` (every cell, the acceptance rules), ``out_dir``, ``report`` (the Markdown
+    and HTML files, when written). ``table()`` gives one row per cell and metric as a DataFrame."""
+
+    result: CampaignResult
+    out_dir: Path
+    report: ReportFiles | None = None
+
+    @property
+    def passed(self) -> bool:
+        return self.result.passed
+
+    def table(self) -> Any:
+        """Every cell's metrics, one row per cell: profile, controller, seed, status, then a column per metric."""
+        import pandas as pd
+
+        rows = [{"cell": c.cell_id, "profile": c.profile, "controller": c.controller, "seed": c.seed,
+                 "status": c.status, "passed": c.passed, **c.metrics} for c in self.result.cells]
+        return pd.DataFrame(rows)
+
+
+def load_campaign(path: str | Path) -> CampaignConfig:
+    """A campaign YAML (profiles x controllers x seeds, metrics, thresholds, acceptance rules)."""
+    from hil.campaign import CampaignError
+    from hil.campaign import load_campaign as load
+
+    try:
+        return load(path)
+    except CampaignError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | None = None,
+                     hardware: bool = False, clock: Literal["sim", "lockstep"] = "sim",
+                     ) -> tuple[CampaignConfig, Path, dict[str, dict[str, Any]]]:
+    """Check a campaign without running it: (config, its directory, every cell's session). ConfigError otherwise."""
+    from hil.campaign import CampaignError
+    from hil.campaign.runner import cell_sessions
+
+    source = str(campaign) if not hasattr(campaign, "cells") else "campaign"
+    config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore[assignment]
+    out_dir = Path(out) if out is not None else Path("runs") / "campaigns" / config.name
+    require_writable_dir(out_dir, "--out")
+    if clock not in ("sim", "lockstep"):
+        raise ConfigError(f"--clock: {clock!r} is not sim or lockstep")
+    try:  # every cell, before anything is written
+        sessions = cell_sessions(config, out_dir, hardware, clock)
+    except CampaignError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+    return config, out_dir, sessions
+
+
+def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | None = None, jobs: int = 1,
+                 resume: bool = False, hardware: bool = False, clock: Literal["sim", "lockstep"] = "sim",
+                 write_report: bool = True, on_cell: Callable[[CellResult], None] | None = None) -> CampaignRun:
+    """Run (or with ``resume`` finish) a swing campaign: every cell a session with its own log, then the
+    acceptance verdict and (``write_report``) the report. ``out`` defaults to ``runs/campaigns/NAME``.
+    Cells run ``jobs`` at a time on the ``sim`` clock (or ``lockstep``), or on the lab's ports (``hardware``).
+    Blocking; inside a running event loop it runs the cells in worker threads, which is what it does anyway."""
+    from hil.campaign import CampaignError
+    from hil.campaign import run_campaign as run_cells
+
+    config, out_dir, sessions = prepare_campaign(campaign, out=out, hardware=hardware, clock=clock)
+    try:
+        result = run_cells(config, out_dir, jobs=jobs, resume=resume, hardware=hardware, on_cell=on_cell,
+                           sessions=sessions)
+    except CampaignError as exc:
+        raise ConfigError(str(exc)) from None
+    files = report(out_dir) if write_report else None
+    return CampaignRun(result=result, out_dir=out_dir, report=files)  # type: ignore[arg-type]
+
+
+def report(path: str | Path, *, settle_s: float = 1.0) -> Any:
+    """A session log's metrics (a dict, as `hil report LOG --json`), or for a campaign directory its report
+    (Markdown, HTML and plots; a ``ReportFiles``)."""
+    path = Path(path)
+    if path.is_dir():
+        from hil.campaign import CampaignError
+        from hil.campaign.report import write_report
+
+        try:
+            return write_report(path)
+        except CampaignError as exc:
+            raise ConfigError(str(exc)) from None
+    from hil.log import LogError
+    from hil.log.reader import NotASessionLog
+    from hil.summary import summarize_log
+
+    try:
+        require_regular_file(path)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    try:
+        return summarize_log(path, settle_s)
+    except NotASessionLog as exc:
+        raise ConfigError(str(exc)) from None
+    except (LogError, OSError, KeyError) as exc:
+        raise ConfigError(f"{path}: not a readable session log ({exc}); if the session crashed: "
+                          f"hil recover {path}") from None
+
+
+def check_file(path: str | Path, kind: str | None = None) -> dict[str, Any]:
+    """Validate one config file without running anything: {"file", "kind", "summary"}; ConfigError otherwise.
+    The kind (session, campaign, controller, swing, hexapod, emulator, plant) comes from ``kind``, else from the
+    folder it is in (``profiles/KIND/``), else from its keys."""
+    from hil.checks import check_config_file
+
+    return check_config_file(Path(path), kind)

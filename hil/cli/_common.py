@@ -1,0 +1,112 @@
+"""What every `hil` command shares: the typer apps, the consoles, verbosity, and the one-line error."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import typer
+from rich.console import Console
+
+CONTEXT = {"help_option_names": ["-h", "--help"]}
+
+app = typer.Typer(
+    name="hil",
+    help="Hardware-in-the-loop bench for electro-optical stabilized platforms.",
+    no_args_is_help=True,
+    add_completion=True,
+    pretty_exceptions_enable=False,
+    context_settings=CONTEXT,
+    rich_markup_mode="markdown",  # a docstring's lines are one paragraph, as in --help of any tool
+)
+protocol_app = typer.Typer(help="The framed serial protocol: docs and capture decoding.", no_args_is_help=True,
+                           context_settings=CONTEXT, rich_markup_mode="markdown")
+app.add_typer(protocol_app, name="protocol")
+
+console = Console()
+err_console = Console(stderr=True, soft_wrap=True)
+
+
+class Verbosity:
+    """``-q`` (-1): results and errors only, no progress bars or notes; ``-v`` (1): INFO logging on stderr,
+    ``-vv`` (2): DEBUG."""
+
+    level = 0
+
+    @classmethod
+    def set(cls, quiet: bool, verbose: int) -> None:
+        cls.level = -1 if quiet else verbose
+        if verbose:
+            from rich.logging import RichHandler
+
+            logging.basicConfig(level=logging.DEBUG if verbose > 1 else logging.INFO, format="%(name)s: %(message)s",
+                                handlers=[RichHandler(console=err_console, show_path=False)], force=True)
+
+    @classmethod
+    def quiet(cls) -> bool:
+        return cls.level < 0
+
+
+def note(message: str) -> None:
+    """An informational line (stdout), left out with ``-q``."""
+    if not Verbosity.quiet():
+        console.print(message, highlight=False)
+
+
+def no_progress(json_out: bool = False) -> bool:
+    """Progress bars are off with ``--json`` and ``-q``."""
+    return json_out or Verbosity.quiet()
+
+
+def print_json(data: Any) -> None:
+    """Results as JSON on stdout (NaN and infinities as null, paths and other objects as strings)."""
+
+    def clean(x: Any) -> Any:
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, list | tuple):
+            return [clean(v) for v in x]
+        return x
+
+    console.print_json(json.dumps(clean(data), default=str))
+
+
+def fail(message: str, code: int = 2) -> typer.Exit:
+    """Print one line naming what is wrong (stderr) and return the Exit to raise (the message is shown as is: a
+    file name or value holding ``[...]`` is not taken for markup)."""
+    from rich.markup import escape
+
+    err_console.print(f"[bold red]error:[/] {escape(' '.join(message.split()))}", highlight=False)
+    return typer.Exit(code)
+
+
+def finite(option: str, value: float | None) -> None:
+    """NaN and infinities are refused for every float option (click's ranges let NaN through)."""
+    if value is not None and not math.isfinite(value):
+        raise fail(f"{option}: {value!r} is not a finite number")
+
+
+def check_out_dir(path: Path, option: str) -> None:
+    """``path`` is a directory we may write into, or one we may create (nothing is created here); exit 2
+    naming the option otherwise. Checked before anything starts, so a bad one never reaches a board."""
+    from hil.config import ConfigError, require_writable_dir
+
+    try:
+        require_writable_dir(path, option)
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+
+
+def check_input_file(path: Path) -> None:
+    """``path`` names a regular file (a FIFO, device or directory is refused unopened); exit 2 otherwise."""
+    from hil.config import require_regular_file
+
+    try:
+        require_regular_file(path)
+    except ValueError as exc:
+        raise fail(str(exc)) from None

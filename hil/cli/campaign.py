@@ -1,0 +1,103 @@
+"""`hil campaign`: swing campaigns, through :func:`hil.api.run_campaign`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import typer
+from rich.table import Table
+
+from hil.cli._common import app, console, err_console, fail, no_progress, note, print_json
+
+
+def campaign_json(run: Any) -> dict[str, Any]:
+    """A campaign's outcome as plain data: verdict, every cell, the acceptance rules, the report's files."""
+    result = run.result
+    return {"campaign": result.config.name, "dir": str(run.out_dir), "passed": result.passed,
+            "complete": result.complete, "wall_s": result.wall_s, "jobs": result.jobs,
+            "cells": [c.model_dump(mode="json") | {"passed": c.passed} for c in result.cells],
+            "acceptance": [r.model_dump(mode="json") for r in result.acceptance],
+            "report": None if run.report is None else {"markdown": str(run.report.markdown),
+                                                      "html": str(run.report.html),
+                                                      "plots": [str(p) for p in run.report.pngs]}}
+
+
+@app.command()
+def campaign(  # noqa: PLR0917 (typer maps parameters to options)
+    file: Annotated[Path, typer.Argument(help="Campaign YAML (see profiles/campaigns/).")],
+    out: Annotated[Path | None, typer.Option(help="Campaign directory (default: runs/campaigns/NAME).")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Finish a campaign in --out, skipping done cells.")] = False,
+    jobs: Annotated[int, typer.Option(min=1, max=64, help="Cells run at once (loopback only).")] = 1,
+    hardware: Annotated[bool, typer.Option("--hardware", help="Run on the lab's ports, one cell at a time.")] = False,
+    clock: Annotated[Literal["sim", "lockstep"], typer.Option(
+        help="Loopback cells: sim (in-process) or lockstep (over ptys); the same logs either way.")] = "sim",
+    report_too: Annotated[bool, typer.Option("--report/--no-report", help="Write the report at the end.")] = True,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the outcome as JSON.")] = False,
+) -> None:
+    """Run a swing campaign: profiles x controllers x seeds, each cell a session with its own log; then the
+    summary table, the acceptance verdict, and the report. Exit 1 if a threshold or an acceptance rule fails."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from hil import api
+    from hil.config import ConfigError
+
+    try:
+        config, out_dir, _ = api.prepare_campaign(file, out=out, hardware=hardware, clock=clock)
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+    n_cells = len(config.cells())
+    with Progress(TextColumn(f"[bold]{config.name}[/]"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("{task.fields[last]}"), TimeElapsedColumn(), console=err_console,
+                  transient=True, disable=no_progress(json_out)) as bar:
+        task = bar.add_task("cells", total=n_cells, last="")
+
+        def on_cell(cell) -> None:  # type: ignore[no-untyped-def]
+            mark = "ok" if cell.passed else "FAIL"
+            bar.update(task, advance=1, last=f"{cell.cell_id} {mark}")
+
+        try:
+            run = api.run_campaign(config, out=out_dir, jobs=jobs, resume=resume, hardware=hardware, clock=clock,
+                                   write_report=report_too, on_cell=on_cell)
+        except ConfigError as exc:
+            raise fail(str(exc)) from None
+    if json_out:
+        print_json(campaign_json(run))
+    else:
+        print_campaign(run.result)
+        if run.report is not None:
+            note(f"report: {run.report.markdown}\n        {run.report.html}  ({len(run.report.pngs)} plots)")
+        note(f"campaign: {out_dir}")
+    raise typer.Exit(0 if run.passed else 1)
+
+
+def print_campaign(result) -> None:  # type: ignore[no-untyped-def]
+    """The terminal table: one per profile, numbers formatted as in the report (format_values)."""
+    from hil.campaign import METRICS
+    from hil.campaign.report import format_values
+
+    cfg = result.config
+    for profile in cfg.profiles:
+        t = Table(title=f"{cfg.title}: {profile.label}", title_justify="left")
+        t.add_column("controller")
+        for m in cfg.metrics:
+            t.add_column(f"{METRICS[m].label} ({METRICS[m].unit})", justify="right")
+        t.add_column("cells ok", justify="right")
+        for c in cfg.controllers:
+            row = [c.label] + [format_values(result.values(profile.label, c.label, m), metric=m) for m in cfg.metrics]
+            cells = [x for x in result.cells if x.profile == profile.label and x.controller == c.label]
+            row.append(f"{sum(x.passed for x in cells)}/{len(cfg.seeds)}")
+            t.add_row(*row)
+        console.print(t)
+    for cell in result.cells:
+        for why in cell.failures:
+            console.print(f"[red]FAIL[/] {cell.cell_id}: {why}", highlight=False)
+    for rule in result.acceptance:
+        colour = "green" if rule.passed else "red"
+        console.print(f"[bold {colour}]{'PASS' if rule.passed else 'FAIL'}[/] {rule.rule}", highlight=False)
+        for line in rule.details:
+            console.print(f"    {line}", highlight=False)
+    state = "complete" if result.complete else "PARTIAL"
+    console.print(f"{len(result.cells)} cells, {state}, {result.wall_s:.1f} s wall with {result.jobs} job(s): "
+                  f"[bold {'green' if result.passed else 'red'}]{'PASS' if result.passed else 'FAIL'}[/]",
+                  highlight=False)

@@ -1,0 +1,63 @@
+"""`hil watch` and `hil emulate`: the live telemetry viewer and the emulated lab on its own."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated, Literal
+
+import typer
+
+from hil.cli._common import app, console, err_console, fail, finite
+
+
+@app.command()
+def watch(
+    broker: Annotated[str, typer.Option(help="mqtt://host:port of the broker the bench publishes to.")] = (
+        "mqtt://127.0.0.1:1883"),
+    bench: Annotated[str, typer.Option(help="The bench id (mqtt.bench_id in the session).")] = "bench",
+    seconds: Annotated[float | None, typer.Option(help="Stop after this long (default: until Ctrl-C).")] = None,
+) -> None:
+    """Live telemetry from the broker: latest value, unit and trend of every channel, session state, events."""
+    import asyncio
+
+    from pydantic import ValidationError
+
+    from hil.config import one_line
+    from hil.telemetry import MqttConfig
+    from hil.telemetry import watch as watch_telemetry
+
+    finite("--seconds", seconds)
+    if seconds is not None and seconds <= 0:
+        raise fail(f"--seconds: {seconds!r} is not above 0")
+    try:
+        config = MqttConfig.from_url(broker, bench_id=bench)
+    except ValidationError as exc:
+        raise fail(one_line("--broker", exc)) from None
+    except ValueError as exc:
+        raise fail(f"--broker: {exc}") from None
+    raise typer.Exit(asyncio.run(watch_telemetry(config, seconds=seconds, console=console,
+                                                 err_console=err_console)))
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def emulate(  # noqa: PLR0917 (typer maps parameters to options)
+    ctx: typer.Context,
+    config: Annotated[Path | None, typer.Option(help="Emulator YAML (default profiles/emulator/default.yaml).")] = None,
+    clock: Annotated[Literal["realtime", "lockstep"] | None, typer.Option(
+        help="The emulator's clock (overrides the config).")] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed of plant noise and link faults (overrides config).")] = None,
+    ports_file: Annotated[Path | None, typer.Option(help="Also write the ports map (JSON) to this file.")] = None,
+    fault_log: Annotated[Path | None, typer.Option(help="Write every injected fault and board event (JSONL).")] = None,
+    seconds: Annotated[float | None, typer.Option(help="Stop after this much simulated time.")] = None,
+) -> None:
+    """Run the emulated lab (gimbal on a hexapod, four boards on ptys) until Ctrl-C: `python -m firmware_stub`."""
+    import os
+
+    args = [sys.executable, "-m", "firmware_stub"]
+    for flag, value in (("--config", config), ("--clock", clock), ("--seed", seed), ("--ports-file", ports_file),
+                        ("--fault-log", fault_log), ("--seconds", seconds)):
+        if value is not None:
+            args += [flag, str(value)]
+    sys.stdout.flush()
+    os.execv(sys.executable, args + list(ctx.args))  # the emulator gets our pid, so signals reach it directly

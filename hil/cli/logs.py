@@ -1,0 +1,83 @@
+"""`hil report`, `hil export`, `hil recover`: what the bench does with logs and campaign directories."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+import typer
+
+from hil.cli._common import app, check_input_file, check_out_dir, console, fail, finite, note, print_json
+
+
+@app.command()
+def report(
+    log: Annotated[Path, typer.Argument(help="A session log (.h5), or a campaign directory.")],
+    json_out: Annotated[bool, typer.Option("--json", help="Print the metrics (or the campaign's outcome) as JSON.")] = (
+        False),
+    settle_s: Annotated[float, typer.Option(min=0, help="Leave out the first seconds.")] = 1.0,
+) -> None:
+    """Metrics of a session log (rate error, miss distance, drive ripple, latency, link errors), or a
+    campaign directory's report: Markdown and a self-contained HTML page with the paper's tables and plots."""
+    from hil import api
+    from hil.cli.session import print_summary
+    from hil.config import ConfigError
+
+    finite("--settle-s", settle_s)
+    if not log.is_dir():
+        check_input_file(log)
+    try:
+        out = api.report(log, settle_s=settle_s)
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+    if log.is_dir():
+        if json_out:
+            from hil.campaign import load_results
+            from hil.cli.campaign import campaign_json
+
+            print_json(campaign_json(api.CampaignRun(result=load_results(log), out_dir=log, report=out)))
+        else:
+            note(f"report: {out.markdown}\n        {out.html}  ({len(out.pngs)} plots)")
+        return
+    if json_out:
+        print_json(out)
+    else:
+        print_summary(out)
+
+
+@app.command()
+def export(
+    log: Annotated[Path, typer.Argument(help="A session log (.h5).")],
+    fmt: Annotated[Literal["parquet", "csv"], typer.Option("--format", help="The file format.")] = "parquet",
+    out: Annotated[Path | None, typer.Option(help="Output directory (default: beside the log).")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the written files as JSON.")] = False,
+) -> None:
+    """Export every group of a log to Parquet or CSV files, units kept (docs/log-format.md, "Export")."""
+    from hil.log import LogError, export_log
+
+    check_input_file(log)
+    check_out_dir(out if out is not None else log.parent, "--out" if out is not None else "the log's directory")
+    try:
+        paths = export_log(log, fmt, out)
+    except LogError as exc:
+        raise fail(str(exc)) from None
+    if json_out:
+        print_json({"log": str(log), "format": fmt, "files": [str(p) for p in paths]})
+        return
+    for p in paths:
+        console.print(str(p), highlight=False)
+
+
+@app.command()
+def recover(
+    log: Annotated[Path, typer.Argument(help="A log left by a crashed session.")],
+) -> None:
+    """Make a log left by a crash (SIGKILL, power loss) open normally; the original is kept beside it."""
+    from hil.log import LogError, recover_log
+
+    check_input_file(log)
+    try:
+        result = recover_log(log)
+    except LogError as exc:
+        raise fail(str(exc)) from None
+    console.print(str(result), highlight=False)

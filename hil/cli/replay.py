@@ -1,0 +1,237 @@
+"""`hil replay`: a session log through another controller offline, or a capture back at a board (hil.replay)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import typer
+from rich.table import Table
+
+from hil.cli._common import app, check_out_dir, console, fail, finite, note, print_json
+
+
+@app.command()
+def replay(  # noqa: PLR0917 (typer maps parameters to options)
+    source: Annotated[Path, typer.Argument(
+        help="A session log (.h5) to replay through a controller, or with --to-emulator a capture (.hilcap, or "
+             "the directory holding one) to play back at the boards.")],
+    controller: Annotated[str | None, typer.Option(
+        help="Log: the controller to replay (a registry name; default: the logged one, or the YAML's).")] = None,
+    params: Annotated[str | None, typer.Option(
+        help="Log: its parameters, 'k=v,k=v' over the registry defaults, or a controller YAML (name and params). "
+             "Default: the logged parameters when the controller is the logged one.")] = None,
+    settle: Annotated[float, typer.Option(min=0.0, help="Log: seconds left out of the metrics at the start.")] = 1.0,
+    to_emulator: Annotated[bool, typer.Option(
+        "--to-emulator", help="Play a capture's host-side frames back at the boards (a fresh emulator unless "
+                              "--ports-file or --port name them) with their timing.")] = False,
+    ports_file: Annotated[Path | None, typer.Option(
+        help="Capture: the boards' ports as JSON {link: path} (the emulator's --ports-file).")] = None,
+    port: Annotated[list[str] | None, typer.Option(
+        help="Capture: LINK=PATH, once per link (servo, driver, image, hexapod).")] = None,
+    clock: Annotated[Literal["lockstep", "realtime"] | None, typer.Option(
+        help="Capture, no ports given: the fresh emulator's clock (default: the captured session's).")] = None,
+    seed: Annotated[int | None, typer.Option(
+        min=0, help="Capture, no ports given: the fresh emulator's seed (default: the captured session's).")] = None,
+    timing: Annotated[Literal["samples", "clock"], typer.Option(
+        help="Capture: 'samples' times each write from the sample it followed in the capture; 'clock' from the "
+             "first write.")] = "samples",
+    out: Annotated[Path | None, typer.Option(
+        help="Log: where the PNG and JSON go (default: beside the log). Capture: where the replay's own capture "
+             "and JSON go (default: none written).")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="The results as JSON on stdout.")] = False,
+) -> None:
+    """Replay a session log through an estimator/controller offline and compare it with the logged one; or, with
+    --to-emulator, play a capture's frames back at a board or the emulator and count what came back."""
+    from hil.capture import is_capture
+
+    finite("--settle", settle)
+    if out is not None:
+        check_out_dir(out, "--out")
+    if not source.exists():
+        raise fail(f"{source}: no such file or directory")
+    if to_emulator:
+        if controller is not None or params is not None:
+            raise fail("--controller/--params replay a log; --to-emulator plays a capture")
+        _replay_capture(source, ports_file, port or [], clock=clock, seed=seed, timing=timing, out=out,
+                        json_out=json_out)
+        return
+    if ports_file is not None or port or clock is not None or seed is not None:
+        raise fail("--ports-file, --port, --clock and --seed go with --to-emulator (a capture)")
+    if source.is_dir() or is_capture(source):
+        raise fail(f"{source}: a capture; play it back with --to-emulator, or replay a session log (.h5)")
+    _replay_log(source, controller, params, settle=settle, out=out, json_out=json_out)
+
+
+# --- a log through a controller ------------------------------------------------------------------------------
+
+
+def _parse_params(text: str) -> dict[str, Any]:
+    from hil.config import parse_yaml
+
+    out: dict[str, Any] = {}
+    for item in (p.strip() for p in text.split(",")):
+        if not item:
+            continue
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip():
+            raise fail(f"--params: {item!r} is not k=v")
+        try:
+            out[key.strip()] = parse_yaml(value.strip()) if value.strip() else ""
+        except Exception as exc:  # YAML's errors, or its size limit
+            raise fail(f"--params: {key.strip()}: not a value ({type(exc).__name__})") from None
+    return out
+
+
+def _controller_choice(controller: str | None, params: str | None) -> tuple[str | None, dict[str, Any] | None]:
+    if params is None:
+        return controller, None
+    path = Path(params)
+    if params.endswith((".yaml", ".yml")) or path.is_file():
+        from hil.config import ConfigError, ControllerConfig, load_model
+
+        try:
+            cfg = load_model(ControllerConfig, path)
+        except ConfigError as exc:
+            raise fail(str(exc)) from None
+        if controller is not None and controller != cfg.name:
+            raise fail(f"--controller {controller} but {params} is a {cfg.name} controller")
+        return cfg.name, dict(cfg.params)
+    return controller, _parse_params(params)
+
+
+def _replay_log(log: Path, controller: str | None, params: str | None, *, settle: float, out: Path | None,
+                json_out: bool) -> None:
+    from hil.cli._common import check_input_file
+    from hil.control.registry import ControllerConfigError
+    from hil.replay import ReplayError, replay_log, write_outputs
+
+    check_input_file(log)
+    name, values = _controller_choice(controller, params)
+    try:
+        result = replay_log(log, name, values, settle_s=settle)
+    except (ReplayError, ControllerConfigError) as exc:
+        raise fail(str(exc)) from None
+    try:
+        png, js = write_outputs(result, out if out is not None else log.parent)
+    except OSError as exc:
+        raise fail(f"{out if out is not None else log.parent}: cannot write the plot and JSON: "
+                   f"{exc.strerror or exc}") from None
+    if json_out:
+        print_json({**result.as_dict(), "plot": str(png), "json": str(js)})
+        return
+    t = Table(title=f"{log.name}: logged {result.logged.name} vs replayed {result.replayed.name} "
+                    f"({result.window_s[0]:.1f}-{result.window_s[1]:.1f} s, {result.window_ticks} samples)")
+    t.add_column("metric")
+    t.add_column("axis")
+    t.add_column("unit")
+    t.add_column(f"logged {result.logged.name}", justify="right")
+    t.add_column(f"replayed {result.replayed.name}", justify="right")
+    for metric, axis, unit, logged, replayed in result.table():
+        t.add_row(metric, axis, unit, "" if metric.startswith("drive minus") else _fmt(logged), _fmt(replayed))
+    console.print(t)
+    mismatches = sum(v for k, v in result.inputs.items() if k.startswith("command_mismatches"))
+    note(f"replayed {result.ticks} of {result.rows} samples (up to {result.ended}); "
+         f"commands rebuilt exactly except {mismatches}; gyro values beyond float32's exact range: "
+         f"{result.inputs.get('gyro_inexact', 0)}")
+    console.print(f"plot: {png}   json: {js}", highlight=False)
+
+
+def _fmt(x: float) -> str:
+    return "-" if x is None or math.isnan(x) else f"{x:.4g}"
+
+
+# --- a capture back at the boards -----------------------------------------------------------------------------
+
+
+def _ports(ports_file: Path | None, port: list[str]) -> dict[str, str]:
+    from hil.replay import ReplayError, ports_from_file
+
+    out: dict[str, str] = {}
+    if ports_file is not None:
+        try:
+            out.update(ports_from_file(ports_file))
+        except ReplayError as exc:
+            raise fail(str(exc)) from None
+    for item in port:
+        name, eq, path = item.partition("=")
+        if not eq or name not in ("servo", "driver", "image", "hexapod") or not path:
+            raise fail(f"--port: {item!r} is not LINK=PATH with LINK servo, driver, image or hexapod")
+        out[name] = path
+    return out
+
+
+def _replay_capture(source: Path, ports_file: Path | None, port: list[str], *, clock: str | None, seed: int | None,
+                    timing: str, out: Path | None, json_out: bool) -> None:
+    from hil.capture import CaptureError, CaptureReader, find_capture
+    from hil.loopback import EmulatorProcess
+    from hil.replay import ReplayError, play_capture
+    from hil.transport import LinkError
+
+    try:
+        capture = find_capture(source)
+        meta = CaptureReader(capture).meta
+    except CaptureError as exc:
+        raise fail(str(exc)) from None
+    ports = _ports(ports_file, port)
+    emulator = None
+    if not ports:
+        emu_clock = clock or str(meta.get("session_clock") or "lockstep")
+        emu_seed = seed if seed is not None else int(meta.get("seed") or 0)
+        config = meta.get("emulator_config")
+        emulator = EmulatorProcess(Path(config) if config and Path(config).is_file() else None, clock=emu_clock,
+                                   seed=emu_seed)
+        try:
+            ports = {k: v for k, v in emulator.start().items() if k != "control"}
+        except LinkError as exc:
+            raise fail(str(exc)) from None
+        note(f"emulator: {emu_clock}, seed {emu_seed}")
+    try:
+        result = play_capture(capture, ports, timing=timing, record_dir=out)
+    except ReplayError as exc:
+        raise fail(str(exc)) from None
+    finally:
+        if emulator is not None:
+            emulator.stop()
+    data = result.as_dict()
+    if out is not None:
+        import json
+
+        from hil.replay import finite_json
+
+        (Path(out) / f"replay-{capture.stem}.json").write_text(json.dumps(finite_json(data), indent=1) + "\n")
+    if json_out:
+        print_json(data)
+    else:
+        _print_playback(result)
+    if result.stopped or result.answered < result.commands:
+        raise typer.Exit(1)
+
+
+def _print_playback(r: Any) -> None:
+    t = Table(title=f"{r.capture.name} played back ({r.timing} timing, {r.duration_s:.1f} s)")
+    for col in ("link", "sent", "received", "in the capture (received)", "answered", "NACKs"):
+        t.add_column(col)
+    for name, lp in r.links.items():
+        t.add_row(name, _counts(lp.sent), _counts(lp.received), _counts(lp.captured_rx),
+                  f"{lp.acked + lp.nacked} ({lp.unanswered} unanswered)",
+                  ", ".join(f"{k} x{v}" for k, v in lp.nacks.items()) or "0")
+    console.print(t)
+    lt = r.loop_timing
+    lines = [f"frames sent: {r.frames_sent} of {r.frames_in_capture}; commands answered: {r.answered} of "
+             f"{r.commands}",
+             f"stream: {'started' if r.stream_started else 'never started'}, {r.samples} samples, "
+             f"{r.samples_equal} of {r.samples_compared} equal to the capture's; board timing reports: "
+             f"{lt['ticks_reported']} ticks, {lt['missing']} without a command, {lt['late_total']} late",
+             f"writes late against their schedule: p50 {r.lateness_us['p50']:.0f} us, "
+             f"p99 {r.lateness_us['p99']:.0f} us",
+             f"stopped early: {r.stopped}" if r.stopped else "played to the end",
+             *([f"left safe: sent {', '.join(r.safe_end)}"] if r.safe_end else []),
+             *([f"replay capture: {r.record}"] if r.record else [])]
+    for line in lines:
+        console.print(line, highlight=False)
+
+
+def _counts(counter: Any) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(counter.items())) or "-"

@@ -1,0 +1,307 @@
+"""`hil run`, `hil demo`, `hil ident`: bench sessions, through :mod:`hil.api`."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import typer
+from rich.table import Table
+
+from hil.cli._common import app, check_out_dir, console, err_console, fail, finite, no_progress, note, print_json
+
+ClockOption = Literal["realtime", "lockstep", "sim"]
+
+
+def load_session_or_exit(path: Path):  # type: ignore[no-untyped-def]
+    from hil.config import ConfigError, load_session
+
+    try:
+        return load_session(path)
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+
+
+def run_and_print(config, out: Path | None, loopback: bool, clock: str | None, json_out: bool, *,  # type: ignore[no-untyped-def]
+                  capture: Path | None = None, show: bool = True):
+    """Run one session through hil.api with a progress bar, print its summary (``show``), return the api's
+    RunResult."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from hil import api
+    from hil.config import ConfigError
+
+    try:
+        config, clock_name, out_dir = api.prepare_run(config, loopback=loopback, clock=clock, out=out)  # type: ignore[arg-type]
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+    total = round(config.duration_s * 1000)
+    label = f"[bold]{config.name}[/] {config.controller.name}" + (" (sim)" if clock_name == "sim" else "")
+    with Progress(TextColumn(label), BarColumn(), TextColumn("{task.fields[sim]:.1f} / {task.fields[total_s]:.1f} s"),
+                  TimeRemainingColumn(), console=err_console, transient=True, disable=no_progress(json_out)) as bar:
+        task = bar.add_task("run", total=total, sim=0.0, total_s=config.duration_s)
+        try:
+            result = api.run(config, loopback=loopback, clock=clock_name if loopback else None,  # type: ignore[arg-type]
+                             out=out_dir, capture=capture,
+                             progress=lambda n, _t: bar.update(task, completed=n, sim=n / 1000))
+        except (ConfigError, ValueError) as exc:
+            raise fail(str(exc)) from None
+    if show:
+        print_result(result, json_out)
+    return result
+
+
+def print_result(result, json_out: bool) -> None:  # type: ignore[no-untyped-def]
+    summary = result.summary()
+    if json_out:
+        print_json({"status": result.status, "exit_code": result.exit_code, "message": result.message,
+                    "log": str(result.log_path) if result.log_path else None, "clock": result.clock, **summary})
+        return
+    if summary:
+        print_summary(summary)
+    colour = {"completed": "green", "interrupted": "yellow"}.get(result.status, "red")
+    line = f"[bold {colour}]{result.status}[/]"
+    if result.message:
+        line += f": {result.message}"
+    if result.log_path:
+        line += f"   log: {result.log_path}"
+    console.print(line, highlight=False)
+
+
+def _fmt(x: float | None, digits: int = 3) -> str:
+    return "-" if x is None or math.isnan(x) else f"{x:.{digits}f}"
+
+
+def print_summary(s: dict[str, Any]) -> None:
+    t = Table(title=f"{s.get('session', '')}  ({s.get('controller', '')}, {s['duration_s']:.1f} s, "
+                    f"first {s['settle_s']:g} s left out)")
+    t.add_column("metric")
+    t.add_column("value", justify="right")
+    t.add_column("unit")
+    for axis in ("el", "az"):
+        e = s[f"rate_error_{axis}_dps"]
+        t.add_row(f"rate error {axis}: range +- / std", f"{_fmt(e['range_pm'])} / {_fmt(e['std'])}", "deg/s")
+        t.add_row(f"drive ripple {axis} (std)", _fmt(s[f"drive_ripple_{axis}_counts"], 0), "counts")
+    if "miss_x_px" in s:
+        for axis in ("x", "y"):
+            m = s[f"miss_{axis}_px"]
+            t.add_row(f"miss distance {axis}: range +- / std", f"{_fmt(m['range_pm'], 2)} / {_fmt(m['std'], 2)}", "px")
+        t.add_row("frames tracked", f"{s['frames_valid']} / {s['frames']}", "")
+    lat, board = s["latency_us"], s["board_latency_us"]
+    t.add_row("bench latency p50 / p99", f"{_fmt(lat['p50'], 0)} / {_fmt(lat['p99'], 0)}",
+              "us, sample in -> command out")
+    if board.get("na_reason"):
+        t.add_row("board-measured p50 / p99", "n/a", board["na_reason"])
+    else:
+        t.add_row("board-measured p50 / p99", f"{_fmt(board['p50'], 0)} / {_fmt(board['p99'], 0)}",
+                  "us, GYRO k written -> DRIVE_CMD k in")
+    t.add_row("cycles / late / missed", f"{s['cycles']} / {s['late_cycles']} / {s['missed_cycles']}", "late: > 1 ms")
+    t.add_row("link errors", " ".join(f"{k} {v}" for k, v in s["link_errors"].items()),
+              "CRC + bad + refused + lost + reordered frames")
+    t.add_row("faults", str(s["faults"]), "events")
+    if s.get("host_stalls"):
+        emulator = s.get("host_stalls_emulator", 0)
+        t.add_row("host stalls: count / longest silence", f"{s['host_stalls']} / {_fmt(s['host_stall_max_ms'], 1)}",
+                  f"ms; this host ran the bench late ({s['host_stalls'] - emulator}), or held up the emulator or its "
+                  f"bytes ({emulator}): not board faults")
+    console.print(t)
+    provenance = s.get("provenance") or {}
+    if provenance:
+        controller = provenance.get("controller") or {}
+        params = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
+                           for k, v in (controller.get("params") or {}).items())
+        commit = provenance.get("git_commit")
+        if commit:  # a full hash is in the log; twelve digits name it here
+            commit = commit[:12] + ("-dirty" if commit.endswith("-dirty") else "")
+        note(f"hil {provenance.get('hil_version', '?')}" + (f" ({commit})" if commit else "")
+             + f", numpy {provenance.get('numpy', '?')}, h5py {provenance.get('h5py', '?')}"
+             + (f", plant {provenance['plant'].get('path')} sha256 {provenance['plant'].get('sha256', '')[:12]}"
+                if provenance.get("plant") else ""))
+        if params:
+            note(f"{controller.get('name', 'controller')}: {params}")
+    if s.get("incomplete"):
+        console.print(f"[bold yellow]incomplete:[/] {s['incomplete']}", highlight=False)
+    reasons = s.get("fault_reasons", [])
+    if reasons:
+        text = (f"{len(reasons)} fault{'s' if len(reasons) > 1 else ''}, the first: {reasons[0]}. The loop was "
+                "disarmed while it recovered; the figures above include those windows.")
+        if any(r.startswith("watchdog") for r in reasons):
+            text += (" A watchdog trip is a gap in the servo board's samples; against the emulator on a busy or "
+                     "virtual machine, the emulator not being scheduled (docs/performance.md).")
+        console.print(f"[yellow]{text}[/]", highlight=False)
+
+
+@app.command()
+def run(  # noqa: PLR0917 (typer maps parameters to options)
+    session: Annotated[Path, typer.Argument(help="Session YAML (see profiles/sessions/).")],
+    loopback: Annotated[bool, typer.Option("--loopback", help="Run against the emulator (started here).")] = False,
+    out: Annotated[Path | None, typer.Option(help="Directory for the log (default: the session's logging.dir)")] = None,
+    clock: Annotated[ClockOption | None, typer.Option(
+        help="Emulator clock with --loopback: realtime (paced 1 kHz over ptys), lockstep (full protocol over "
+             "ptys, byte-reproducible), sim (boards and plant in this process; logs identical to lockstep).")] = None,
+    capture: Annotated[Path | None, typer.Option(
+        help="Record every link's raw bytes with timestamps in this directory (docs/capture.md).")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
+) -> None:
+    """Run a bench session: connect, arm, swing, stabilize and track, log; print the summary."""
+    if capture is not None:
+        check_out_dir(capture, "--capture")
+    result = run_and_print(load_session_or_exit(session), out, loopback, clock, json_out, capture=capture)
+    raise typer.Exit(result.exit_code)
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option(help="Directory for the log.")] = Path("runs"),
+) -> None:
+    """The README's demo: a 10 s session, 1 deg / 1 Hz swing, ESO+KF, against the emulator (no setup needed)."""
+    from hil.config import PROFILES
+
+    config = load_session_or_exit(PROFILES / "sessions" / "demo.yaml")
+    raise typer.Exit(run_and_print(config, out, True, None, False).exit_code)
+
+
+MAX_EL_TRAVEL_DEG = 60.0  # hil ident: keep the elevation axis away from the az-el gimbal's 90 deg singularity
+
+
+@app.command()
+def ident(  # noqa: PLR0917 (typer maps parameters to options)
+    session: Annotated[Path, typer.Argument(help="Session YAML: ports, controller (see profiles/sessions/).")],
+    loopback: Annotated[bool, typer.Option("--loopback", help="Identify the emulator (started here).")] = False,
+    out: Annotated[Path, typer.Option(help="Directory for the log, bode-AXIS.png and ident.json.")] = Path(
+        "runs/ident"),
+    axis: Annotated[Literal["el", "az"], typer.Option(help="The gimbal axis to identify.")] = "el",
+    f_start_hz: Annotated[float, typer.Option(min=0.01, help="Sweep start.")] = 0.5,
+    f_stop_hz: Annotated[float, typer.Option(max=450, help="Sweep stop (below the 500 Hz Nyquist).")] = 300.0,
+    sweep_s: Annotated[float, typer.Option(min=1, help="Length of the sweep.")] = 20.0,
+    amplitude_dps: Annotated[float, typer.Option(min=0, help="Sweep amplitude on the rate command.")] = 2.0,
+    offset_dps: Annotated[float, typer.Option(
+        help="Constant rate under the sweep, above its amplitude, so Coulomb friction stays on one side "
+        "(docs/ident.md); the axis turns offset x (sweep + 1 s) deg.")] = 2.5,
+    clock: Annotated[ClockOption | None, typer.Option(
+        help="Emulator clock with --loopback (default: the session's).")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the fit as JSON.")] = False,
+) -> None:
+    """Frequency-sweep identification (seed 000 Figs. 8-9): a swept sine on the rate command of the closed rate
+    loop, the plant's frequency response from the log (indirect closed-loop method), a Bode plot, and the fit of
+    k_m (deg/s^2 per count), the gyro's bandwidth and the delay."""
+    import json
+
+    from pydantic import ValidationError
+
+    from hil.config import SessionConfig, one_line
+    from hil.control.registry import K_M_DEFAULT
+    from hil.ident import SweptSine, bode_plot, identify_log
+    from hil.log import read_log
+
+    for option, value in (("--f-start-hz", f_start_hz), ("--f-stop-hz", f_stop_hz), ("--sweep-s", sweep_s),
+                          ("--amplitude-dps", amplitude_dps), ("--offset-dps", offset_dps)):
+        finite(option, value)
+    check_out_dir(out, "--out")
+    base = load_session_or_exit(session)
+    try:
+        sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s,
+                          amplitude_dps=amplitude_dps, axis=axis, offset_dps=offset_dps)
+        data = base.model_dump(mode="json", exclude_none=True)
+        data.update(name=f"{base.name}-ident-{axis}", duration_s=sweep.total_s + 0.5, excitation=sweep.model_dump(),
+                    tracking={**data.get("tracking", {}), "enabled": False}, profile={"segments": []},
+                    mqtt=base.mqtt)  # the object itself: its dump hides the password
+        config = SessionConfig.model_validate(data)
+    except ValidationError as exc:
+        raise fail(one_line("ident", exc)) from None
+    travel_deg = abs(offset_dps) * sweep.total_s
+    if axis == "el" and travel_deg > MAX_EL_TRAVEL_DEG:
+        raise fail(f"--offset-dps: the elevation axis would turn {travel_deg:.0f} deg during the sweep (at most "
+                   f"{MAX_EL_TRAVEL_DEG:g}: near 90 deg the cross-elevation gyro loses the azimuth axis); lower "
+                   "--offset-dps or --sweep-s, or identify --axis az")
+    result = run_and_print(config, out, loopback, clock, json_out, show=not json_out)
+    if result.status != "completed" or result.log_path is None:
+        raise typer.Exit(result.exit_code or 1)
+    try:
+        frf, fit = identify_log(read_log(result.log_path), sweep)
+    except ValueError as exc:
+        raise fail(f"{result.log_path}: cannot identify: {exc}", code=1) from None
+    png = bode_plot(frf, fit, out / f"bode-{axis}.png", title=config.name)
+    error_pct = 100.0 * (fit.k_m_dps2_per_count - K_M_DEFAULT) / K_M_DEFAULT
+    report = {"log": str(result.log_path), "axis": axis, "sweep": sweep.model_dump(),
+              "k_m_dps2_per_count": fit.k_m_dps2_per_count, "k_m_vs_default_pct": error_pct,
+              "gyro_bandwidth_hz": fit.gyro_bandwidth_hz, "delay_ms": fit.delay_ms,
+              "rms_error_db": fit.rms_error_db, "f_range_hz": list(fit.f_range_hz), "bins": fit.n_bins,
+              "bode_png": str(png)}
+    (out / f"ident-{axis}.json").write_text(json.dumps(report, indent=2))
+    if json_out:
+        print_json(report)
+        return
+    console.print(f"[bold]{fit.describe()}[/]", highlight=False)
+    console.print(f"k_m {fit.k_m_dps2_per_count:.5f} deg/s^2 per count: {error_pct:+.1f} % vs the controllers' "
+                  f"default {K_M_DEFAULT} (set b0_dps2_per_count to the fitted value if it differs)", highlight=False)
+    console.print(f"bode: {png}\nident: {out / f'ident-{axis}.json'}", highlight=False)
+
+
+@app.command()
+def selftest(
+    ticks: Annotated[int, typer.Option(min=100, max=3_600_000, help="GYRO_SAMPLEs to stream at 1 kHz.")] = 3000,
+    seed: Annotated[int, typer.Option(help="Seed of the injected faults.")] = 1,
+    garbage_rate: Annotated[float, typer.Option(min=0, max=1, help="Chance of a garbage burst per frame.")] = 0.01,
+    flip_rate: Annotated[float, typer.Option(min=0, max=1, help="Chance of a flipped bit per frame.")] = 0.005,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the report as JSON.")] = False,
+) -> None:
+    """Protocol self-test: the bench against an emulated servo board on a pty, with injected faults."""
+    import dataclasses
+
+    finite("--garbage-rate", garbage_rate)
+    finite("--flip-rate", flip_rate)
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from hil.selftest import main_sync
+
+    with Progress(TextColumn("[bold]selftest[/] GYRO_SAMPLE -> DRIVE_CMD"), BarColumn(), MofNCompleteColumn(),
+                  TimeRemainingColumn(), console=err_console, transient=True, disable=no_progress(json_out)) as bar:
+        task = bar.add_task("frames", total=ticks)
+        report = main_sync(ticks=ticks, seed=seed, garbage_rate=garbage_rate, flip_rate=flip_rate,
+                           progress=lambda n: bar.update(task, completed=n))
+    if json_out:
+        print_json(dataclasses.asdict(report) | {"passed": report.passed})
+    else:
+        _print_selftest(report)
+    if not report.passed:
+        raise typer.Exit(1)
+
+
+def _print_selftest(report) -> None:  # type: ignore[no-untyped-def]
+    b, c = report.board, report.counters
+    t = Table(title="Protocol self-test: bench <-> emulated servo board on a pty")
+    t.add_column("what")
+    t.add_column("value", justify="right")
+    t.add_column("unit / note")
+    if report.ident:
+        i = report.ident
+        t.add_row("board", f"{i['board']} {i['firmware_version']}", f"fingerprint {i['catalogue_fingerprint']}")
+    if b:
+        t.add_row("GYRO_SAMPLE sent", str(b["ticks_sent"]), "1 kHz, board clock")
+        t.add_row("  bit-flipped", str(len(b["corrupted_ticks"])), "injected")
+        t.add_row("  garbage bursts", str(b["garbage_bursts"]), f"{b['garbage_bytes']} bytes injected")
+        t.add_row("received by the bench", str(report.frames_received), "")
+        t.add_row("uncorrupted lost", str(len(report.lost_untouched)), "must be 0")
+        t.add_row("corrupted delivered", str(len(report.corrupted_delivered)), "must be 0")
+        t.add_row("CRC errors / bad lengths", f"{c['crc_errors']} / {c['bad_lengths']}", "")
+        t.add_row("resyncs / bytes discarded", f"{c['resyncs']} / {c['bytes_discarded']}", "")
+        lat = b["latency_us"]
+        if lat:
+            t.add_row("sample k -> command k", f"{lat['p50']} / {lat['p99']} / {lat['max']}", "us p50/p99/max")
+        t.add_row("late (>1 ms) / missing", f"{b['late_commands']} / {b['missing_commands']}", "missing = bit-flipped")
+        r = report.bench_reaction_us
+        if r:
+            t.add_row("bench decode -> write", f"{r['p50']} / {r['p99']}", "us p50 / p99")
+        pl = b["pacing_late_us"]
+        if pl:
+            t.add_row("board pacing lateness", f"{pl['p50']} / {pl['p99']}", "us p50 / p99")
+    t.add_row("wall time", f"{report.wall_s:.1f}", "s")
+    console.print(t)
+    if report.passed:
+        console.print("[bold green]PASS[/]: every uncorrupted frame arrived once, in order, and was answered.")
+    else:
+        for failure in report.failures:
+            err_console.print(f"[bold red]FAIL[/]: {failure}", highlight=False)

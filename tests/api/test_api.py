@@ -1,0 +1,134 @@
+"""The documented Python API (docs/api.md), used as a notebook would: from inside a running event loop."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from pathlib import Path
+
+import pytest
+import yaml
+
+import hil
+from hil.config import PROFILES
+from tests.session.helpers import assert_same_channels, session_config
+
+CAMPAIGNS = PROFILES / "campaigns"
+
+
+def short_session(seconds: float = 2.0) -> hil.SessionConfig:
+    return session_config(duration_s=seconds)
+
+
+def test_run_async_inside_a_running_loop_returns_a_log_read_as_dataframes(tmp_path: Path) -> None:
+    config = short_session()
+    progress: list[int] = []
+
+    async def notebook_cell() -> hil.RunResult:
+        return await hil.run_async(config, clock="sim", out=tmp_path, progress=lambda n, _t: progress.append(n))
+
+    result = asyncio.run(notebook_cell())
+    assert result.status == "completed" and result.exit_code == 0 and result.clock == "sim"
+    assert result.log_path is not None and result.log_path.parent == tmp_path
+    assert progress == sorted(progress) and progress[-1] >= 1990
+    summary = result.summary()
+    log = result.log
+    assert len(log.loop) == summary["cycles"] >= 1990  # 2 s at 1 kHz, less the stream's start
+    units = log.loop.attrs["units"]
+    assert set(units) == set(log.loop.columns)
+    assert "deg/s" in units.values()
+    assert log.config["name"] == config.name and log.config["duration_s"] == 2.0
+    assert log.provenance["controller"]["name"] == "eso"
+    assert len(log.image) > 0  # tracking on: miss distance at camera rate
+
+
+def test_run_blocks_inside_a_running_loop_without_reentering_it_and_lockstep_equals_sim(tmp_path: Path) -> None:
+    config = short_session()
+    threads: list[str] = []
+
+    async def notebook_cell() -> tuple[hil.RunResult, hil.RunResult]:
+        ticking = asyncio.get_running_loop()
+        threads.append(threading.current_thread().name)
+        lockstep = hil.run(config, clock="lockstep", out=tmp_path / "lockstep")  # blocks this cell, as in Jupyter
+        sim = hil.run(config, clock="sim", out=tmp_path / "sim")
+        assert asyncio.get_running_loop() is ticking
+        return lockstep, sim
+
+    lockstep, sim = asyncio.run(notebook_cell())
+    assert (lockstep.status, sim.status) == ("completed", "completed")
+    assert lockstep.clock == "lockstep" and lockstep.emulator  # the emulator process's own summary
+    assert lockstep.log_path and sim.log_path
+    assert assert_same_channels(lockstep.log_path, sim.log_path, 2000) > 1900
+
+
+def test_bad_input_is_a_config_error_naming_the_field(tmp_path: Path) -> None:
+    config = short_session()
+    with pytest.raises(hil.ConfigError, match=r"^clock: 'warp'"):
+        hil.run(config, clock="warp", out=tmp_path)  # type: ignore[arg-type]
+    with pytest.raises(hil.ConfigError, match=r"^ports: not set"):
+        hil.run(config, loopback=False, out=tmp_path)
+    with pytest.raises(hil.ConfigError, match="no such file"):
+        hil.load_session(tmp_path / "missing.yaml")
+    (tmp_path / "file").write_text("")
+    with pytest.raises(hil.ConfigError, match=r"^--out .*exists and is not a directory"):
+        hil.run(config, clock="sim", out=tmp_path / "file")
+    assert list(tmp_path.iterdir()) == [tmp_path / "file"]  # nothing was started or written
+
+
+def small_campaign(tmp_path: Path) -> Path:
+    data = yaml.safe_load((CAMPAIGNS / "filter-lag-15hz.yaml").read_text())
+    data.update(session=str(CAMPAIGNS / data["session"]), duration_s=2.0, seeds=[1, 2])
+    for p in data["profiles"]:
+        p["path"] = str((CAMPAIGNS / p["path"]).resolve())
+    path = tmp_path / "campaign.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_run_campaign_and_report_inside_a_running_loop(tmp_path: Path) -> None:
+    path = small_campaign(tmp_path)
+    seen: list[str] = []
+
+    async def notebook_cell() -> hil.CampaignRun:
+        return hil.run_campaign(path, out=tmp_path / "out", jobs=2, on_cell=lambda c: seen.append(c.cell_id))
+
+    run = asyncio.run(notebook_cell())
+    assert run.result.complete and len(seen) == 2
+    table = run.table()
+    assert list(table["seed"]) == sorted(table["seed"]) or set(table["seed"]) == {1, 2}
+    assert len(table) == 2 and table["status"].eq("completed").all()
+    # the first-order 150 Hz low-pass at 1 kHz lags (1 - a)/a = 0.64 samples at low frequency
+    assert table["lag_lpf_cycles"].between(0.55, 0.75).all()
+    assert run.report is not None and run.report.html.is_file() and run.report.markdown.is_file()
+    again = hil.report(run.out_dir)
+    assert again.html == run.report.html
+    log = run.out_dir / run.result.cells[0].log
+    summary = hil.report(log)
+    assert summary["cycles"] >= 1990 and summary["controller"] == run.result.cells[0].controller_name
+    with pytest.raises(hil.ConfigError, match="--resume"):
+        hil.run_campaign(path, out=tmp_path / "out")
+
+
+@pytest.mark.parametrize("path", sorted(PROFILES.glob("*/*.yaml")), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_check_file_knows_every_shipped_config(path: Path) -> None:
+    folders = {"sessions": "session", "campaigns": "campaign", "controllers": "controller", "swing": "swing",
+               "hexapod": "hexapod", "emulator": "emulator", "plant": "plant"}
+    checked = hil.check_file(path)
+    assert checked["kind"] == folders[path.parent.name]
+    assert checked["summary"]
+
+
+def test_check_file_guesses_the_kind_from_the_keys_and_names_the_bad_field(tmp_path: Path) -> None:
+    session = yaml.safe_load((PROFILES / "sessions" / "demo.yaml").read_text())
+    session["controller"] = str(PROFILES / "controllers" / "eso.yaml")
+    session["profile"] = str(PROFILES / "swing" / "swing-1deg-1hz.yaml")
+    session["hexapod_limits"] = str(PROFILES / "hexapod" / "default.yaml")
+    session["emulator"] = {"config": str(PROFILES / "emulator" / "default.yaml")}
+    (tmp_path / "mine.yaml").write_text(yaml.safe_dump(session))
+    assert hil.check_file(tmp_path / "mine.yaml")["kind"] == "session"
+    (tmp_path / "ctl.yaml").write_text("name: eso\nparams: {omega_o_rad_s: -3}\n")
+    with pytest.raises(hil.ConfigError, match="omega_o_rad_s"):
+        hil.check_file(tmp_path / "ctl.yaml")
+    (tmp_path / "odd.yaml").write_text("colour: blue\nsize: 3\n")
+    with pytest.raises(hil.ConfigError, match="match no config kind"):
+        hil.check_file(tmp_path / "odd.yaml")

@@ -1,0 +1,136 @@
+"""`hil replay CAPTURE --to-emulator`: a captured session's frames played back at a fresh emulator. In lockstep, with
+the same seed, the boards accept every frame and answer with the very samples the capture holds; a capture cut
+mid-run, or a stream that never starts, ends with the boards left safe by the replay itself."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from hil.capture import CaptureReader, decode_capture
+from hil.cli import app
+from hil.loopback import EmulatorProcess
+from hil.protocol import DriveCmd, GyroSample
+from hil.replay import PlaybackResult, ReplayError, play_capture
+from tests.capture.conftest import CapturedRun
+
+runner = CliRunner()
+
+
+def play(capture: Path, seed: int = 3, **kwargs: object) -> PlaybackResult:
+    with EmulatorProcess(None, clock="lockstep", seed=seed) as emu:
+        return play_capture(capture, {k: v for k, v in emu.ports.items() if k != "control"}, **kwargs)
+
+
+def captured(run: CapturedRun) -> tuple[int, int]:
+    """Samples the bench received and the last DRIVE_CMD tick it sent, in the capture."""
+    frames = list(decode_capture(run.capture))
+    samples = sum(type(f.frame.message) is GyroSample for f in frames)
+    last_drive = max(f.frame.message.tick for f in frames if type(f.frame.message) is DriveCmd)
+    return samples, last_drive
+
+
+def test_a_lockstep_capture_played_to_a_fresh_emulator_is_answered_frame_for_frame(lockstep_run: CapturedRun,
+                                                                                   tmp_path: Path) -> None:
+    samples, last_drive = captured(lockstep_run)
+    r = play(lockstep_run.capture, record_dir=tmp_path)
+    assert r.stopped == "" and r.safe_end == []  # the capture ended safe by itself
+    assert r.frames_sent == r.frames_in_capture > samples
+    assert r.commands == 16 and r.answered == 16  # every IDENT_REQ and command: IDENT or ACK
+    assert all(lp.nacked == 0 and not lp.nacks and lp.unanswered == 0 and lp.write_stalls == 0
+               for lp in r.links.values())
+    assert r.links["driver"].sent["DRIVE_CMD"] == last_drive + 1
+    assert r.drive_enabled_seen and last_drive - 10 <= r.drive_last_tick <= last_drive  # its 100 Hz DRIVE_STATUS
+    # the stream the replayed STREAM started is the captured one: the same samples, tick by tick; only the
+    # one sample after the disarm may differ (whether DRIVE_DISABLE lands before that step races in lockstep)
+    assert r.stream_started and r.samples == r.samples_compared == samples
+    assert r.samples_equal >= samples - 1 and r.first_differing_tick in (-1, samples - 1)
+    assert r.loop_timing["missing"] == 0 and r.loop_timing["ticks_reported"] >= samples - 20
+    for name, lp in r.links.items():  # what came back is what the bench received
+        assert lp.received == lp.captured_rx, name
+    # the replay's own capture holds what it sent and got
+    assert r.record is not None
+    frames = list(decode_capture(r.record))
+    assert sum(type(f.frame.message) is DriveCmd for f in frames) == last_drive + 1
+    assert sum(type(f.frame.message) is GyroSample for f in frames) == samples
+    assert CaptureReader(r.record).meta["replay_of"] == str(lockstep_run.capture)
+
+
+def test_a_realtime_capture_played_to_a_realtime_emulator_meets_its_deadlines(realtime_run: CapturedRun) -> None:
+    samples, last_drive = captured(realtime_run)
+    with EmulatorProcess(None, clock="realtime", seed=3) as emu:
+        r = play_capture(realtime_run.capture, {k: v for k, v in emu.ports.items() if k != "control"})
+    assert r.stopped == "" and r.safe_end == [] and r.answered == r.commands == 16
+    assert r.links["driver"].sent["DRIVE_CMD"] == last_drive + 1 and r.links["servo"].sent["HOST_ALIVE"] > 10
+    assert r.stream_started and abs(r.samples - samples) <= 20 and r.samples_lost == 0
+    # the board measured each replayed DRIVE_CMD against its own sample of the same tick: nearly all came in time
+    measured = r.loop_timing["ticks_reported"] - r.loop_timing["missing"]
+    assert 0.9 * (last_drive + 1) <= measured <= last_drive + 1
+    assert r.drive_enabled_seen and r.lateness_us["p50"] < 200
+
+
+def test_a_capture_cut_mid_run_is_played_then_the_replay_disarms(lockstep_run: CapturedRun, tmp_path: Path) -> None:
+    data = lockstep_run.capture.read_bytes()
+    cut = tmp_path / "cut.hilcap"
+    cut.write_bytes(data[: len(data) // 2])  # as a killed session leaves it: streaming, enabled, swinging
+    r = play(cut)
+    assert r.stopped == ""
+    assert r.safe_end == ["DRIVE_DISABLE", "HEXAPOD_STOP", "SERVO_MODE"]
+    assert r.answered == r.commands and all(lp.nacked == 0 for lp in r.links.values())
+    assert r.samples_equal == r.samples_compared > 500
+    assert r.links["driver"].acked == 3  # IDENT, DRIVE_ENABLE and the replay's DRIVE_DISABLE
+
+
+def test_a_stream_that_never_starts_stops_the_replay_before_any_drive(lockstep_run: CapturedRun) -> None:
+    # without the servo link nothing starts the stream: no sample comes, so no DRIVE_CMD may go
+    r = play(lockstep_run.capture, links={"driver", "image", "hexapod"})
+    assert r.stopped == "no GYRO_SAMPLE: the servo board did not start its stream"
+    assert r.links["driver"].sent["DRIVE_CMD"] == 0 and r.links["driver"].sent["DRIVE_ENABLE"] == 1
+    assert r.safe_end == ["DRIVE_DISABLE", "HEXAPOD_STOP"]
+    assert r.answered == r.commands == 10  # 3 IDENT_REQ, TRACK_CMD, 2 PROFILE_LOAD, START, ENABLE; DISABLE, STOP
+    assert not r.stream_started and r.samples == 0
+
+
+def test_ports_must_cover_the_links_the_capture_sent_on(lockstep_run: CapturedRun) -> None:
+    with pytest.raises(ReplayError, match=r"no port for link.*servo"):
+        play_capture(lockstep_run.capture, {"driver": "/dev/null"})
+
+
+def test_the_cli_plays_a_capture_to_a_fresh_emulator_and_reports_json(lockstep_run: CapturedRun,
+                                                                      tmp_path: Path) -> None:
+    samples, last_drive = captured(lockstep_run)
+    result = runner.invoke(app, ["replay", str(lockstep_run.capture.parent), "--to-emulator", "--json",
+                                 "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout[result.stdout.index("{"):])
+    assert data["answered"] == data["commands"] == 16 and data["stopped"] == ""
+    assert data["links"]["driver"]["sent"]["DRIVE_CMD"] == last_drive + 1 and data["samples"] == samples
+    assert json.loads((tmp_path / f"replay-{lockstep_run.capture.stem}.json").read_text())["samples"] == samples
+    assert len(list(tmp_path.glob("*.hilcap"))) == 1
+
+
+def test_the_cli_replays_a_log_and_refuses_what_does_not_fit(lockstep_run: CapturedRun, tmp_path: Path) -> None:
+    log = str(lockstep_run.log)
+    result = runner.invoke(app, ["replay", log, "--controller", "eso_kf", "--params", "omega_o_rad_s=500",
+                                 "--settle", "0.5", "--out", str(tmp_path), "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout[result.stdout.index("{"):])
+    assert data["controller"]["replayed"] == {"name": "eso_kf", "params": {"omega_o_rad_s": 500}}
+    assert data["axes"]["el"]["drive_diff_rms_counts"] > 0 and Path(data["plot"]).is_file()
+    table = runner.invoke(app, ["replay", log, "--settle", "0.5", "--out", str(tmp_path)])
+    assert table.exit_code == 0 and "drive minus logged (rms)" in table.stdout
+    for args, message in (
+        ([log, "--controller", "lqr"], "unknown controller 'lqr'"),
+        ([log, "--params", "omega_o_rad_s"], "--params: 'omega_o_rad_s' is not k=v"),
+        ([log, "--to-emulator", "--controller", "eso"], "--controller/--params replay a log"),
+        ([str(lockstep_run.capture), "--controller", "eso"], "a capture; play it back with --to-emulator"),
+        ([log, "--port", "servo=/dev/null"], "go with --to-emulator"),
+        ([str(lockstep_run.capture), "--to-emulator", "--port", "gimbal=/dev/null"], "is not LINK=PATH"),
+        ([log, "--to-emulator"], "not a capture"),
+    ):
+        bad = runner.invoke(app, ["replay", *args])
+        assert bad.exit_code == 2, (args, bad.output)
+        assert message in bad.output, (args, bad.output)
