@@ -16,16 +16,20 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-__all__ = ["CampaignRun", "ConfigError", "RunResult", "SessionConfig", "__version__", "check_file",
-           "load_campaign", "load_session", "read_log", "report", "run", "run_async", "run_campaign"]
+__all__ = ["CampaignRun", "ConfigError", "IdentRun", "RunResult", "SessionConfig", "__version__", "check_file",
+           "load_campaign", "load_session", "read_log", "replay_capture", "replay_log", "report", "run", "run_async",
+           "run_campaign"]
 
 if TYPE_CHECKING:
     from hil.api import (
         CampaignRun,
+        IdentRun,
         RunResult,
         check_file,
         load_campaign,
         read_log,
+        replay_capture,
+        replay_log,
         report,
         run,
         run_async,
@@ -33,7 +37,9 @@ if TYPE_CHECKING:
     )
     from hil.config import ConfigError, SessionConfig, load_session
 
-_FROM = {"CampaignRun": "hil.api", "RunResult": "hil.api", "check_file": "hil.api", "load_campaign": "hil.api",
+# hil.api.ident is not here: `hil.ident` is the identification module (hil/ident.py)
+_FROM = {"CampaignRun": "hil.api", "IdentRun": "hil.api", "replay_capture": "hil.api", "replay_log": "hil.api",
+         "RunResult": "hil.api", "check_file": "hil.api", "load_campaign": "hil.api",
          "read_log": "hil.api", "report": "hil.api", "run": "hil.api", "run_async": "hil.api",
          "run_campaign": "hil.api", "ConfigError": "hil.config", "SessionConfig": "hil.config",
          "load_session": "hil.config"}

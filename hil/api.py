@@ -25,15 +25,15 @@ from hil.config import ConfigError, SessionConfig, load_session, require_regular
 if TYPE_CHECKING:
     from hil.campaign import CampaignConfig, CampaignResult, CellResult
     from hil.campaign.report import ReportFiles
-    from hil.log.frames import LogData
-    from hil.session import SessionResult
+    from hil.log.frames import LogFrames
+    from hil.session import Session, SessionResult
 
 Clock = Literal["realtime", "lockstep", "sim"]
 CLOCKS: tuple[str, ...] = ("realtime", "lockstep", "sim")
 Progress = Callable[[int, int], None]  # (cycles done, cycles in the session)
 
-__all__ = ["CampaignRun", "RunResult", "check_file", "load_session", "read_log", "report", "run", "run_async",
-           "run_campaign"]
+__all__ = ["CampaignRun", "IdentRun", "RunResult", "check_file", "ident", "load_session", "read_log", "replay_capture",
+           "replay_log", "report", "run", "run_async", "run_campaign"]
 
 
 @dataclasses.dataclass
@@ -50,7 +50,7 @@ class RunResult:
     emulator: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)  # the emulator's own summary
 
     @functools.cached_property
-    def log(self) -> LogData:
+    def log(self) -> LogFrames:
         """The session's log (:func:`read_log`)."""
         if self.log_path is None:
             raise ConfigError(f"this session wrote no log ({self.status}: {self.message})")
@@ -95,55 +95,64 @@ def prepare_run(config: SessionConfig | str | Path, *, loopback: bool = True, cl
 
 async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True, clock: Clock | None = None,
                     out: str | Path | None = None, capture: str | Path | None = None,
-                    progress: Progress | None = None) -> RunResult:
+                    progress: Progress | None = None,
+                    on_session: Callable[[Session], None] | None = None) -> RunResult:
     """Run one session and return its :class:`RunResult`; awaitable inside a running event loop (Jupyter).
 
     ``config``: a :class:`SessionConfig` or the path of a session YAML. ``loopback``: against the emulated lab
     (started here) rather than the lab's ports. ``clock`` (loopback): ``realtime`` (paced 1 kHz over ptys),
     ``lockstep`` (the full protocol over ptys, byte-reproducible) or ``sim`` (boards and plant in this process;
     the same log as lockstep); default the session's ``emulator.clock``. ``out``: the log directory (default
-    ``logging.dir``). ``capture``: a directory for every link's raw bytes (docs/capture.md)."""
+    ``logging.dir``). ``capture``: a directory for every link's raw bytes (docs/capture.md). ``on_session``: called
+    with the :class:`hil.session.Session` once it exists (to end it early: ``session.interrupt()``)."""
     from hil.config import PortConfig
     from hil.session import Session
 
     config, clock_name, out_dir = prepare_run(config, loopback=loopback, clock=clock, out=out)
     capture_dir = Path(capture) if capture is not None else None
     if capture_dir is not None:
+        if clock_name == "sim":
+            raise ConfigError("--capture: the sim clock's links pass messages, not bytes: nothing to capture; run on "
+                              "the lockstep clock for the same run over ptys")
         require_writable_dir(capture_dir, "--capture")
+    hook = on_session or (lambda _s: None)
     if clock_name == "sim":
         from firmware_stub.config import ConfigError as EmulatorConfigError
         from hil.sim import run_sim_session
 
         try:
-            result, emulator = await run_sim_session(config, out_dir, progress=progress, **_capture(capture_dir))
+            result, emulator = await run_sim_session(config, out_dir, progress=progress, on_session=hook)
         except EmulatorConfigError as exc:
             raise ConfigError(str(exc)) from None
         return _result(result, "sim", emulator)
     if not loopback:
         assert config.ports is not None
-        ports = {name: getattr(config.ports, name) for name in ("servo", "driver", "image", "hexapod")}
+        ports = {name: port for name in ("servo", "driver", "image", "hexapod")
+                 if (port := getattr(config.ports, name)) is not None}
         session = Session(config, ports, out_dir, progress=progress,
                           log_attrs={"loopback": False, "clock": "hardware"}, **_capture(capture_dir))
+        hook(session)
         return _result(await session.run(), "hardware", {})
     from hil.loopback import EmulatorProcess
     from hil.transport import LinkError
 
     emulator = EmulatorProcess(config.emulator.config, clock=clock_name, seed=config.seed,
                                extra_args=config.emulator.process_args())
-    try:
-        started = await asyncio.to_thread(emulator.start)
-    except LinkError as exc:
-        raise ConfigError(str(exc)) from None
-    try:
+    try:  # stopped on every way out, a cancellation while it starts included
+        try:
+            started = await asyncio.to_thread(emulator.start)
+        except LinkError as exc:
+            raise ConfigError(str(exc)) from None
         ports = {name: PortConfig(port=path) for name, path in started.items() if name != "control"}
         # lockstep: the emulator waits for us, and we may wait for a descheduled emulator
         watchdog_ms = max(config.safety.watchdog_ms, 1000.0) if clock_name == "lockstep" else None
         session = Session(config, ports, out_dir, watchdog_ms=watchdog_ms, progress=progress,
                           log_attrs={"loopback": True, "clock": clock_name}, lockstep=clock_name == "lockstep",
                           emulated=True, **_capture(capture_dir))
+        hook(session)
         result = await session.run()
     finally:
-        summary = await asyncio.to_thread(emulator.stop)
+        summary = await asyncio.shield(asyncio.to_thread(emulator.stop))
     return _result(result, clock_name, summary)
 
 
@@ -166,10 +175,15 @@ def _in_running_loop() -> bool:
 
 def _sync(coro_fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
     """Run a coroutine function to completion: here if no event loop runs in this thread, else (a notebook's
-    loop) in a worker thread with its own loop, so the caller's loop is not re-entered."""
+    loop) in a worker thread with its own loop, so the caller's loop is not re-entered. There an interrupt
+    (KeyboardInterrupt) ends a running session as Ctrl-C does (:meth:`hil.session.Session.interrupt`)."""
     if not _in_running_loop():
         return asyncio.run(coro_fn(*args, **kwargs))
     loop = asyncio.new_event_loop()
+    sessions: list[Any] = []
+    if "on_session" in kwargs:
+        caller_hook = kwargs["on_session"] or (lambda _s: None)
+        kwargs["on_session"] = lambda s: (sessions.append(s), caller_hook(s))
     task: asyncio.Task[Any] | None = None
 
     def in_worker() -> Any:
@@ -186,8 +200,11 @@ def _sync(coro_fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         try:
             return future.result()
         except KeyboardInterrupt:  # the notebook's interrupt: end the session the safe way (disarm, log closed)
-            if task is not None and not loop.is_closed():
-                loop.call_soon_threadsafe(task.cancel)
+            with contextlib.suppress(RuntimeError):  # the loop may have closed meanwhile
+                if sessions:
+                    loop.call_soon_threadsafe(sessions[-1].interrupt)
+                elif task is not None:
+                    loop.call_soon_threadsafe(task.cancel)
             with contextlib.suppress(asyncio.CancelledError):
                 future.result()
             raise
@@ -197,15 +214,20 @@ def run(config: SessionConfig | str | Path, *, loopback: bool = True, clock: Clo
         out: str | Path | None = None, capture: str | Path | None = None,
         progress: Progress | None = None) -> RunResult:
     """:func:`run_async`, blocking; works in a script and inside a running event loop (a notebook cell)."""
-    return _sync(run_async, config, loopback=loopback, clock=clock, out=out, capture=capture, progress=progress)
+    return _sync(run_async, config, loopback=loopback, clock=clock, out=out, capture=capture, progress=progress,
+                 on_session=None)
 
 
-def read_log(path: str | Path) -> LogData:
+def read_log(path: str | Path) -> LogFrames:
     """A session log as pandas DataFrames: ``.loop``, ``.image``, ``.hexapod``, ... (units in ``df.attrs["units"]``),
     ``.config``, ``.events``, ``.provenance``. Works on a log still being written and on a recovered one."""
+    from hil.log import LogError
     from hil.log.frames import read_log_frames
 
-    return read_log_frames(path)
+    try:
+        return read_log_frames(path)
+    except LogError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 @dataclasses.dataclass
@@ -277,20 +299,27 @@ def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | Non
                            sessions=sessions)
     except CampaignError as exc:
         raise ConfigError(str(exc)) from None
-    files = report(out_dir) if write_report else None
-    return CampaignRun(result=result, out_dir=out_dir, report=files)  # type: ignore[arg-type]
+    files = None
+    if write_report:
+        from hil.campaign.report import write_report as write
+
+        try:
+            files = write(out_dir)
+        except CampaignError as exc:
+            raise ConfigError(str(exc)) from None
+    return CampaignRun(result=result, out_dir=out_dir, report=files)
 
 
 def report(path: str | Path, *, settle_s: float = 1.0) -> Any:
-    """A session log's metrics (a dict, as `hil report LOG --json`), or for a campaign directory its report
-    (Markdown, HTML and plots; a ``ReportFiles``)."""
+    """A session log's metrics (a dict, as `hil report LOG --json`), or for a campaign directory its report written
+    again (Markdown, HTML and plots) with the campaign's results: a :class:`CampaignRun`."""
     path = Path(path)
     if path.is_dir():
-        from hil.campaign import CampaignError
+        from hil.campaign import CampaignError, load_results
         from hil.campaign.report import write_report
 
         try:
-            return write_report(path)
+            return CampaignRun(result=load_results(path), out_dir=path, report=write_report(path))
         except CampaignError as exc:
             raise ConfigError(str(exc)) from None
     from hil.log import LogError
@@ -308,6 +337,106 @@ def report(path: str | Path, *, settle_s: float = 1.0) -> Any:
     except (LogError, OSError, KeyError) as exc:
         raise ConfigError(f"{path}: not a readable session log ({exc}); if the session crashed: "
                           f"hil recover {path}") from None
+
+
+MAX_EL_TRAVEL_DEG = 60.0  # ident: keep the elevation axis away from the az-el gimbal's 90 deg singularity
+
+
+@dataclasses.dataclass
+class IdentRun:
+    """A swept-sine identification: the session that ran it (``run``), the measured frequency response (``frf``),
+    the plant fit (``fit``: k_m, gyro bandwidth, delay), the Bode plot and the JSON written beside the log.
+    ``fit`` is None when the session did not complete."""
+
+    run: RunResult
+    frf: Any = None
+    fit: Any = None
+    bode_png: Path | None = None
+    json_path: Path | None = None
+    report: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "el", loopback: bool = True,
+          clock: Clock | None = None, out: str | Path = "runs/ident", f_start_hz: float = 0.5,
+          f_stop_hz: float = 300.0, sweep_s: float = 20.0, amplitude_dps: float = 2.0, offset_dps: float = 2.5,
+          progress: Progress | None = None) -> IdentRun:
+    """Frequency-sweep identification (seed 000 Figs. 8-9, docs/ident.md): a swept sine on one axis's rate command
+    of the closed rate loop (``session``'s controller, tracking off, no swing), the plant's frequency response from
+    the log, a Bode plot and the fit of k_m, the gyro's bandwidth and the delay. ValueError (ConfigError) for bad
+    input; a fit that cannot be made raises ValueError naming the log."""
+    import json
+    import math
+
+    from pydantic import ValidationError
+
+    from hil.config import one_line
+    from hil.control.registry import K_M_DEFAULT
+    from hil.ident import SweptSine, bode_plot, identify_log
+    from hil.log import read_log as read_arrays
+
+    if axis not in ("el", "az"):
+        raise ConfigError(f"--axis: {axis!r} is not el or az")
+    for option, value in (("--f-start-hz", f_start_hz), ("--f-stop-hz", f_stop_hz), ("--sweep-s", sweep_s),
+                          ("--amplitude-dps", amplitude_dps), ("--offset-dps", offset_dps)):
+        if not math.isfinite(value):
+            raise ConfigError(f"{option}: {value!r} is not a finite number")
+    out_dir = require_writable_dir(Path(out), "--out")
+    base = _session_config(session)
+    try:
+        sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s,
+                          amplitude_dps=amplitude_dps, axis=axis, offset_dps=offset_dps)
+        data = base.model_dump(mode="json", exclude_none=True)
+        data.update(name=f"{base.name}-ident-{axis}", duration_s=sweep.total_s + 0.5, excitation=sweep.model_dump(),
+                    tracking={**data.get("tracking", {}), "enabled": False}, profile={"segments": []},
+                    mqtt=base.mqtt, hexapod=base.hexapod)  # the objects themselves: their dumps hide secrets
+        config = SessionConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(one_line("ident", exc)) from None
+    travel_deg = abs(offset_dps) * sweep.total_s
+    if axis == "el" and travel_deg > MAX_EL_TRAVEL_DEG:
+        raise ConfigError(f"--offset-dps: the elevation axis would turn {travel_deg:.0f} deg during the sweep (at "
+                          f"most {MAX_EL_TRAVEL_DEG:g}: near 90 deg the cross-elevation gyro loses the azimuth axis); "
+                          "lower --offset-dps or --sweep-s, or identify --axis az")
+    result = run(config, loopback=loopback, clock=clock, out=out_dir, progress=progress)
+    if result.status != "completed" or result.log_path is None:
+        return IdentRun(run=result)
+    try:
+        frf, fit = identify_log(read_arrays(result.log_path), sweep)
+    except ValueError as exc:
+        raise ValueError(f"{result.log_path}: cannot identify: {exc}") from None
+    png = bode_plot(frf, fit, out_dir / f"bode-{axis}.png", title=config.name)
+    error_pct = 100.0 * (fit.k_m_dps2_per_count - K_M_DEFAULT) / K_M_DEFAULT
+    js = out_dir / f"ident-{axis}.json"
+    data = {"log": str(result.log_path), "axis": axis, "sweep": sweep.model_dump(),
+            "k_m_dps2_per_count": fit.k_m_dps2_per_count, "k_m_vs_default_pct": error_pct,
+            "gyro_bandwidth_hz": fit.gyro_bandwidth_hz, "delay_ms": fit.delay_ms, "rms_error_db": fit.rms_error_db,
+            "f_range_hz": list(fit.f_range_hz), "bins": fit.n_bins, "bode_png": str(png)}
+    js.write_text(json.dumps(data, indent=2))
+    return IdentRun(run=result, frf=frf, fit=fit, bode_png=png, json_path=js, report=data)
+
+
+def replay_log(log: str | Path, controller: str | None = None, params: Any = None, *, settle_s: float = 1.0) -> Any:
+    """Re-run a controller open loop on a logged gyro and drive stream (`hil replay LOG`, docs/capture.md):
+    its estimates, would-be drive, noise and lag beside the logged controller's. ``params``: a dict, a
+    ``"k=v,..."`` string or a controller YAML path. Returns a ``hil.replay.ReplayResult``."""
+    from hil import replay
+
+    try:
+        return replay.replay_log(Path(log), controller, params, settle_s=settle_s)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def replay_capture(capture: str | Path, **options: Any) -> Any:
+    """Play a capture's host-side frames back at the boards or a fresh emulator with the original timing
+    (`hil replay CAPTURE --to-emulator`, docs/capture.md); ``options`` as ``hil.replay.replay_capture``.
+    Returns a ``hil.replay.PlaybackResult``."""
+    from hil import replay
+
+    try:
+        return replay.replay_capture(Path(capture), **options)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def check_file(path: str | Path, kind: str | None = None) -> dict[str, Any]:

@@ -242,8 +242,13 @@ class HexapodDriver(abc.ABC):
             left = give_up - time.monotonic()
             if left <= 0:
                 return False
-            await asyncio.sleep(min(left, 0.01))
+            await self._next_state(left)
         return True
+
+    async def _next_state(self, left_s: float) -> None:
+        """Wait for the state to change, or a while (at most ``left_s``): a poll every 10 ms, unless the driver
+        is told of changes."""
+        await asyncio.sleep(min(left_s, 0.01))
 
     def handle(self, frame: Frame) -> None:  # noqa: B027 (an optional hook)
         """A frame from the bench's hexapod link (drivers that set :attr:`uses_link`)."""
@@ -302,17 +307,11 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
     def connected(self) -> bool:
         return self.link.transport is not None
 
-    async def wait_home(self, timeout_s: float) -> bool:
-        """Until HEXAPOD_STATUS says it rests, at most ``timeout_s`` (checked at least every 0.1 s)."""
-        give_up = time.monotonic() + timeout_s
-        while self.running:
-            left = give_up - time.monotonic()
-            if left <= 0:
-                return False
-            self._changed.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._changed.wait(), min(left, 0.1))
-        return True
+    async def _next_state(self, left_s: float) -> None:
+        """Until the next HEXAPOD_STATUS (checked at least every 0.1 s)."""
+        self._changed.clear()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._changed.wait(), min(left_s, 0.1))
 
     async def load(self, segments: Sequence[Segment]) -> None:
         for msg in segments_to_messages(list(segments)):
@@ -332,7 +331,10 @@ class GuardedHexapod(HexapodDriver):
     The interlock's one-way rule is enforced here, not left to the driver: once the session has begun to end,
     ``load`` and ``start`` raise :class:`InterlockClosed` without calling the driver (``stop``, ``wait_home`` and
     ``close`` always pass). A driver's own exceptions become :class:`LinkError` naming the driver, so the session's
-    safety paths treat a failing vendor controller as they treat a lost link."""
+    safety paths treat a failing vendor controller as they treat a lost link, and so is a call that does not return
+    within :attr:`CALL_TIMEOUT_S` (``wait_home``: its own timeout plus that)."""
+
+    CALL_TIMEOUT_S = 10.0
 
     def __init__(self, driver: HexapodDriver, interlock: Interlock, name: str) -> None:
         self.driver = driver
@@ -364,11 +366,17 @@ class GuardedHexapod(HexapodDriver):
     def on_fault(self, callback: Callable[[str], None] | None) -> None:
         self.driver.on_fault = callback
 
-    async def _call(self, what: str, step: Awaitable[Any]) -> Any:
+    async def _call(self, what: str, step: Awaitable[Any], timeout_s: float | None = None) -> Any:
+        """``step`` within ``timeout_s`` (default :attr:`CALL_TIMEOUT_S`): a driver that hangs (a vendor's TCP link
+        gone quiet) must not keep a session from ending; its errors become one-line LinkErrors."""
+        limit_s = self.CALL_TIMEOUT_S if timeout_s is None else timeout_s
         try:
-            return await step
+            async with asyncio.timeout(limit_s):
+                return await step
         except LinkError:
             raise
+        except TimeoutError:
+            raise LinkError(f"hexapod driver {self.driver_name!r}: {what}: no answer within {limit_s:g} s") from None
         except Exception as exc:
             raise LinkError(f"hexapod driver {self.driver_name!r}: {what}: {type(exc).__name__}: "
                             f"{' '.join(str(exc).split())}") from exc
@@ -388,7 +396,7 @@ class GuardedHexapod(HexapodDriver):
         await self._call("stop", self.driver.stop())
 
     async def wait_home(self, timeout_s: float) -> bool:
-        return bool(await self._call("wait_home", self.driver.wait_home(timeout_s)))
+        return bool(await self._call("wait_home", self.driver.wait_home(timeout_s), timeout_s + self.CALL_TIMEOUT_S))
 
     async def close(self) -> None:
         await self._call("close", self.driver.close())

@@ -26,6 +26,7 @@ from pydantic import (
     Discriminator,
     Field,
     PrivateAttr,
+    SecretStr,
     SerializationInfo,
     SerializerFunctionWrapHandler,
     Tag,
@@ -350,6 +351,12 @@ class HexapodConfig(BaseModel):
     def options(self) -> Any:
         """The driver's options: an instance of its ``Options`` model."""
         return self._options
+
+    def secret_options(self) -> list[str]:
+        """The options holding a secret (a ``SecretStr`` that is set): a dump shows them masked."""
+        if self._options is None:
+            return []
+        return [name for name, value in self._options if isinstance(value, SecretStr)]
 
 
 class TrackingConfig(Strict):

@@ -280,6 +280,7 @@ class Session:
         self.open_link = open_link
         self.use_watchdog = watchdog
         self.use_thread = not lockstep and open_link is None
+        self.emulated = emulated
         self.stall_grace_s = config.safety.emulator_stall_grace_ms / 1000 if emulated else 0.0
         self.loop_thread: LoopThread | None = None
         self.event_watchdog: EventLoopWatchdog | None = None
@@ -387,7 +388,7 @@ class Session:
         idents = {name: getattr(self, name).ident_dict() for name in LINKS}
         from hil.log.provenance import collect_provenance  # versions, commit, plant hash, full controller params
 
-        emulated = self.extra_attrs.get("loopback", self.lockstep or self.open_link is not None)
+        emulated = self.extra_attrs.get("loopback", self.emulated or self.lockstep or self.open_link is not None)
         attrs = {"config": self.config.model_dump(mode="json"), "ident": idents, "software_version": __version__,
                  "seed": self.config.seed, "start_time_utc": now.isoformat(), "session_name": self.config.name,
                  "controller": self.config.controller.name, **({"clock": "lockstep"} if self.lockstep else {}),
@@ -586,6 +587,12 @@ class Session:
             self.stop_reason = message
             self._finished.set_result(status)
 
+    def interrupt(self, signum: int = signal.SIGINT) -> None:
+        """End the session as SIGINT (or ``signum``) would: the driver disabled first, then the usual wind-down.
+        For a caller that runs the session off the main thread (a notebook), where signals do not reach it; call
+        it on the session's event loop (``loop.call_soon_threadsafe(session.interrupt)``)."""
+        self._on_signal(signum)
+
     def _on_signal(self, signum: int) -> None:
         if self.driver is not None:  # the driver first, before anything else
             with contextlib.suppress(LinkError, OSError):
@@ -687,7 +694,13 @@ class Session:
             self.event("fault", reason=message, traceback=traceback.format_exc(limit=8))
         finally:
             self.finish(status, message)
-            await self._shutdown()
+            shutdown = asyncio.ensure_future(self._shutdown())
+            while not shutdown.done():  # a cancellation waits for the boards to be left safe and the log closed
+                try:
+                    await asyncio.shield(shutdown)
+                except asyncio.CancelledError:
+                    continue
+            shutdown.result()
             for sig in signals:
                 aloop.remove_signal_handler(sig)
         if status == "fault" and self.exit_code == EXIT_OK:

@@ -25,7 +25,7 @@ from hil.protocol import CATALOGUE, Frame
 from hil.transport import LinkError, SerialLink
 
 if TYPE_CHECKING:
-    from hil.session import SessionResult
+    from hil.session import Session, SessionResult
 
 TICKS_PER_YIELD = 20  # world ticks between two yields to the event loop (a sim tick is ~20-40 us)
 CAPTURE_REFUSED = ("--capture: the sim clock's links pass messages, not bytes, so there is nothing to capture; "
@@ -201,12 +201,14 @@ def sim_ports() -> dict[str, PortConfig]:
 
 
 async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Callable[[int, int], None] | None = None,
-                          log_attrs: dict[str, Any] | None = None,
-                          capture_dir: Path | None = None) -> tuple[SessionResult, dict[str, Any]]:
+                          log_attrs: dict[str, Any] | None = None, capture_dir: Path | None = None,
+                          on_session: Callable[[Session], None] | None = None,
+                          ) -> tuple[SessionResult, dict[str, Any]]:
     """Run one session against the emulated lab of ``config.emulator`` in this process (the ``sim`` clock).
     Returns the session's result and the emulator's summary. A bad emulator or plant file raises ConfigError.
     ``capture_dir`` is refused (ValueError, before anything starts): the sim clock's links pass messages as
-    objects, so there are no bytes to capture; the lockstep clock runs the same session over ptys."""
+    objects, so there are no bytes to capture; the lockstep clock runs the same session over ptys. ``on_session``
+    gets the Session once it exists (hil.api: to interrupt it from another thread)."""
     from hil.session import Session
 
     if capture_dir is not None:
@@ -216,6 +218,8 @@ async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Cal
     session = Session(config, sim_ports(), out_dir, progress=progress, lockstep=True, open_link=lab.open_link,
                       watchdog=False, log_attrs={"loopback": True, "clock": "sim", **(log_attrs or {})})
     lab.on_error = session.fault
+    if on_session is not None:
+        on_session(session)
     async with lab:
         result = await session.run()
     return result, lab.summary

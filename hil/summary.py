@@ -157,7 +157,7 @@ def json_safe(value: Any) -> Any:
     """``value`` (a summary) with NaN and infinities as None and numpy scalars as Python numbers, so that
     ``json.dumps`` writes valid JSON (``null``, never ``NaN``)."""
     if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
+        return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [json_safe(v) for v in value]
     if isinstance(value, np.generic):

@@ -82,6 +82,10 @@ def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardwar
         session = SessionConfig.model_validate(data)
     except ValidationError as exc:
         raise CampaignError(one_line(f"cell {spec.cell_id}", exc)) from None
+    secrets = session.hexapod.secret_options()
+    if secrets:
+        raise CampaignError(f"cell {spec.cell_id}: hexapod.{secrets[0]}: each cell's session file would hold it in "
+                            "clear text; give the driver its secret through the environment or a file it reads")
     if session.mqtt is not None and session.mqtt.password is not None:
         raise CampaignError(f"cell {spec.cell_id}: mqtt.password: each cell's session file would hold it in clear "
                             "text; give it as mqtt.password_env or mqtt.password_file")

@@ -3,7 +3,6 @@ input. One module per family of commands; each registers its commands on the sha
 
 from __future__ import annotations
 
-import contextlib
 from typing import Annotated
 
 import typer
@@ -31,12 +30,9 @@ def _main(
 # each registers its commands, in the order `hil --help` lists them
 from hil.cli import session  # noqa: E402, I001
 from hil.cli import campaign, logs, check  # noqa: E402
-from hil.cli import lab, protocol  # noqa: E402
+from hil.cli import lab, protocol, replay  # noqa: E402
 
-with contextlib.suppress(ImportError):
-    from hil.cli import replay  # noqa: F401
-
-__all__ = ["app", "campaign", "check", "lab", "logs", "main", "protocol", "session"]
+__all__ = ["app", "campaign", "check", "lab", "logs", "main", "protocol", "replay", "session"]
 
 
 def main(argv: list[str] | None = None) -> int:

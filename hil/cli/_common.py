@@ -63,17 +63,9 @@ def no_progress(json_out: bool = False) -> bool:
 
 def print_json(data: Any) -> None:
     """Results as JSON on stdout (NaN and infinities as null, paths and other objects as strings)."""
+    from hil.summary import json_safe
 
-    def clean(x: Any) -> Any:
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if isinstance(x, dict):
-            return {str(k): clean(v) for k, v in x.items()}
-        if isinstance(x, list | tuple):
-            return [clean(v) for v in x]
-        return x
-
-    console.print_json(json.dumps(clean(data), default=str))
+    console.print_json(json.dumps(json_safe(data), default=str))
 
 
 def fail(message: str, code: int = 2) -> typer.Exit:

@@ -32,12 +32,11 @@ def report(
         raise fail(str(exc)) from None
     if log.is_dir():
         if json_out:
-            from hil.campaign import load_results
             from hil.cli.campaign import campaign_json
 
-            print_json(campaign_json(api.CampaignRun(result=load_results(log), out_dir=log, report=out)))
+            print_json(campaign_json(out))
         else:
-            note(f"report: {out.markdown}\n        {out.html}  ({len(out.pngs)} plots)")
+            note(f"report: {out.report.markdown}\n        {out.report.html}  ({len(out.report.pngs)} plots)")
         return
     if json_out:
         print_json(out)
@@ -71,6 +70,7 @@ def export(
 @app.command()
 def recover(
     log: Annotated[Path, typer.Argument(help="A log left by a crashed session.")],
+    json_out: Annotated[bool, typer.Option("--json", help="Print the recovered log's path as JSON.")] = False,
 ) -> None:
     """Make a log left by a crash (SIGKILL, power loss) open normally; the original is kept beside it."""
     from hil.log import LogError, recover_log
@@ -80,4 +80,7 @@ def recover(
         result = recover_log(log)
     except LogError as exc:
         raise fail(str(exc)) from None
+    if json_out:
+        print_json({"log": str(log), "recovered": str(result)})
+        return
     console.print(str(result), highlight=False)

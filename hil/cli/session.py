@@ -154,15 +154,13 @@ def run(  # noqa: PLR0917 (typer maps parameters to options)
 @app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Directory for the log.")] = Path("runs"),
+    json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
 ) -> None:
     """The README's demo: a 10 s session, 1 deg / 1 Hz swing, ESO+KF, against the emulator (no setup needed)."""
     from hil.config import PROFILES
 
     config = load_session_or_exit(PROFILES / "sessions" / "demo.yaml")
-    raise typer.Exit(run_and_print(config, out, True, None, False).exit_code)
-
-
-MAX_EL_TRAVEL_DEG = 60.0  # hil ident: keep the elevation axis away from the az-el gimbal's 90 deg singularity
+    raise typer.Exit(run_and_print(config, out, True, None, json_out).exit_code)
 
 
 @app.command()
@@ -186,57 +184,39 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
     """Frequency-sweep identification (seed 000 Figs. 8-9): a swept sine on the rate command of the closed rate
     loop, the plant's frequency response from the log (indirect closed-loop method), a Bode plot, and the fit of
     k_m (deg/s^2 per count), the gyro's bandwidth and the delay."""
-    import json
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from pydantic import ValidationError
-
-    from hil.config import SessionConfig, one_line
+    from hil import api
+    from hil.config import ConfigError
     from hil.control.registry import K_M_DEFAULT
-    from hil.ident import SweptSine, bode_plot, identify_log
-    from hil.log import read_log
 
-    for option, value in (("--f-start-hz", f_start_hz), ("--f-stop-hz", f_stop_hz), ("--sweep-s", sweep_s),
-                          ("--amplitude-dps", amplitude_dps), ("--offset-dps", offset_dps)):
-        finite(option, value)
-    check_out_dir(out, "--out")
     base = load_session_or_exit(session)
-    try:
-        sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s,
-                          amplitude_dps=amplitude_dps, axis=axis, offset_dps=offset_dps)
-        data = base.model_dump(mode="json", exclude_none=True)
-        data.update(name=f"{base.name}-ident-{axis}", duration_s=sweep.total_s + 0.5, excitation=sweep.model_dump(),
-                    tracking={**data.get("tracking", {}), "enabled": False}, profile={"segments": []},
-                    mqtt=base.mqtt)  # the object itself: its dump hides the password
-        config = SessionConfig.model_validate(data)
-    except ValidationError as exc:
-        raise fail(one_line("ident", exc)) from None
-    travel_deg = abs(offset_dps) * sweep.total_s
-    if axis == "el" and travel_deg > MAX_EL_TRAVEL_DEG:
-        raise fail(f"--offset-dps: the elevation axis would turn {travel_deg:.0f} deg during the sweep (at most "
-                   f"{MAX_EL_TRAVEL_DEG:g}: near 90 deg the cross-elevation gyro loses the azimuth axis); lower "
-                   "--offset-dps or --sweep-s, or identify --axis az")
-    result = run_and_print(config, out, loopback, clock, json_out, show=not json_out)
-    if result.status != "completed" or result.log_path is None:
+    with Progress(TextColumn(f"[bold]{base.name}[/] swept sine on {axis}"), BarColumn(),
+                  TextColumn("{task.fields[sim]:.1f} s"), TimeRemainingColumn(), console=err_console,
+                  transient=True, disable=no_progress(json_out)) as bar:
+        task = bar.add_task("ident", total=None, sim=0.0)
+        try:
+            done = api.ident(base, axis=axis, loopback=loopback, clock=clock, out=out, f_start_hz=f_start_hz,
+                             f_stop_hz=f_stop_hz, sweep_s=sweep_s, amplitude_dps=amplitude_dps,
+                             offset_dps=offset_dps,
+                             progress=lambda n, t: bar.update(task, completed=n, total=t, sim=n / 1000))
+        except ConfigError as exc:
+            raise fail(str(exc)) from None
+        except ValueError as exc:  # the log could not be fitted
+            raise fail(str(exc), code=1) from None
+    result, fit = done.run, done.fit
+    if fit is None:  # the session did not complete: say so, as `hil run` would
+        print_result(result, json_out)
         raise typer.Exit(result.exit_code or 1)
-    try:
-        frf, fit = identify_log(read_log(result.log_path), sweep)
-    except ValueError as exc:
-        raise fail(f"{result.log_path}: cannot identify: {exc}", code=1) from None
-    png = bode_plot(frf, fit, out / f"bode-{axis}.png", title=config.name)
-    error_pct = 100.0 * (fit.k_m_dps2_per_count - K_M_DEFAULT) / K_M_DEFAULT
-    report = {"log": str(result.log_path), "axis": axis, "sweep": sweep.model_dump(),
-              "k_m_dps2_per_count": fit.k_m_dps2_per_count, "k_m_vs_default_pct": error_pct,
-              "gyro_bandwidth_hz": fit.gyro_bandwidth_hz, "delay_ms": fit.delay_ms,
-              "rms_error_db": fit.rms_error_db, "f_range_hz": list(fit.f_range_hz), "bins": fit.n_bins,
-              "bode_png": str(png)}
-    (out / f"ident-{axis}.json").write_text(json.dumps(report, indent=2))
     if json_out:
-        print_json(report)
+        print_json(done.report)
         return
+    print_result(result, False)
     console.print(f"[bold]{fit.describe()}[/]", highlight=False)
-    console.print(f"k_m {fit.k_m_dps2_per_count:.5f} deg/s^2 per count: {error_pct:+.1f} % vs the controllers' "
-                  f"default {K_M_DEFAULT} (set b0_dps2_per_count to the fitted value if it differs)", highlight=False)
-    console.print(f"bode: {png}\nident: {out / f'ident-{axis}.json'}", highlight=False)
+    console.print(f"k_m {fit.k_m_dps2_per_count:.5f} deg/s^2 per count: {done.report['k_m_vs_default_pct']:+.1f} % "
+                  f"vs the controllers' default {K_M_DEFAULT} (set b0_dps2_per_count to the fitted value if it "
+                  "differs)", highlight=False)
+    console.print(f"bode: {done.bode_png}\nident: {done.json_path}", highlight=False)
 
 
 @app.command()

@@ -188,7 +188,8 @@ SCHEMA: tuple[Group, ...] = (
 
 ATTRS: tuple[AttrSpec, ...] = (
     AttrSpec("config", "JSON text", "caller", "the whole session configuration, as the session loaded it"),
-    AttrSpec("ident", "JSON text", "caller", "every board's IDENT reply, by board name"),
+    AttrSpec("ident", "JSON text", "caller",
+             "every board's IDENT reply, by board name (the hexapod's with its `driver`)"),
     AttrSpec("seed", "int", "caller", "the session's random seed"),
     AttrSpec("software_version", "str", "caller or writer", "bench software version (default: hil.__version__)"),
     AttrSpec("start_time_utc", "str", "caller or writer", "session start, ISO 8601 UTC (default: when the log opened)"),

@@ -100,8 +100,8 @@ def test_run_campaign_and_report_inside_a_running_loop(tmp_path: Path) -> None:
     # the first-order 150 Hz low-pass at 1 kHz lags (1 - a)/a = 0.64 samples at low frequency
     assert table["lag_lpf_cycles"].between(0.55, 0.75).all()
     assert run.report is not None and run.report.html.is_file() and run.report.markdown.is_file()
-    again = hil.report(run.out_dir)
-    assert again.html == run.report.html
+    again = hil.report(run.out_dir)  # the report written again, with the campaign's results
+    assert again.report.html == run.report.html and again.table().equals(table)
     log = run.out_dir / run.result.cells[0].log
     summary = hil.report(log)
     assert summary["cycles"] >= 1990 and summary["controller"] == run.result.cells[0].controller_name
@@ -132,3 +132,48 @@ def test_check_file_guesses_the_kind_from_the_keys_and_names_the_bad_field(tmp_p
     (tmp_path / "odd.yaml").write_text("colour: blue\nsize: 3\n")
     with pytest.raises(hil.ConfigError, match="match no config kind"):
         hil.check_file(tmp_path / "odd.yaml")
+
+
+def test_a_session_ends_early_through_interrupt_as_ctrl_c_would(tmp_path: Path) -> None:
+    from tests.session.helpers import logged_events
+
+    config = short_session(30.0)
+
+    async def notebook_cell() -> hil.RunResult:
+        def on_session(session: object) -> None:
+            asyncio.get_running_loop().call_later(1.0, session.interrupt)  # type: ignore[attr-defined]
+
+        return await hil.run_async(config, clock="sim", out=tmp_path, on_session=on_session)
+
+    result = asyncio.run(notebook_cell())
+    assert (result.status, result.exit_code) == ("interrupted", 130)
+    events = logged_events(result.log_path)
+    assert ("signal", {"signal": "SIGINT"}) in events
+    safe = next(d for k, d in events if k == "state" and d["state"] == "safe")
+    assert (safe["driver"], safe["hexapod"], safe["stream"]) == ("disabled", "stopped", "idle")
+    assert result.summary()["cycles"] < 29000  # it did not run its 30 s
+
+
+def test_a_keyboard_interrupt_in_a_notebook_cell_ends_the_session_safely(tmp_path: Path) -> None:
+    import os
+    import signal
+
+    config = short_session(600.0)  # the sim clock runs it far faster than real time: long enough to interrupt
+
+    async def notebook_cell() -> None:
+        threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGINT)).start()  # the kernel's interrupt button
+        hil.run(config, clock="sim", out=tmp_path)
+
+    loop = asyncio.new_event_loop()  # a kernel's loop: no asyncio.Runner SIGINT handler of its own
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            loop.run_until_complete(notebook_cell())
+    finally:
+        loop.close()
+    (log_path,) = tmp_path.glob("*.h5")
+    log = hil.read_log(log_path)
+    kinds = list(log.events["kind"])
+    assert "signal" in kinds
+    details = [str(d) for d in log.events["detail"]]
+    assert any('"safe"' in d and '"disabled"' in d for d in details)
+    assert len(log.loop) < 590_000

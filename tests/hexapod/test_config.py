@@ -144,3 +144,21 @@ def test_the_cli_exits_2_with_one_line_for_an_unknown_driver_or_a_bad_option(tmp
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
         f"error: {bad}: hexapod.host: Extra inputs are not permitted (got '10.0.0.7')"], res.stderr
     assert not (tmp_path / "runs").exists()  # refused before anything started
+
+
+def test_a_campaign_refuses_a_secret_driver_option_a_cell_file_would_hold_masked(tmp_path: Path,
+                                                                                  test_drivers: object) -> None:
+    import yaml
+
+    from hil.campaign import CampaignError, load_campaign
+    from hil.campaign.runner import cell_sessions
+
+    session = session_file(tmp_path, "{driver: recording, token: hunter2-s3cret}")
+    campaign = tmp_path / "c.yaml"
+    campaign.write_text(yaml.safe_dump({
+        "name": "secret-check", "title": "t", "session": str(session), "metrics": ["rate_err_el_std_dps"],
+        "profiles": [{"label": "1 deg", "path": str(PROFILES / "swing" / "swing-1deg-1hz.yaml")}],
+        "controllers": [{"label": "ESO", "name": "eso"}], "seeds": [1]}))
+    with pytest.raises(CampaignError, match=r"hexapod\.token: each cell's session file would hold it"):
+        cell_sessions(load_campaign(campaign), tmp_path / "out")
+    assert not (tmp_path / "out").exists()

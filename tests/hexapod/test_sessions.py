@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import signal
+import time
 from pathlib import Path
 from typing import Any
 
@@ -200,3 +201,21 @@ def test_the_protocol_driver_keeps_its_state_poses_and_wind_down(tmp_path: Path)
     assert kinds.index("swing stopping") < kinds.index("disarmed")
     assert not [d for k, d in events if k == "info" and "hexapod" in d]  # home within the wind-down
     assert safe_event(result.log_path)["hexapod"] == "stopped"
+
+
+def test_a_driver_that_hangs_cannot_keep_the_session_from_ending(tmp_path: Path, test_drivers: type[RecordingHexapod],
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    async def hang(drv: RecordingHexapod) -> None:
+        await asyncio.sleep(3600)  # a vendor's TCP link gone quiet
+
+    monkeypatch.setattr(GuardedHexapod, "CALL_TIMEOUT_S", 0.2)
+    config = session_config(duration_s=0.3, seed=4, hexapod={"driver": "recording"})
+    t0 = time.monotonic()
+    _, result = sim_session(config, tmp_path, hooks={"stop": hang, "close": hang})
+    assert time.monotonic() - t0 < 30  # two stops and a close, each given up after 0.2 s
+    assert result.status == "completed", result.message
+    (driver,) = test_drivers.instances
+    assert driver.calls == ["identify", "load", "start", "stop", "stop", "close"]
+    assert safe_event(result.log_path) == {
+        "state": "safe", "driver": "disabled", "stream": "idle",
+        "hexapod": "not confirmed: hexapod driver 'recording': stop: no answer within 0.2 s"}
