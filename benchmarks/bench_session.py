@@ -195,14 +195,14 @@ def lean_responder(config: SessionConfig, seconds: float, cpu: int | None) -> di
     return {"board_us": quantiles(lat), "n": int(lat.size), "pacing": summary.get("servo", {}).get("pacing_late_us")}
 
 
-def session_case(config: SessionConfig, work: Path) -> dict:  # type: ignore[type-arg]
+def session_case(config: SessionConfig, work: Path, capture_dir: Path | None = None) -> dict:  # type: ignore[type-arg]
     cpu_self0, cpu_kids0, wall0 = cpu_s(resource.RUSAGE_SELF), cpu_s(resource.RUSAGE_CHILDREN), time.monotonic()
     emulator = EmulatorProcess(config.emulator.config, clock="realtime", seed=config.seed,
                                extra_args=config.emulator.process_args())
     ports = emulator.start()
     try:
         session = Session(config, {n: PortConfig(port=p) for n, p in ports.items() if n != "control"}, work,
-                          emulated=True)
+                          emulated=True, capture_dir=capture_dir)
         result = asyncio.run(session.run())
     finally:
         emu = emulator.stop()
@@ -240,6 +240,8 @@ def main() -> None:
     ap.add_argument("--unpinned", action="store_true", help="no CPU placement at all")
     ap.add_argument("--floor-seconds", type=float, default=10.0, help="pty round trips per repeat")
     ap.add_argument("--hogs", type=int, default=0, help="busy processes running beside everything")
+    ap.add_argument("--capture", action="store_true",
+                    help="also run the session with every link captured (hil run --capture), right after the plain one")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="hil-bench-"))
     broker = None if args.no_mqtt else MqttBroker(work).start()
@@ -266,11 +268,18 @@ def main() -> None:
         host.pin_process(broker.pid, set(host.allowed_cpus()) - {loop_cpu_number})
     hogs = start_hogs(args.hogs)
     rows = []
+    captures: list[tuple[dict, dict]] = []  # type: ignore[type-arg]
     try:
         for r in range(args.repeat):
             floor = quantiles(pty_floor(args.floor_seconds, loop_cpu_number, emulator_cpu_number))
             lean = lean_responder(config, args.seconds, loop_cpu_number)
             sess = session_case(config, work)
+            if args.capture:
+                captured = session_case(config, work, capture_dir=work / "capture")
+                captures.append((sess, captured))
+                print(f"run {r + 1}: with capture: session {captured['board_us'][0]:.0f}/"
+                      f"{captured['board_us'][1]:.0f} ({captured['status']}); bench-side "
+                      f"{captured['bench_us'][0]:.0f}/{captured['bench_us'][1]:.0f}", flush=True)
             rows.append((floor, lean, sess))
             print(f"run {r + 1}: floor p50/p99 {floor[0]:.0f}/{floor[1]:.0f} us; lean {lean['board_us'][0]:.0f}/"
                   f"{lean['board_us'][1]:.0f}; session {sess['board_us'][0]:.0f}/{sess['board_us'][1]:.0f} "
@@ -290,6 +299,15 @@ def main() -> None:
               f"{b[2]:.0f} | {b[0] / floor[0]:.2f}, {b[1] / floor[1]:.2f} | {lb[0] / floor[0]:.2f}, "
               f"{lb[1] / floor[1]:.2f} | {bs[0]:.0f} / {bs[1]:.0f} | {sess['late']} / {sess['missed']} / "
               f"{sess['tick_gaps']} | {sess['host_stalls']} ({sess['clock_late']} CLOCK_LATE) | {sess['faults']} |")
+    if captures:
+        print("\n| run | session p50 / p99 | with capture p50 / p99 | ratio p50, p99 | bench-side p50 / p99 | "
+              "with capture bench-side p50 / p99 | missed (plain / capture) |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        for i, (plain, cap) in enumerate(captures, 1):
+            b, c = plain["board_us"], cap["board_us"]
+            print(f"| {i} | {b[0]:.0f} / {b[1]:.0f} | {c[0]:.0f} / {c[1]:.0f} | {c[0] / b[0]:.2f}, {c[1] / b[1]:.2f} | "
+                  f"{plain['bench_us'][0]:.0f} / {plain['bench_us'][1]:.0f} | {cap['bench_us'][0]:.0f} / "
+                  f"{cap['bench_us'][1]:.0f} | {plain['missed']} / {cap['missed']} |")
     last = rows[-1][2]
     if last["telemetry"]:
         t = last["telemetry"]

@@ -335,7 +335,9 @@ class ServoBoard(EmulatedBoard):
         if 0 <= self.stream_tick - 1 - tick < self.WINDOW - 1:
             slot = tick % self.WINDOW
             if self.latency_s[slot] is None and self.written_at[slot]:
-                self.latency_s[slot] = t_rx - self.written_at[slot]
+                # never negative: a command read while its sample's write was still being stamped (the two
+                # stamps come from different threads) came back within the write itself
+                self.latency_s[slot] = max(0.0, t_rx - self.written_at[slot])
 
     def _gyro(self) -> tuple[float, float, float]:
         rates = self.world.plant.gyro_dps()
@@ -399,7 +401,7 @@ class ServoBoard(EmulatedBoard):
                 continue
             if us > self.late_threshold_us:
                 self.late_total += 1
-            values.append(min(int(us), NO_LATENCY_US - 1))
+            values.append(max(0, min(int(us), NO_LATENCY_US - 1)))
         self.send(LoopTiming(first & U32, tuple(values), self.late_total, self.missing_total))
 
     def summary(self) -> dict[str, Any]:

@@ -48,6 +48,7 @@ class RunResult:
     clock: str
     session: SessionResult = dataclasses.field(repr=False)
     emulator: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)  # the emulator's own summary
+    capture: dict[str, Any] = dataclasses.field(default_factory=dict)  # path, records, bytes, dropped, error
 
     @functools.cached_property
     def log(self) -> LogFrames:
@@ -162,7 +163,8 @@ def _capture(capture_dir: Path | None) -> dict[str, Any]:
 
 def _result(result: SessionResult, clock: str, emulator: dict[str, Any]) -> RunResult:
     return RunResult(status=result.status, exit_code=result.exit_code, message=result.message,
-                     log_path=result.log_path, clock=clock, session=result, emulator=emulator)
+                     log_path=result.log_path, clock=clock, session=result, emulator=emulator,
+                     capture=result.capture)
 
 
 def _in_running_loop() -> bool:

@@ -97,13 +97,21 @@ class LinkCapture:
 
 @dataclass
 class CaptureStats:
-    records: int = 0
-    data_bytes: int = 0
-    file_bytes: int = 0
+    """What a :class:`Capture` wrote (final once it is closed; the writer thread updates it until then)."""
+
+    records: int = 0  # records written to the file
+    data_bytes: int = 0  # the bytes they carry (what the links read and wrote, and the notes)
+    file_bytes: int = 0  # the records' bytes in the file (data, record headers and CRCs)
+    header_bytes: int = 0  # the file's header
     flushes: int = 0
     max_batch: int = 0  # most records written in one flush
     dropped: int = 0  # records lost after a write error
     error: str = ""  # the write error that stopped the file growing, if any
+
+    @property
+    def bytes(self) -> int:
+        """The file's size: ``header_bytes + file_bytes``."""
+        return self.header_bytes + self.file_bytes
 
 
 class Capture:
@@ -134,7 +142,9 @@ class Capture:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND | getattr(os, "O_CLOEXEC", 0),
                            0o644)
-        self._write_all(_header_bytes(self.meta))
+        header = _header_bytes(self.meta)
+        self._write_all(header)
+        self.stats.header_bytes = len(header)
         if fsync:
             os.fsync(self._fd)
         self._thread = threading.Thread(target=self._writer, name="hil-capture", daemon=True)
@@ -155,14 +165,26 @@ class Capture:
         raise FileExistsError(f"{directory}: no free capture name for {stem}")
 
     @classmethod
-    def for_session(cls, directory: Path, config: SessionConfig, *, lockstep: bool) -> Capture:
+    def for_session(cls, directory: Path, config: SessionConfig, *, lockstep: bool, emulated: bool = False) -> Capture:
         """The capture of one session (hil.session.Session's ``capture_dir``): its name, seed and controller in the
-        header, and ``clock`` lockstep (an emulator in lockstep) or realtime (the lab, or the emulator paced)."""
-        meta = {"session": config.name, "seed": config.seed, "controller": config.controller.name,
-                "session_clock": "lockstep" if lockstep else "realtime"}
-        if lockstep:
+        header, and ``session_clock`` lockstep (an emulator in lockstep) or realtime (the lab, or the emulator
+        paced). For a session against the emulator (``emulated``, or ``lockstep``, which only the emulator runs) also
+        the emulator it ran against: ``emulator_config`` (the config file), ``emulator_clock`` and ``emulator_seed``,
+        which a playback's fresh emulator is started with (hil.replay.replay_capture)."""
+        meta: dict[str, Any] = {"session": config.name, "seed": config.seed, "controller": config.controller.name,
+                                "session_clock": "lockstep" if lockstep else "realtime"}
+        if lockstep or emulated:
             meta["emulator_config"] = str(config.emulator.config)
+            meta["emulator_clock"] = "lockstep" if lockstep else "realtime"
+            meta["emulator_seed"] = config.seed
         return cls.create(directory, config.name, meta=meta)
+
+    def summary(self) -> dict[str, Any]:
+        """What the capture wrote, for a session's result: ``path``, ``records``, ``bytes`` (the file's size),
+        ``dropped`` (records lost to a write error) and ``error`` (that error, "" if none)."""
+        st = self.stats
+        return {"path": str(self.path), "records": st.records, "bytes": st.bytes, "dropped": st.dropped,
+                "error": st.error}
 
     def link(self, name: str) -> LinkCapture:
         handle = self._handles.get(name)

@@ -12,15 +12,20 @@ replays as one from the emulator. Replaying the logged controller itself reprodu
 inputs are rebuilt bit for bit (the log's float32 gyro and miss-distance values hold the protocol's integers
 exactly up to 16 deg/s and 16 000 px; the command is recomputed in float64 and checked against its float32 copy).
 
-**Capture playback** (:func:`play_capture`, ``hil replay CAPTURE --to-emulator``): the frames the bench sent in a
-capture (hil.capture), written again, byte for byte, to a board's or an emulator's ports with their original
-timing, by one thread that sleeps in select() (reading what comes in), then spins, to each write's time. What comes
-back is decoded and counted: commands answered (ACK, NACK, IDENT), samples, the board's timing reports. The stream
-starts only when the replayed SERVO_MODE STREAM asks for it; a write that followed a sample in the capture goes out
-as long after the replayed stream's sample of the same tick (``timing="samples"``), so DRIVE_CMD k answers sample k
-however the board is paced (a lockstep emulator waits for each). The board's rules apply as to the bench: the
-replay stops sending when the board stops streaming (a watchdog on the samples) or latches a driver fault, and
-whatever it left enabled, streaming or swinging it then disables, stops and idles, and sends nothing else.
+**Capture playback** (:func:`replay_capture`, ``hil replay CAPTURE --to-emulator``; :func:`play_capture` to given
+ports): the frames the bench sent in a capture (hil.capture), written again, byte for byte, to a board's or an
+emulator's ports with their original timing, by one thread that sleeps in select() (reading what comes in), then
+spins, to each write's time. What comes back is decoded and counted: commands answered (ACK, NACK, IDENT), samples,
+the board's timing reports. The stream starts only when the replayed SERVO_MODE STREAM asks for it; a write that
+followed a sample in the capture goes out as long after the replayed stream's sample of the same tick
+(``timing="samples"``), so DRIVE_CMD k answers sample k however the board is paced (a lockstep emulator waits for
+each), or at its original time from the first write (``timing="clock"``). The board's rules apply as to the bench,
+in either timing: the replay stops sending when the board stops streaming (a watchdog on the samples' arrival) or
+latches a driver fault, and whatever it left enabled, streaming or swinging it then disables, stops and idles, and
+sends nothing else.
+
+:func:`replay_log` and :func:`replay_capture` are what ``hil replay`` calls (through hil.api): everything but the
+parsing and printing, bad input refused with a ReplayError or CaptureError (ValueErrors) naming the option.
 """
 
 from __future__ import annotations
@@ -34,14 +39,14 @@ import time
 import zlib
 from array import array
 from collections import Counter, deque
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from hil.capture import Capture, CaptureReader, link_decoder, time_ordered
+from hil.capture import LINKS, Capture, CaptureReader, link_decoder, time_ordered
 from hil.protocol import (
     CATALOGUE,
     NO_LATENCY_US,
@@ -62,7 +67,7 @@ from hil.protocol import (
     ServoMode,
     StreamMode,
 )
-from hil.summary import drive_ripple
+from hil.summary import drive_ripple, json_safe
 
 AXES = ("el", "az")
 GYRO = {"el": "gyro_y_dps", "az": "gyro_z_dps"}  # the rate each axis's controller feeds back
@@ -427,14 +432,81 @@ def xcorr_lag(reference: np.ndarray, signal: np.ndarray, dt_s: float = DT_S, max
     return float((lags[k] + shift) * dt_s), lags * dt_s, corr
 
 
-def replay_log(log: Path, controller: str | None = None, params: dict[str, Any] | None = None, *,
-               settle_s: float = 1.0) -> ReplayResult:
-    """Replay the session log ``log`` through ``controller`` (default: the logged one) with ``params`` (registry
-    defaults overridden; None with the logged controller's name: the logged parameters). Metrics over
-    [``settle_s``, the session's duration) from the first sample. ReplayError (one line) for a log that cannot be
-    replayed; ControllerConfigError for a bad controller or parameter."""
+def parse_params(text: str) -> dict[str, Any]:
+    """``"k=v,k=v"`` as a dict, each value a number where it is one (``500`` an int, ``1e-3`` a float), else read
+    as YAML (``true``, ``[1, 2]``...). ReplayError naming ``--params`` for an item that is not ``k=v``."""
+    out: dict[str, Any] = {}
+    for item in (p.strip() for p in text.split(",")):
+        if not item:
+            continue
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip():
+            raise ReplayError(f"--params: {item!r} is not k=v")
+        out[key.strip()] = _param_value(key.strip(), value.strip())
+    return out
+
+
+def _param_value(key: str, text: str) -> Any:
+    """A number as a number (``1e-3`` too, which YAML 1.1 reads as a string), anything else as YAML reads it."""
+    from hil.config import parse_yaml
+
+    if not text:
+        return ""
+    for kind in (int, float):
+        try:
+            value = kind(text)
+        except ValueError:
+            continue
+        if math.isfinite(value):
+            return value
+    try:
+        return parse_yaml(text)
+    except Exception as exc:  # YAML's errors, or its size limit
+        raise ReplayError(f"--params: {key}: not a value ({type(exc).__name__})") from None
+
+
+def controller_choice(controller: str | None, params: Mapping[str, Any] | str | Path | None
+                      ) -> tuple[str | None, dict[str, Any] | None]:
+    """The controller name and parameters ``controller`` and ``params`` ask for: ``params`` a dict, a ``"k=v,..."``
+    string (:func:`parse_params`) or a controller YAML (a ``Path``, a name ending in .yaml/.yml, or an existing
+    file: its name and params; ``controller``, if given, must be that name). ReplayError (one line) otherwise."""
+    if params is None:
+        return controller, None
+    if isinstance(params, Mapping):
+        return controller, dict(params)
+    text = str(params)
+    path = Path(text)
+    if isinstance(params, Path) or text.endswith((".yaml", ".yml")) or path.is_file():
+        from hil.config import ConfigError, ControllerConfig, load_model
+
+        try:
+            cfg = load_model(ControllerConfig, path)
+        except (ConfigError, ValueError, OSError) as exc:
+            raise ReplayError(f"--params {text}: {' '.join(str(exc).split())}") from None
+        if controller is not None and controller != cfg.name:
+            raise ReplayError(f"--controller {controller} but {text} is a {cfg.name} controller")
+        return cfg.name, dict(cfg.params)
+    return controller, parse_params(text)
+
+
+def replay_log(log: Path | str, controller: str | None = None,
+               params: Mapping[str, Any] | str | Path | None = None, *, settle_s: float = 1.0) -> ReplayResult:
+    """Replay the session log ``log`` through ``controller`` (default: the logged one, or the YAML's) with
+    ``params``: a dict over the registry defaults, a ``"k=v,k=v"`` string, or a controller YAML (name and params)
+    (:func:`controller_choice`); None with the logged controller: the logged parameters, with another: the registry
+    defaults. Metrics over [``settle_s``, the session's duration) from the first sample. ReplayError (one line) for
+    input that cannot be replayed; ControllerConfigError (also a ValueError) for an unknown controller or
+    parameter. :func:`write_outputs` writes the plot and JSON."""
+    from hil.config import require_regular_file
     from hil.control.registry import controller_params
 
+    if not isinstance(settle_s, int | float) or not math.isfinite(settle_s) or settle_s < 0:
+        raise ReplayError(f"--settle: {settle_s!r} is not a finite number of seconds >= 0")
+    try:
+        require_regular_file(Path(log))
+    except ValueError as exc:
+        raise ReplayError(str(exc)) from None
+    controller, params = controller_choice(controller, params)
     inp = _load(Path(log))
     name = controller or inp.logged.name
     if params is None:
@@ -534,19 +606,8 @@ def write_outputs(result: ReplayResult, out_dir: Path) -> tuple[Path, Path]:
     stem = f"{result.log.stem}-replay-{result.replayed.name}"
     png = write_plot(result, out_dir / f"{stem}.png")
     js = out_dir / f"{stem}.json"
-    js.write_text(json.dumps(finite_json(result.as_dict()), indent=1) + "\n")
+    js.write_text(json.dumps(json_safe(result.as_dict()), indent=1) + "\n")
     return png, js
-
-
-def finite_json(x: Any) -> Any:
-    """``x`` with NaN and infinities as None, for strict JSON."""
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {str(k): finite_json(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [finite_json(v) for v in x]
-    return x
 
 
 # --- capture playback -------------------------------------------------------------------------------------------
@@ -555,10 +616,61 @@ SPIN_S = 200e-6  # the last part of each wait is a spin that keeps polling the p
 FIRST_SAMPLE_WAIT_S = 2.0  # how long the replay waits for the stream the replayed SERVO_MODE STREAM starts
 WATCHDOG_S = 0.1  # no awaited sample this long (beyond the capture's own gap): the board stopped; so does the replay
 LINGER_S = 0.5  # after the last frame, replies are awaited this long
+SAMPLE_TIMES_KEPT = 4096  # arrival times of the latest samples kept (4 s of stream), whatever the replay's length
+TIMINGS = ("samples", "clock")
+EMULATOR_CLOCKS = ("lockstep", "realtime")
 _REPLY_ACK = {spec.msg_id for spec in CATALOGUE if spec.reply in ("ACK", "ACK/NACK")}
 _NAMES = {spec.msg_id: spec.name for spec in CATALOGUE}
 _ID = {spec.cls: spec.msg_id for spec in CATALOGUE}
 Timing = str  # "samples" | "clock"
+
+
+class Quantiles:
+    """Quantiles of non-negative integers (here: ns) in fixed memory, however many are added: a log-linear
+    histogram (HDR-like) exact below 128 and with buckets 1/64 of their value wide above (a quantile is its bucket's
+    middle: within 0.8 %); count and maximum exact."""
+
+    SUB = 64  # buckets per power of two, above 2 * SUB
+    SIZE = 2 * SUB + 57 * SUB  # values up to 2**63
+
+    __slots__ = ("buckets", "count", "max")
+
+    def __init__(self) -> None:
+        self.buckets = array("q", bytes(8 * self.SIZE))
+        self.count = 0
+        self.max = 0
+
+    def add(self, value: int) -> None:
+        v = max(0, int(value))
+        if v < 2 * self.SUB:
+            i = v
+        else:
+            shift = v.bit_length() - self.SUB.bit_length()  # v >> shift in [SUB, 2 * SUB)
+            i = 2 * self.SUB + (shift - 1) * self.SUB + (v >> shift) - self.SUB
+        self.buckets[i] += 1
+        self.count += 1
+        self.max = max(self.max, v)
+
+    def _bounds(self, i: int) -> tuple[int, int]:
+        if i < 2 * self.SUB:
+            return i, i
+        shift, top = divmod(i - 2 * self.SUB, self.SUB)
+        shift += 1
+        lo = (top + self.SUB) << shift
+        return lo, lo + (1 << shift) - 1
+
+    def quantile(self, q: float) -> float:
+        """The ``q`` quantile (0..1, nearest rank), NaN when empty."""
+        if not self.count:
+            return math.nan
+        rank = max(1, math.ceil(q * self.count))
+        seen = 0
+        for i, n in enumerate(self.buckets):
+            seen += n
+            if seen >= rank:
+                lo, hi = self._bounds(i)
+                return float(min((lo + hi) / 2, self.max))
+        return float(self.max)
 
 
 @dataclass
@@ -620,6 +732,7 @@ class PlaybackResult:
     duration_s: float
     lateness_us: dict[str, float]  # how late the writes went out against their schedule: p50, p99, max
     record: Path | None = None  # the replay's own capture (what it sent and received), if asked for
+    emulator: dict[str, Any] | None = None  # the fresh emulator replay_capture started: config, clock, seed
 
     def as_dict(self) -> dict[str, Any]:
         out = {k: v for k, v in vars(self).items() if k != "links"}
@@ -782,7 +895,8 @@ class CapturePlayer:
         self._stop = threading.Event()
         self._wake_r = self._wake_w = -1
         self._sample_rx: dict[tuple[int, int], int] = {}  # (stream, tick) -> when the replay received it
-        self._sample_order: deque[tuple[int, int]] = deque()
+        self._sample_order: deque[tuple[int, int]] = deque()  # its keys, oldest first: SAMPLE_TIMES_KEPT at most
+        self._forgotten: tuple[tuple[int, int], int] | None = None  # the newest sample whose time was let go
         self._latest: tuple[int, int] | None = None
         self._streams = _Streams()
         self._first_wait: int | None = None
@@ -798,7 +912,7 @@ class CapturePlayer:
         self._answered: set[tuple[str, int, int]] = set()
         self._last_seq: dict[str, int] = {}
         self._state = {"enabled": False, "streaming": False, "swinging": False}
-        self.lateness_ns: list[int] = []
+        self.lateness = Quantiles()  # how late each write went out against its schedule, ns
         self.safe_end: list[str] = []
         self.record: Capture | None = None
 
@@ -844,7 +958,7 @@ class CapturePlayer:
             self._wake_r = self._wake_w = -1
         for key in self._expect - self._answered:
             self.links[key[0]].unanswered += 1
-        lat = np.asarray(self.lateness_ns, dtype=float) / 1e3
+        lat = self.lateness
         return PlaybackResult(
             capture=self.capture, ports=dict(self.ports), timing=self.timing, links=self.links,
             frames_sent=sum(sum(lp.sent.values()) for lp in self.links.values()),
@@ -856,9 +970,8 @@ class CapturePlayer:
             loop_timing=dict(self.timing_report), drive_enabled_seen=self.drive_enabled_seen,
             drive_last_tick=self.drive_last_tick, stopped=self.stopped, safe_end=self.safe_end,
             duration_s=round(time.monotonic() - t0, 3),
-            lateness_us={"p50": float(np.percentile(lat, 50)) if lat.size else math.nan,
-                         "p99": float(np.percentile(lat, 99)) if lat.size else math.nan,
-                         "max": float(lat.max()) if lat.size else math.nan},
+            lateness_us={"p50": lat.quantile(0.5) / 1e3, "p99": lat.quantile(0.99) / 1e3,
+                         "max": lat.max / 1e3 if lat.count else math.nan},
             record=None if self.record is None else self.record.path)
 
     # --- the player thread: pacing and reading in one loop -------------------------------------------------------
@@ -923,18 +1036,50 @@ class CapturePlayer:
                 first = tx.t_ns
             if self._stop.is_set():
                 return
-            if self.timing == "clock" or tx.anchor is None:
-                due = start + (tx.t_ns - first)
-            else:
+            if self.timing == "samples" and tx.anchor is not None:
                 t_anchor = self._await_sample(tx.anchor, tx.gap_ns)
                 if t_anchor is None:
                     return
                 due = t_anchor + tx.offset_ns
-            self._serve(due)
+                self._serve(due)
+            else:
+                due = start + (tx.t_ns - first)
+                self._serve(due)
+                if tx.anchor is not None and self.first_sample_rx is None:  # clock timing: the stream must start
+                    if not self._await_first():
+                        return
+                    waited = max(0, time.monotonic_ns() - due)  # the schedule moves by the wait
+                    start += waited
+                    due += waited
+                if tx.anchor is not None and not self._stream_alive(tx):
+                    return
             if self._stop.is_set():
                 return
-            self.lateness_ns.append(max(0, time.monotonic_ns() - due))
+            self.lateness.add(time.monotonic_ns() - due)
             self._send(ports[tx.link], tx.link, tx.data, tx.frames)
+
+    def _await_first(self) -> bool:
+        """Clock timing: wait up to FIRST_SAMPLE_WAIT_S for the stream's first sample; False (stopped) if none."""
+        give_up = time.monotonic_ns() + int(FIRST_SAMPLE_WAIT_S * 1e9)
+        if self._serve(give_up, lambda: self.first_sample_rx is not None):
+            return True
+        if not self._stop.is_set():
+            self.stop("no GYRO_SAMPLE: the servo board did not start its stream")
+        return False
+
+    def _stream_alive(self, tx: _Tx) -> bool:
+        """Clock timing's watchdog, before a write the capture made ``tx.offset_ns`` after a sample: False (and the
+        replay stops) when the replay's stream has been silent longer than the capture's was at this write, plus
+        the capture's gap before that sample, plus ``watchdog_s``. Not while the replay itself has idled the
+        stream (a replayed SERVO_MODE IDLE)."""
+        if not self._state["streaming"] or self.first_sample_rx is None:
+            return True
+        silence = time.monotonic_ns() - self.last_sample_rx
+        if silence <= tx.offset_ns + tx.gap_ns + int(self.watchdog_s * 1e9):
+            return True
+        self.stop(f"watchdog: no GYRO_SAMPLE for {silence / 1e6:.0f} ms (the capture's last sample was "
+                  f"{tx.offset_ns / 1e6:.0f} ms old at this write)")
+        return False
 
     def _await_sample(self, key: tuple[int, int], gap_ns: int) -> int | None:
         """When the replay received the sample ``key``. If a later one came instead, it was lost: the latest
@@ -946,6 +1091,8 @@ class CapturePlayer:
                 while self._sample_order and self._sample_order[0] < key:  # older ones are never awaited again
                     self._sample_rx.pop(self._sample_order.popleft(), None)
                 return t
+            if self._forgotten is not None and key <= self._forgotten[0]:  # came so long ago its time was let go
+                return self._forgotten[1]  # a later sample's time: the write is overdue either way
             if self._stop.is_set():
                 return None
             if self._latest is not None and self._latest > key:
@@ -1030,6 +1177,11 @@ class CapturePlayer:
             self._sample_rx[key] = t_ns
             self._sample_order.append(key)
             self._latest = key
+            while len(self._sample_order) > SAMPLE_TIMES_KEPT:  # bounded, whether or not writes await them
+                old = self._sample_order.popleft()
+                t_old = self._sample_rx.pop(old, None)
+                if t_old is not None:
+                    self._forgotten = (old, t_old)
         elif kind is Ack or kind is Nack:
             key = (link, msg.msg_id, msg.seq)
             err = "" if kind is Ack else f"{_NAMES.get(msg.msg_id, hex(msg.msg_id))}: " \
@@ -1065,22 +1217,153 @@ def play_capture(capture: Path, ports: Mapping[str, str], **kwargs: Any) -> Play
     comes back (see the module docstring). ``timing="samples"`` (default): a write that followed a GYRO_SAMPLE in the
     capture goes out as long after the replayed stream's sample of the same tick, so the board sees the same
     answers to the same samples even where it runs at another pace (lockstep); ``"clock"``: every write at its
-    original time from the first. Other keywords: ``baudrate``, ``watchdog_s``, ``linger_s``, ``record_dir`` (write
+    original time from the first (the stream's start awaited, as in samples timing, the schedule moving by that
+    wait). Either way the replay stops when the stream does (``watchdog_s`` beyond the capture's own silence) and
+    leaves the boards safe. Other keywords: ``baudrate``, ``watchdog_s``, ``linger_s``, ``record_dir`` (write
     the replay's own capture there), ``links`` (only these links). Blocks until done; Ctrl-C stops it, leaving the
     boards safe."""
     return CapturePlayer(capture, ports, **kwargs).run()
 
 
 def ports_from_file(path: Path) -> dict[str, str]:
-    """A ports file (the emulator's ``--ports-file``: JSON ``{"servo": path, ...}``) as link -> path."""
+    """A ports file (the emulator's ``--ports-file``: JSON ``{"servo": path, ...}``) as link -> path (its
+    ``control`` socket left out). ReplayError naming ``--ports-file`` and the file otherwise."""
     import json
 
     from hil.config import read_text_file
 
     try:
-        data = json.loads(read_text_file(path, 1 << 20))
+        text = read_text_file(path, 1 << 20)
+    except ValueError as exc:  # names the file
+        raise ReplayError(f"--ports-file {exc}") from None
+    try:
+        data = json.loads(text)
     except ValueError as exc:
-        raise ReplayError(f"{path}: not a ports file: {exc}") from None
+        raise ReplayError(f"--ports-file {path}: not JSON: {exc}") from None
     if not isinstance(data, dict):
-        raise ReplayError(f"{path}: not a ports file (a JSON object of link: path)")
+        raise ReplayError(f"--ports-file {path}: not a ports file (a JSON object of link: path)")
     return {str(k): str(v) for k, v in data.items() if k != "control"}
+
+
+def resolve_ports(ports: Mapping[str, str] | Iterable[str] | None = None,
+                  ports_file: Path | str | None = None) -> dict[str, str]:
+    """The boards' ports (link name -> device path): ``ports_file``'s (:func:`ports_from_file`), then ``ports`` over
+    them, a mapping or ``"LINK=PATH"`` strings (the command's ``--port``). ReplayError naming the option otherwise."""
+    out: dict[str, str] = {}
+    if ports_file is not None:
+        out.update(ports_from_file(Path(ports_file)))
+    if ports is None:
+        return out
+    if isinstance(ports, str):
+        raise ReplayError(f"--port: {ports!r}: give a list of LINK=PATH, or a dict of link: path")
+    items = [f"{k}={v}" for k, v in ports.items()] if isinstance(ports, Mapping) else [str(p) for p in ports]
+    for item in items:
+        name, eq, path = item.partition("=")
+        if not eq or name not in LINKS or not path:
+            raise ReplayError(f"--port: {item!r} is not LINK=PATH with LINK servo, driver, image or hexapod")
+        out[name] = path
+    return out
+
+
+@dataclass(frozen=True)
+class EmulatorSettings:
+    """What a fresh emulator for a playback is started with (:func:`emulator_settings`)."""
+
+    config: Path | None  # None: the emulator's default config
+    clock: str  # lockstep | realtime
+    seed: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"config": None if self.config is None else str(self.config), "clock": self.clock, "seed": self.seed}
+
+
+def emulator_settings(meta: Mapping[str, Any], *, clock: str | None = None, seed: int | None = None,
+                      config: Path | str | None = None) -> EmulatorSettings:
+    """The fresh emulator a capture with header ``meta`` is played to: ``clock``, ``seed`` and ``config`` where given,
+    else what the header recorded (``emulator_clock`` or ``session_clock``, ``emulator_seed`` or ``seed``,
+    ``emulator_config``; lockstep, 0 and the default config for a capture that says nothing). ReplayError naming the
+    option for a clock or seed that is not one, or a config file that does not exist here."""
+    if clock is None:
+        clock = str(meta.get("emulator_clock") or meta.get("session_clock") or "lockstep")
+        if clock not in EMULATOR_CLOCKS:
+            raise ReplayError(f"the capture's session clock {clock!r} is not one the emulator runs: give --clock "
+                              f"{' or '.join(EMULATOR_CLOCKS)}")
+    elif clock not in EMULATOR_CLOCKS:
+        raise ReplayError(f"--clock: {clock!r} is not {' or '.join(EMULATOR_CLOCKS)}")
+    if seed is None:
+        recorded = meta.get("emulator_seed", meta.get("seed"))
+        try:
+            seed = int(recorded or 0)
+        except (TypeError, ValueError):
+            raise ReplayError(f"the capture's seed {recorded!r} is not an integer: give --seed") from None
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ReplayError(f"--seed: {seed!r} is not an integer >= 0")
+    path: Path | None = None
+    if config is not None:
+        path = Path(config)
+        if not path.is_file():
+            raise ReplayError(f"emulator config {path}: no such file")
+    elif meta.get("emulator_config"):
+        path = Path(str(meta["emulator_config"]))
+        if not path.is_file():
+            raise ReplayError(f"the captured emulator config {path} is not a file here: start an emulator with it "
+                              f"and give its ports (--ports-file)")
+    return EmulatorSettings(path, clock, seed)
+
+
+def replay_capture(capture: Path | str, *, ports: Mapping[str, str] | Iterable[str] | None = None,
+                   ports_file: Path | str | None = None, clock: str | None = None, seed: int | None = None,
+                   timing: Timing = "samples", record_dir: Path | str | None = None, links: Iterable[str] | None = None,
+                   emulator_config: Path | str | None = None, **kwargs: Any) -> PlaybackResult:
+    """Play ``capture`` (a ``.hilcap`` file, or the directory holding one) back at the boards, as ``hil replay
+    CAPTURE --to-emulator`` does. The boards: ``ports`` (a mapping link -> path, or ``"LINK=PATH"`` strings) over
+    ``ports_file``'s (the emulator's ``--ports-file``); with neither, a fresh emulator is started for the playback
+    and stopped after it, with ``clock``, ``seed`` and ``emulator_config`` where given, else the capture's
+    (:func:`emulator_settings`; the result's ``emulator`` says which). ``timing``, ``record_dir`` (where the replay's
+    own capture goes), ``links`` (only these) and the other keywords as :func:`play_capture`. Bad input raises
+    ReplayError or CaptureError (ValueErrors, one line naming the option) before anything is sent."""
+    from hil.capture import find_capture
+
+    if timing not in TIMINGS:
+        raise ReplayError(f"--timing: {timing!r} is not {' or '.join(TIMINGS)}")
+    path = find_capture(Path(capture))
+    named = resolve_ports(ports, ports_file)
+    if record_dir is not None:
+        from hil.config import require_writable_dir
+
+        try:
+            require_writable_dir(Path(record_dir), "--out")
+        except ValueError as exc:
+            raise ReplayError(str(exc)) from None
+    options = {"timing": timing, "record_dir": None if record_dir is None else Path(record_dir),
+               "links": None if links is None else set(links), **kwargs}
+    if named:
+        if clock is not None or seed is not None or emulator_config is not None:
+            raise ReplayError("--clock and --seed start a fresh emulator: not with --port or --ports-file")
+        return play_capture(path, named, **options)
+    settings = emulator_settings(CaptureReader(path).meta, clock=clock, seed=seed, config=emulator_config)
+    from hil.loopback import EmulatorProcess
+    from hil.transport import LinkError
+
+    emulator = EmulatorProcess(settings.config, clock=settings.clock, seed=settings.seed)
+    try:
+        try:
+            started = emulator.start()
+        except LinkError as exc:
+            raise ReplayError(str(exc)) from None
+        result = play_capture(path, {k: v for k, v in started.items() if k != "control"}, **options)
+    finally:
+        emulator.stop()
+    result.emulator = settings.as_dict()
+    return result
+
+
+def write_playback_json(result: PlaybackResult, out_dir: Path | str) -> Path:
+    """``replay-<capture stem>.json`` in ``out_dir``: ``result.as_dict()`` as strict JSON; returns its path."""
+    import json
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"replay-{result.capture.stem}.json"
+    path.write_text(json.dumps(json_safe(result.as_dict()), indent=1) + "\n")
+    return path

@@ -231,6 +231,7 @@ class SessionResult:
     stats: LoopStats
     message: str = ""
     telemetry: dict[str, Any] = field(default_factory=dict)  # published, dropped, reconnects (MQTT on)
+    capture: dict[str, Any] = field(default_factory=dict)  # path, records, bytes, dropped, error (capture_dir given)
 
 
 class Session:
@@ -363,7 +364,8 @@ class Session:
             link = await self.open_link(name, port, handler)
         else:
             if self.capture_dir is not None and self.capture is None:
-                self.capture = Capture.for_session(self.capture_dir, self.config, lockstep=self.lockstep)
+                self.capture = Capture.for_session(self.capture_dir, self.config, lockstep=self.lockstep,
+                                                   emulated=self.emulated)
             link = await SerialLink.open(name, port.port, port.baudrate, handler, capture=self.capture)
         if self.lockstep:  # a resend would change the bytes of a lockstep run (docs/protocol.md, 6.1)
             link.retry_interval_s = 1.0
@@ -707,7 +709,8 @@ class Session:
             self.exit_code = EXIT_FAULT
         stats = self.loop_.stats if self.loop_ else LoopStats()
         telemetry = dataclasses.asdict(self.telemetry.stats) if self.telemetry is not None else {}
-        return SessionResult(status, self.exit_code, self.log_path, stats, message, telemetry)
+        capture = self.capture.summary() if self.capture is not None else {}
+        return SessionResult(status, self.exit_code, self.log_path, stats, message, telemetry, capture)
 
     async def _wind_down(self) -> None:
         """Normal end: stop the swing while still stabilizing, wait until it rests, then disarm."""

@@ -31,12 +31,12 @@ def replay(  # noqa: PLR0917 (typer maps parameters to options)
     port: Annotated[list[str] | None, typer.Option(
         help="Capture: LINK=PATH, once per link (servo, driver, image, hexapod).")] = None,
     clock: Annotated[Literal["lockstep", "realtime"] | None, typer.Option(
-        help="Capture, no ports given: the fresh emulator's clock (default: the captured session's).")] = None,
+        help="Capture, no ports given: the fresh emulator's clock (default: the captured emulator's).")] = None,
     seed: Annotated[int | None, typer.Option(
-        min=0, help="Capture, no ports given: the fresh emulator's seed (default: the captured session's).")] = None,
+        min=0, help="Capture, no ports given: the fresh emulator's seed (default: the captured emulator's).")] = None,
     timing: Annotated[Literal["samples", "clock"], typer.Option(
         help="Capture: 'samples' times each write from the sample it followed in the capture; 'clock' from the "
-             "first write.")] = "samples",
+             "first write. Either way the replay stops and disarms the boards when their stream stops.")] = "samples",
     out: Annotated[Path | None, typer.Option(
         help="Log: where the PNG and JSON go (default: beside the log). Capture: where the replay's own capture "
              "and JSON go (default: none written).")] = None,
@@ -64,54 +64,17 @@ def replay(  # noqa: PLR0917 (typer maps parameters to options)
     _replay_log(source, controller, params, settle=settle, out=out, json_out=json_out)
 
 
-# --- a log through a controller ------------------------------------------------------------------------------
-
-
-def _parse_params(text: str) -> dict[str, Any]:
-    from hil.config import parse_yaml
-
-    out: dict[str, Any] = {}
-    for item in (p.strip() for p in text.split(",")):
-        if not item:
-            continue
-        key, eq, value = item.partition("=")
-        if not eq or not key.strip():
-            raise fail(f"--params: {item!r} is not k=v")
-        try:
-            out[key.strip()] = parse_yaml(value.strip()) if value.strip() else ""
-        except Exception as exc:  # YAML's errors, or its size limit
-            raise fail(f"--params: {key.strip()}: not a value ({type(exc).__name__})") from None
-    return out
-
-
-def _controller_choice(controller: str | None, params: str | None) -> tuple[str | None, dict[str, Any] | None]:
-    if params is None:
-        return controller, None
-    path = Path(params)
-    if params.endswith((".yaml", ".yml")) or path.is_file():
-        from hil.config import ConfigError, ControllerConfig, load_model
-
-        try:
-            cfg = load_model(ControllerConfig, path)
-        except ConfigError as exc:
-            raise fail(str(exc)) from None
-        if controller is not None and controller != cfg.name:
-            raise fail(f"--controller {controller} but {params} is a {cfg.name} controller")
-        return cfg.name, dict(cfg.params)
-    return controller, _parse_params(params)
+# --- a log through a controller (hil.api.replay_log) ----------------------------------------------------------
 
 
 def _replay_log(log: Path, controller: str | None, params: str | None, *, settle: float, out: Path | None,
                 json_out: bool) -> None:
-    from hil.cli._common import check_input_file
-    from hil.control.registry import ControllerConfigError
-    from hil.replay import ReplayError, replay_log, write_outputs
+    from hil import api
+    from hil.replay import write_outputs
 
-    check_input_file(log)
-    name, values = _controller_choice(controller, params)
     try:
-        result = replay_log(log, name, values, settle_s=settle)
-    except (ReplayError, ControllerConfigError) as exc:
+        result = api.replay_log(log, controller, params, settle_s=settle)
+    except ValueError as exc:  # bad input, one line: ConfigError (hil.api), ReplayError, ControllerConfigError
         raise fail(str(exc)) from None
     try:
         png, js = write_outputs(result, out if out is not None else log.parent)
@@ -142,68 +105,30 @@ def _fmt(x: float) -> str:
     return "-" if x is None or math.isnan(x) else f"{x:.4g}"
 
 
-# --- a capture back at the boards -----------------------------------------------------------------------------
-
-
-def _ports(ports_file: Path | None, port: list[str]) -> dict[str, str]:
-    from hil.replay import ReplayError, ports_from_file
-
-    out: dict[str, str] = {}
-    if ports_file is not None:
-        try:
-            out.update(ports_from_file(ports_file))
-        except ReplayError as exc:
-            raise fail(str(exc)) from None
-    for item in port:
-        name, eq, path = item.partition("=")
-        if not eq or name not in ("servo", "driver", "image", "hexapod") or not path:
-            raise fail(f"--port: {item!r} is not LINK=PATH with LINK servo, driver, image or hexapod")
-        out[name] = path
-    return out
+# --- a capture back at the boards (hil.api.replay_capture) ------------------------------------------------------
 
 
 def _replay_capture(source: Path, ports_file: Path | None, port: list[str], *, clock: str | None, seed: int | None,
                     timing: str, out: Path | None, json_out: bool) -> None:
-    from hil.capture import CaptureError, CaptureReader, find_capture
-    from hil.loopback import EmulatorProcess
-    from hil.replay import ReplayError, play_capture
-    from hil.transport import LinkError
+    from hil import api
+    from hil.replay import write_playback_json
 
     try:
-        capture = find_capture(source)
-        meta = CaptureReader(capture).meta
-    except CaptureError as exc:
+        result = api.replay_capture(source, ports=port, ports_file=ports_file, clock=clock, seed=seed,
+                                    timing=timing, record_dir=out)
+    except ValueError as exc:  # bad input, one line: ConfigError (hil.api), ReplayError, CaptureError
         raise fail(str(exc)) from None
-    ports = _ports(ports_file, port)
-    emulator = None
-    if not ports:
-        emu_clock = clock or str(meta.get("session_clock") or "lockstep")
-        emu_seed = seed if seed is not None else int(meta.get("seed") or 0)
-        config = meta.get("emulator_config")
-        emulator = EmulatorProcess(Path(config) if config and Path(config).is_file() else None, clock=emu_clock,
-                                   seed=emu_seed)
-        try:
-            ports = {k: v for k, v in emulator.start().items() if k != "control"}
-        except LinkError as exc:
-            raise fail(str(exc)) from None
-        note(f"emulator: {emu_clock}, seed {emu_seed}")
-    try:
-        result = play_capture(capture, ports, timing=timing, record_dir=out)
-    except ReplayError as exc:
-        raise fail(str(exc)) from None
-    finally:
-        if emulator is not None:
-            emulator.stop()
-    data = result.as_dict()
     if out is not None:
-        import json
-
-        from hil.replay import finite_json
-
-        (Path(out) / f"replay-{capture.stem}.json").write_text(json.dumps(finite_json(data), indent=1) + "\n")
-    if json_out:
-        print_json(data)
+        try:
+            write_playback_json(result, out)
+        except OSError as exc:
+            raise fail(f"{out}: cannot write the JSON: {exc.strerror or exc}") from None
+    if json_out:  # the JSON alone on stdout
+        print_json(result.as_dict())
     else:
+        if result.emulator is not None:
+            emu = result.emulator
+            note(f"emulator: {emu['clock']}, seed {emu['seed']}, config {emu['config'] or 'the default'}")
         _print_playback(result)
     if result.stopped or result.answered < result.commands:
         raise typer.Exit(1)

@@ -56,7 +56,8 @@ def print_result(result, json_out: bool) -> None:  # type: ignore[no-untyped-def
     summary = result.summary()
     if json_out:
         print_json({"status": result.status, "exit_code": result.exit_code, "message": result.message,
-                    "log": str(result.log_path) if result.log_path else None, "clock": result.clock, **summary})
+                    "log": str(result.log_path) if result.log_path else None, "clock": result.clock,
+                    **({"capture": result.capture} if result.capture else {}), **summary})
         return
     if summary:
         print_summary(summary)
@@ -67,6 +68,11 @@ def print_result(result, json_out: bool) -> None:  # type: ignore[no-untyped-def
     if result.log_path:
         line += f"   log: {result.log_path}"
     console.print(line, highlight=False)
+    cap = result.capture
+    if cap:
+        trouble = f"; {cap['dropped']} records lost: {cap['error']}" if cap.get("dropped") or cap.get("error") else ""
+        text = f"capture: {cap['path']} ({cap['records']} records, {cap['bytes']} bytes{trouble})"
+        console.print(text, style="red" if trouble else None, markup=False, highlight=False)
 
 
 def _fmt(x: float | None, digits: int = 3) -> str:

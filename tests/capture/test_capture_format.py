@@ -26,6 +26,7 @@ from hil.capture import (
     is_capture,
 )
 from hil.protocol import Board, DriveCmd, DriveStatus, Encoder, GyroSample
+from tests.session.helpers import session_config
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -88,7 +89,9 @@ def test_records_come_back_with_their_time_link_direction_and_bytes(tmp_path: Pa
     assert [r.data for r in driver_tx] == drive and driver_tx[7].t_ns == 14_001_000
     assert records[-1].direction == "note" and records[-1].note() == {"event": "open", "port": "/dev/null"}
     size = reader.data_offset + sum(RECORD_OVERHEAD + len(r.data) for r in records)
-    assert path.stat().st_size == size == cap.stats.file_bytes + reader.data_offset
+    assert path.stat().st_size == size == cap.stats.file_bytes + reader.data_offset == cap.stats.bytes
+    assert cap.path == path and cap.summary() == {"path": str(path), "records": 601, "bytes": size, "dropped": 0,
+                                                  "error": ""}
 
 
 def test_frames_decode_as_each_end_decodes_them(tmp_path: Path) -> None:
@@ -205,3 +208,27 @@ def test_a_full_disk_stops_the_capture_growing_not_the_session(tmp_path: Path) -
     servo.rx(gyro_frames(1)[0])  # producers go on appending; nothing raises
     cap.close()
     assert cap.stats.dropped == 11
+
+
+@pytest.mark.parametrize(("lockstep", "emulated", "emulator"), [
+    (True, False, "lockstep"),  # lockstep runs only against the emulator
+    (True, True, "lockstep"),
+    (False, True, "realtime"),  # the emulator paced in real time (hil run --loopback --clock realtime)
+    (False, False, None),  # the lab's boards: no emulator to record
+])
+def test_a_session_capture_records_the_emulator_it_ran_against(tmp_path: Path, lockstep: bool, emulated: bool,
+                                                               emulator: str | None) -> None:
+    config = session_config(seed=11)
+    kwargs = {"emulated": True} if emulated else {}
+    with Capture.for_session(tmp_path, config, lockstep=lockstep, **kwargs) as cap:
+        pass
+    meta = CaptureReader(cap.path).meta
+    assert cap.path.parent == tmp_path and cap.path.name.startswith(f"{config.name}-")
+    assert meta["session"] == config.name and meta["seed"] == 11 and meta["controller"] == config.controller.name
+    assert meta["session_clock"] == ("lockstep" if lockstep else "realtime")
+    if emulator is None:
+        assert not {"emulator_config", "emulator_clock", "emulator_seed"} & set(meta)
+    else:
+        assert meta["emulator_config"] == str(config.emulator.config) and Path(meta["emulator_config"]).is_file()
+        assert meta["emulator_clock"] == emulator and meta["emulator_seed"] == 11
+    assert cap.stats.records == 0 and cap.stats.bytes == cap.path.stat().st_size > 100

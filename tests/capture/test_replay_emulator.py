@@ -105,7 +105,9 @@ def test_the_cli_plays_a_capture_to_a_fresh_emulator_and_reports_json(lockstep_r
     result = runner.invoke(app, ["replay", str(lockstep_run.capture.parent), "--to-emulator", "--json",
                                  "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
-    data = json.loads(result.stdout[result.stdout.index("{"):])
+    data = json.loads(result.stdout)  # the JSON alone: nothing else on stdout
+    assert data["emulator"] == {"config": str(lockstep_run.session.config.emulator.config), "clock": "lockstep",
+                                "seed": 3}  # the fresh emulator ran as the captured one did
     assert data["answered"] == data["commands"] == 16 and data["stopped"] == ""
     assert data["links"]["driver"]["sent"]["DRIVE_CMD"] == last_drive + 1 and data["samples"] == samples
     assert json.loads((tmp_path / f"replay-{lockstep_run.capture.stem}.json").read_text())["samples"] == samples
@@ -117,7 +119,7 @@ def test_the_cli_replays_a_log_and_refuses_what_does_not_fit(lockstep_run: Captu
     result = runner.invoke(app, ["replay", log, "--controller", "eso_kf", "--params", "omega_o_rad_s=500",
                                  "--settle", "0.5", "--out", str(tmp_path), "--json"])
     assert result.exit_code == 0, result.output
-    data = json.loads(result.stdout[result.stdout.index("{"):])
+    data = json.loads(result.stdout)
     assert data["controller"]["replayed"] == {"name": "eso_kf", "params": {"omega_o_rad_s": 500}}
     assert data["axes"]["el"]["drive_diff_rms_counts"] > 0 and Path(data["plot"]).is_file()
     table = runner.invoke(app, ["replay", log, "--settle", "0.5", "--out", str(tmp_path)])

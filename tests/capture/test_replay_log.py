@@ -119,3 +119,28 @@ def test_what_cannot_be_replayed_says_why(lockstep_run: CapturedRun, tmp_path: P
         replay_log(lockstep_run.log, "eso", {"gain": 1.0})
     with pytest.raises(ReplayError, match="cannot read the log"):
         replay_log(lockstep_run.capture)
+
+
+def test_params_come_as_a_dict_a_k_v_string_or_a_controller_yaml(lockstep_run: CapturedRun, tmp_path: Path) -> None:
+    log = lockstep_run.log
+    as_dict = replay_log(log, "eso_kf", {"omega_o_rad_s": 500, "q_dps2": 1e-3}, settle_s=0.5)
+    as_text = replay_log(str(log), "eso_kf", "omega_o_rad_s=500, q_dps2=1e-3", settle_s=0.5)
+    yaml_file = tmp_path / "eso_kf_500.yaml"
+    yaml_file.write_text("name: eso_kf\nparams: {omega_o_rad_s: 500, q_dps2: 1.0e-3}\n")
+    as_yaml = replay_log(log, params=str(yaml_file), settle_s=0.5)  # the YAML names the controller
+    as_path = replay_log(log, "eso_kf", yaml_file, settle_s=0.5)
+    for result in (as_dict, as_text, as_yaml, as_path):
+        assert result.replayed.name == "eso_kf" and result.replayed.params == {"omega_o_rad_s": 500, "q_dps2": 1e-3}
+        assert result.axes["el"].drive_diff_rms_counts == as_dict.axes["el"].drive_diff_rms_counts > 0
+    for args, kwargs, message in (
+        (("eso_kf", "omega_o_rad_s"), {}, "--params: 'omega_o_rad_s' is not k=v"),
+        (("eso_kf", "=5"), {}, "--params: '=5' is not k=v"),
+        (("eso", yaml_file), {}, f"--controller eso but {yaml_file} is a eso_kf controller"),
+        (("eso_kf", str(tmp_path / "missing.yaml")), {}, "--params .*missing.yaml"),
+        ((), {"settle_s": -1.0}, "--settle: -1.0 is not a finite number of seconds >= 0"),
+        ((), {"settle_s": float("nan")}, "--settle: nan"),
+    ):
+        with pytest.raises(ReplayError, match=message):
+            replay_log(log, *args, **kwargs)
+    with pytest.raises(ReplayError, match="no such file"):
+        replay_log(tmp_path / "none.h5")
