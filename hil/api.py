@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import dataclasses
 import functools
+import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -28,6 +29,7 @@ if TYPE_CHECKING:
     from hil.log.frames import LogFrames
     from hil.session import Session, SessionResult
 
+_log = logging.getLogger("hil.api")
 Clock = Literal["realtime", "lockstep", "sim"]
 CLOCKS: tuple[str, ...] = ("realtime", "lockstep", "sim")
 Progress = Callable[[int, int], None]  # (cycles done, cycles in the session)
@@ -139,6 +141,7 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
 
     emulator = EmulatorProcess(config.emulator.config, clock=clock_name, seed=config.seed,
                                extra_args=config.emulator.process_args())
+    _log.info("starting the emulated lab: %s clock, seed %d, %s", clock_name, config.seed, config.emulator.config)
     try:  # stopped on every way out, a cancellation while it starts included
         try:
             started = await asyncio.to_thread(emulator.start)

@@ -19,6 +19,7 @@ import asyncio
 import contextlib
 import dataclasses
 import gc
+import logging
 import signal
 import threading
 import time
@@ -51,10 +52,11 @@ from hil.protocol import (
     LoopTiming,
     MissDistance,
 )
-from hil.telemetry import Telemetry, TelemetryProcess
+from hil.telemetry import Telemetry, TelemetryProcess, schema_units
 from hil.transport import LinkError, SerialLink
 from hil.watchdog import EventLoopWatchdog, Watchdog
 
+_log = logging.getLogger("hil.session")
 LINKS = ("servo", "driver", "image", "hexapod")
 LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[SerialLink]]
 LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
@@ -431,6 +433,8 @@ class Session:
 
     def event(self, kind: str, **detail: Any) -> None:
         tick = (self.loop_.last_tick or 0) if self.loop_ else 0
+        if _log.isEnabledFor(logging.INFO):  # `hil -v`: what the session does, as its log's events say it
+            _log.info("%s %s: %s", self.config.name, kind, " ".join(f"{k}={v}" for k, v in detail.items()))
         if self.log is not None:
             self.log.event(kind, tick, detail)
         if self.telemetry is not None:
@@ -641,8 +645,9 @@ class Session:
             self._open_log()
             assert self.log is not None
             if self.config.mqtt is not None:
-                self.telemetry = TelemetryProcess(self.config.mqtt,
-                                                  self.log_path.stem if self.log_path else "session")
+                self.telemetry = TelemetryProcess(self.config.mqtt,  # units from the log's schema, already here
+                                                  self.log_path.stem if self.log_path else "session",
+                                                  units=schema_units())
                 await self.telemetry.start()
             self._place()
             aloop_ = asyncio.get_running_loop()

@@ -639,12 +639,12 @@ class Telemetry:
 
     def _describe(self, data: dict[str, Any]) -> None:
         """Units of channels seen for the first time: from the log schema unless given; meta again if any."""
-        known: Mapping[str, str]
-        try:
-            known = schema_units()
-        except Exception as exc:  # the units are a convenience: telemetry goes on without them
-            known = {}
-            self.stats.last_error = f"units from the log schema: {type(exc).__name__}: {exc}"
+        known: Mapping[str, str] = {}
+        if any(isinstance(n, str) and n not in self._units for n in ("t_s", *data)):  # the session gives them all
+            try:
+                known = schema_units()
+            except Exception as exc:  # the units are a convenience: telemetry goes on without them
+                self.stats.last_error = f"units from the log schema: {type(exc).__name__}: {exc}"
         for name in ("t_s", *data):
             if name in self._described:
                 continue
@@ -890,7 +890,8 @@ async def _child_run(config: MqttConfig, session_id: str, units: dict[str, str],
     tm._on_connected, tm._on_disconnected, tm._on_error = connected, disconnected, error  # type: ignore[method-assign]
     os.set_blocking(0, False)
     await tm.start()
-    warm = loop.run_in_executor(None, schema_units)  # its import (~0.1 s) overlaps the first connection
+    # without units from the session, the schema's import (~0.1 s, numpy) overlaps the first connection
+    warm = loop.run_in_executor(None, schema_units) if not units else None
     loop.add_reader(0, on_input)
     try:
         while not done.done():
@@ -900,8 +901,9 @@ async def _child_run(config: MqttConfig, session_id: str, units: dict[str, str],
         loop.remove_reader(0)
         await tm.stop()
         report("final")
-        with contextlib.suppress(Exception):
-            await warm
+        if warm is not None:
+            with contextlib.suppress(Exception):
+                await warm
 
 
 def _paho_of(client: aiomqtt.Client) -> paho.Client | None:

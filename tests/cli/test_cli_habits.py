@@ -114,3 +114,20 @@ def test_campaign_and_report_of_a_campaign_dir_speak_json_and_quiet_leaves_out_t
     assert again["passed"] == ran["passed"]
     assert "report:" in hil("report", tmp_path / "out").stdout
     assert hil("-q", "report", tmp_path / "out").stdout == ""
+
+
+def test_verbose_logs_what_the_session_does_on_stderr_and_quiet_prints_only_results(tmp_path: Path) -> None:
+    data = yaml.safe_load((PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml").read_text())
+    for key in ("controller", "profile", "hexapod_limits"):
+        data[key] = str((PROFILES / "sessions" / data[key]).resolve())
+    data["emulator"]["config"] = str((PROFILES / "sessions" / data["emulator"]["config"]).resolve())
+    data["duration_s"] = 0.5
+    session = tmp_path / "s.yaml"
+    session.write_text(yaml.safe_dump(data))
+    loud = hil("-v", "run", session, "--loopback", "--clock", "sim", "--out", tmp_path)
+    assert loud.returncode == 0, loud.stderr
+    assert "hil.session" in loud.stderr and "state=armed" in loud.stderr and "state=safe" in loud.stderr
+    quiet = hil("-q", "run", session, "--loopback", "--clock", "sim", "--out", tmp_path)
+    assert quiet.returncode == 0 and quiet.stderr == ""
+    assert "rate error el" in quiet.stdout and "numpy" not in quiet.stdout  # the table, not the provenance note
+    assert "numpy" in hil("run", session, "--loopback", "--clock", "sim", "--out", tmp_path).stdout
