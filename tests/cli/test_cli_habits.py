@@ -21,6 +21,18 @@ def hil(*args: str, env: dict[str, str] | None = None, cwd: Path | None = None) 
                           env={**os.environ, "COLUMNS": "200", **(env or {})}, cwd=cwd)
 
 
+def session_file(tmp_path: Path, seconds: float) -> Path:
+    """The shipped 1 deg / 1 Hz ESO session, ``seconds`` long, as a file with absolute paths."""
+    data = yaml.safe_load((PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml").read_text())
+    for key in ("controller", "profile", "hexapod_limits"):
+        data[key] = str((PROFILES / "sessions" / data[key]).resolve())
+    data["emulator"]["config"] = str((PROFILES / "sessions" / data["emulator"]["config"]).resolve())
+    data["duration_s"] = seconds
+    session = tmp_path / "s.yaml"
+    session.write_text(yaml.safe_dump(data))
+    return session
+
+
 @pytest.mark.parametrize(("command", "choices"), [
     (["run"], "realtime|lockstep|sim"), (["ident"], "el|az"), (["export"], "parquet|csv"),
     (["campaign"], "sim|lockstep"), (["check"], "session|campaign|controller|swing|hexapod|emulator|plant"),
@@ -81,13 +93,7 @@ def test_errors_go_to_stderr_and_results_to_stdout(tmp_path: Path) -> None:
 
 
 def test_run_json_is_one_document_and_lockstep_board_latency_is_na(tmp_path: Path) -> None:
-    data = yaml.safe_load((PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml").read_text())
-    for key in ("controller", "profile", "hexapod_limits"):
-        data[key] = str((PROFILES / "sessions" / data[key]).resolve())
-    data["emulator"]["config"] = str((PROFILES / "sessions" / data["emulator"]["config"]).resolve())
-    data["duration_s"] = 1.0
-    session = tmp_path / "s.yaml"
-    session.write_text(yaml.safe_dump(data))
+    session = session_file(tmp_path, 1.0)
     out = hil("-q", "run", session, "--loopback", "--clock", "lockstep", "--out", tmp_path, "--json")
     assert out.returncode == 0, out.stderr
     summary = json.loads(out.stdout)
@@ -117,13 +123,7 @@ def test_campaign_and_report_of_a_campaign_dir_speak_json_and_quiet_leaves_out_t
 
 
 def test_verbose_logs_what_the_session_does_on_stderr_and_quiet_prints_only_results(tmp_path: Path) -> None:
-    data = yaml.safe_load((PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml").read_text())
-    for key in ("controller", "profile", "hexapod_limits"):
-        data[key] = str((PROFILES / "sessions" / data[key]).resolve())
-    data["emulator"]["config"] = str((PROFILES / "sessions" / data["emulator"]["config"]).resolve())
-    data["duration_s"] = 0.5
-    session = tmp_path / "s.yaml"
-    session.write_text(yaml.safe_dump(data))
+    session = session_file(tmp_path, 0.5)
     loud = hil("-v", "run", session, "--loopback", "--clock", "sim", "--out", tmp_path)
     assert loud.returncode == 0, loud.stderr
     assert "hil.session" in loud.stderr and "state=armed" in loud.stderr and "state=safe" in loud.stderr
