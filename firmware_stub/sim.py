@@ -24,6 +24,7 @@ from typing import Any
 from firmware_stub.config import ConfigError, EmulatorConfig, LinkFaults, LinkName
 from firmware_stub.emulator import Emulator
 from firmware_stub.link import BoardLink, FaultRecorder
+from firmware_stub.plant import Plant
 from hil.protocol import CATALOGUE, Frame
 
 Outbox = list[tuple[LinkName, Frame]]
@@ -83,6 +84,11 @@ class SimWorld:
     @property
     def streaming(self) -> bool:
         return self.emu.servo.streaming
+
+    @property
+    def plant(self) -> Plant:
+        """The world's plant: in this process, its true state (:meth:`Plant.truth`) is there to read."""
+        return self.emu.plant
 
     def from_host(self, link: LinkName, frame: Frame) -> None:
         """A frame from the host, handled as the emulator handles what it reads from a pty."""

@@ -25,6 +25,7 @@ from hil.config import ConfigError, SessionConfig, load_session, require_regular
 
 if TYPE_CHECKING:
     from hil.campaign import CampaignConfig, CampaignResult, CellResult
+    from hil.campaign.engines import Engine
     from hil.campaign.report import ReportFiles
     from hil.log.frames import LogFrames
     from hil.session import Session, SessionResult
@@ -88,12 +89,25 @@ def prepare_run(config: SessionConfig | str | Path, *, loopback: bool = True, cl
         if config.safety.emulator_stall_grace_ms:
             raise ConfigError("safety.emulator_stall_grace_ms: only for emulated boards (--loopback); real boards "
                               "are never late, so remove it from a lab session")
+        _require_clock(config, "hardware")
         return config, "hardware", out_dir
     try:  # the emulator validates it; a missing one is refused here, before anything starts
         require_regular_file(config.emulator.config)
     except ValueError as exc:
         raise ConfigError(f"emulator.config: {exc}") from None
-    return config, clock or config.emulator.clock, out_dir
+    clock_name = clock or config.emulator.clock
+    _require_clock(config, clock_name)
+    return config, clock_name, out_dir
+
+
+def _require_clock(config: SessionConfig, clock: str) -> None:
+    """The controller can run on this clock (the oracle needs the sim clock's true plant state)."""
+    from hil.control.registry import ControllerConfigError, require_sim_clock
+
+    try:
+        require_sim_clock(config.controller.name, clock)
+    except ControllerConfigError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True, clock: Clock | None = None,
@@ -270,9 +284,13 @@ def load_campaign(path: str | Path) -> CampaignConfig:
 
 def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | None = None,
                      hardware: bool = False, clock: Literal["sim", "lockstep"] = "sim",
+                     engine: Literal["local", "dask"] | Engine = "local", scheduler: str | None = None,
+                     workers: int | None = None, shared_dir: str | Path | None = None,
                      ) -> tuple[CampaignConfig, Path, dict[str, dict[str, Any]]]:
-    """Check a campaign without running it: (config, its directory, every cell's session). ConfigError otherwise."""
+    """Check a campaign without running it: (config, its directory, every cell's session). ConfigError otherwise.
+    The engine options are checked as given (the scheduler is not contacted here: :func:`run_campaign` does)."""
     from hil.campaign import CampaignError
+    from hil.campaign.engines import EngineError, check_options
     from hil.campaign.runner import cell_sessions
 
     source = str(campaign) if not hasattr(campaign, "cells") else "campaign"
@@ -281,6 +299,17 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
     require_writable_dir(out_dir, "--out")
     if clock not in ("sim", "lockstep"):
         raise ConfigError(f"--clock: {clock!r} is not sim or lockstep")
+    try:
+        check_options(engine, hardware=hardware, scheduler=scheduler, workers=workers, shared_dir=shared_dir)
+    except EngineError as exc:
+        raise ConfigError(str(exc)) from None
+    from hil.control.registry import ControllerConfigError, require_sim_clock
+
+    for entry in config.controllers:  # the oracle needs the sim clock's true plant state
+        try:
+            require_sim_clock(entry.name, "hardware" if hardware else clock)
+        except ControllerConfigError as exc:
+            raise ConfigError(f"{source}: controllers[{entry.label}]: {exc}") from None
     try:  # every cell, before anything is written
         sessions = cell_sessions(config, out_dir, hardware, clock)
     except CampaignError as exc:
@@ -290,18 +319,29 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
 
 def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | None = None, jobs: int = 1,
                  resume: bool = False, hardware: bool = False, clock: Literal["sim", "lockstep"] = "sim",
-                 write_report: bool = True, on_cell: Callable[[CellResult], None] | None = None) -> CampaignRun:
+                 write_report: bool = True, on_cell: Callable[[CellResult], None] | None = None,
+                 engine: Literal["local", "dask"] | Engine = "local", scheduler: str | None = None,
+                 workers: int | None = None, shared_dir: str | Path | None = None) -> CampaignRun:
     """Run (or with ``resume`` finish) a swing campaign: every cell a session with its own log, then the
     acceptance verdict and (``write_report``) the report. ``out`` defaults to ``runs/campaigns/NAME``.
     Cells run ``jobs`` at a time on the ``sim`` clock (or ``lockstep``), or on the lab's ports (``hardware``).
+
+    ``engine="dask"`` runs the cells on a dask.distributed cluster: ``scheduler`` (``"tcp://HOST:8786"``) an
+    existing one's, else a LocalCluster of ``workers`` (default ``jobs``) processes started here and closed at the
+    end; with a scheduler, ``workers`` waits for that many workers. The cells' files come back to ``out`` as bytes,
+    or through ``shared_dir``, a directory every worker sees at the same path. An open
+    :class:`hil.campaign.engines.Engine` may be given instead (its owner closes it). An unreachable scheduler is
+    a ConfigError naming ``--scheduler``, raised before anything is written.
     Blocking; inside a running event loop it runs the cells in worker threads, which is what it does anyway."""
     from hil.campaign import CampaignError
     from hil.campaign import run_campaign as run_cells
 
-    config, out_dir, sessions = prepare_campaign(campaign, out=out, hardware=hardware, clock=clock)
+    config, out_dir, sessions = prepare_campaign(campaign, out=out, hardware=hardware, clock=clock, engine=engine,
+                                                 scheduler=scheduler, workers=workers, shared_dir=shared_dir)
     try:
         result = run_cells(config, out_dir, jobs=jobs, resume=resume, hardware=hardware, on_cell=on_cell,
-                           sessions=sessions)
+                           sessions=sessions, engine=engine, scheduler=scheduler, workers=workers,
+                           shared_dir=shared_dir)
     except CampaignError as exc:
         raise ConfigError(str(exc)) from None
     files = None

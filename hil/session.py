@@ -35,11 +35,12 @@ from typing import Any
 from hil import __version__, host
 from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, InterlockClosed, ServoBoard
 from hil.capture import Capture
-from hil.config import PortConfig, SessionConfig
+from hil.config import ConfigError, PortConfig, SessionConfig
 from hil.control.controller import RateController
 from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
 from hil.control.loops import TrackingLoop
-from hil.control.registry import build_controller
+from hil.control.oracle import TruthSource, bind_truth, truth_refusal
+from hil.control.registry import build_controller, needs_truth
 from hil.log import SessionLog
 from hil.loop_thread import DriveWriter, LoopThread, link_fd
 from hil.protocol import (
@@ -82,10 +83,13 @@ class ControlLoop:
     """Per-axis controllers and tracking loops; everything that happens per sample and per frame."""
 
     def __init__(self, config: SessionConfig, drive: Callable[[int, int, int], None], log: SessionLog, *,
-                 telemetry: Telemetry | None, duration_ticks: int, on_done: Callable[[], None]) -> None:
+                 telemetry: Telemetry | None, duration_ticks: int, on_done: Callable[[], None],
+                 truth: TruthSource | None = None) -> None:
         """``drive(tick, az_counts, el_counts)`` sends DRIVE_CMD; ``on_done`` is called once, at the last tick of
-        the run (from the loop's own thread: it must hand over to the event loop itself if it needs it)."""
+        the run (from the loop's own thread: it must hand over to the event loop itself if it needs it). ``truth``:
+        the plant's true state (the sim clock's hil.sim.PlantTruth), which only the ``oracle`` controller reads."""
         self.config = config
+        self.truth = truth
         self.drive = drive
         self.log = log
         self.telemetry = telemetry
@@ -110,6 +114,8 @@ class ControlLoop:
         c = self.config.controller
         self.ctrl_az: RateController = build_controller(c.name, c.params)
         self.ctrl_el: RateController = build_controller(c.name, c.params)
+        bind_truth(self.ctrl_az, self.truth, "az")  # the oracle reads the plant's truth; the others, nothing
+        bind_truth(self.ctrl_el, self.truth, "el")
         tr = self.config.tracking
         kw = {"kp_per_s": tr.kp_per_s, "ki_per_s2": tr.ki_per_s2, "ifov_deg_per_px": tr.ifov_deg_per_px,
               "max_rate_dps": tr.max_rate_dps, "stale_s": tr.stale_s}
@@ -244,7 +250,7 @@ class Session:
                  watchdog_ms: float | None = None, progress: Callable[[int, int], None] | None = None,
                  log_attrs: dict[str, Any] | None = None, lockstep: bool = False,
                  open_link: LinkOpener | None = None, watchdog: bool = True, emulated: bool = False,
-                 capture_dir: Path | None = None) -> None:
+                 capture_dir: Path | None = None, truth: TruthSource | None = None) -> None:
         """``lockstep``: the boards are an emulator in lockstep (its world waits for the bench). The bench then
         sends no HOST_ALIVE, which would land at wall-clock moments and change the bytes of the run; the
         emulator judges host liveness by the lockstep itself (docs/protocol.md, "Host liveness").
@@ -255,9 +261,15 @@ class Session:
         nothing). ``emulated``: the boards are the emulator on this host, so ``safety.emulator_stall_grace_ms`` applies
         (hil.watchdog); ignored otherwise. ``capture_dir``: record every link's bytes, both directions, in a capture
         file there (hil.capture, docs/capture.md); ValueError with ``open_link`` (the sim clock's links carry no bytes).
+        ``truth``: the plant's true state, which only the sim clock has (hil.sim.PlantTruth); a controller that needs
+        it (``oracle``) without it is refused here, ConfigError naming ``controller.name``, before anything starts.
 
         The loop runs in its own thread (hil.loop_thread) unless ``lockstep`` or ``open_link`` is given: lockstep and
         sim keep it on the event loop, where the boards wait for it and a run's bytes are reproducible."""
+        if truth is None and needs_truth(config.controller.name):
+            clock = "lockstep" if lockstep else "realtime" if emulated else "hardware"
+            raise ConfigError(truth_refusal(config.controller.name, clock))
+        self.truth = truth
         self.config = config
         self.ports = ports
         self.out_dir = out_dir
@@ -654,7 +666,7 @@ class Session:
             self.loop_ = ControlLoop(self.config, self.driver.drive, self.log, telemetry=self.telemetry,
                                      duration_ticks=round(self.config.duration_s * 1000),
                                      on_done=(lambda: aloop_.call_soon_threadsafe(self.finish, "completed"))
-                                     if self.use_thread else lambda: self.finish("completed"))
+                                     if self.use_thread else lambda: self.finish("completed"), truth=self.truth)
             self.loop_.decoders = {name: link.decoder for name, link in self.links.items()}
             self.hexapod.on_pose = self.loop_.on_pose
             self.event("state", state="configured")

@@ -9,22 +9,28 @@ from the host's own clock (``t_host_ns``, ``latency_us``). Campaigns, fits and t
 
 The world ticks in a task of the session's event loop, :data:`TICKS_PER_YIELD` ticks between yields, so the
 session's own coroutines (handshake, wind-down, shutdown) run as they do against a real board.
+
+Because the plant lives in this process, the sim clock alone can also hand the session the plant's true state
+(:class:`PlantTruth`): what the ``oracle`` controller feeds back (hil.control.oracle, docs/control.md).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 from collections.abc import Callable
 from pathlib import Path
 from time import perf_counter
 from typing import TYPE_CHECKING, Any
 
 from hil.config import PortConfig, SessionConfig
+from hil.control.oracle import AxisTruth
 from hil.protocol import CATALOGUE, Frame
 from hil.transport import LinkError, SerialLink
 
 if TYPE_CHECKING:
+    from firmware_stub.plant import Plant
     from hil.session import Session, SessionResult
 
 TICKS_PER_YIELD = 20  # world ticks between two yields to the event loop (a sim tick is ~20-40 us)
@@ -78,6 +84,66 @@ class SimLink(SerialLink):
         super().deliver(frame)
 
 
+class PlantTruth:
+    """The plant's true state per axis in the rate loop's units, at the tick the plant has reached: the truth source
+    of the ``oracle`` (hil.control.oracle.TruthSource). Called with no argument, it returns
+    ``{"az": AxisTruth, "el": AxisTruth}``, computed once per tick.
+
+    ``rate_dps``: the true LOS rate each axis' gyro measures (azimuth: z, elevation: y), before the gyro's filter,
+    delay and noise. ``disturbance_counts``: ``d`` of the rate-loop model ``d(rate)/dt = k_m (u + d)``, every effect
+    on the axis but the motor's nominal drive torque ``K_t V_count u / R`` (:meth:`Plant.truth` names the torques):
+
+    - the torques acting on the axis: friction (bearing, on the motor side's rate relative to the carrier, so the
+      carrier's motion reaches the axis through it), the cable harness, the mass imbalance (the carrier's
+      acceleration), and the motor's torque ripple ``a K_t i sin(N theta_m)``; each as the counts that make that
+      torque at standstill, ``T R / (K_t V_count)``;
+    - the back-EMF of the motor side's rate relative to the carrier, ``-K_e w_rel / V_count`` counts (the voltage
+      it takes away from the drive).
+
+    The shaft torque of a compliant axis is internal (between the motor and the load) and is not counted; the
+    electrical lag (L/R ~0.1 ms) and the driver's current limit are left to the loop, as for every controller.
+    """
+
+    def __init__(self, plant: Plant) -> None:
+        self.plant = plant
+        cfg = plant.config
+        self._axes = []
+        for axis in ("az", "el"):
+            motor = getattr(cfg, f"motor_{axis}")
+            ripple = cfg.ripple_of(axis)
+            self._axes.append((
+                axis,
+                motor.resistance_ohm / (motor.torque_constant_n_m_per_a * motor.volts_per_count),  # counts per N m
+                motor.back_emf_v_s_per_rad / motor.volts_per_count,  # counts per rad/s of relative motor rate
+                0.0 if ripple is None else ripple.amplitude_fraction * motor.torque_constant_n_m_per_a,
+                0.0 if ripple is None else float(ripple.periods_per_rev),
+            ))
+        self._t_s = -1.0
+        self._value: dict[str, AxisTruth] = {}
+
+    def __call__(self) -> dict[str, AxisTruth]:
+        t_s = self.plant.t_s
+        if t_s != self._t_s:
+            self._t_s = t_s
+            self._value = self.compute(self.plant.truth())
+        return self._value
+
+    def compute(self, truth: dict[str, float]) -> dict[str, AxisTruth]:
+        """``{"az", "el"}`` -> AxisTruth from a :meth:`Plant.truth` dict."""
+        d2r = math.pi / 180.0
+        out = {}
+        for axis, counts_per_n_m, counts_per_rad_s, ripple_n_m_per_a, ripple_n in self._axes:
+            torque = truth[f"friction_{axis}_n_m"] + truth[f"cable_{axis}_n_m"] + truth[f"imbalance_{axis}_n_m"]
+            if ripple_n_m_per_a:
+                torque += (ripple_n_m_per_a * truth[f"current_{axis}_a"]
+                           * math.sin(ripple_n * truth[f"{axis}_motor_deg"] * d2r))
+            carrier_dps = truth[f"{axis}_rate_dps"] - truth[f"{axis}_rel_rate_dps"]  # the carrier's rate on the axis
+            motor_rel_rad_s = (truth[f"{axis}_motor_rate_dps"] - carrier_dps) * d2r
+            los = truth["los_rate_z_dps"] if axis == "az" else truth["los_rate_y_dps"]
+            out[axis] = AxisTruth(los, torque * counts_per_n_m - counts_per_rad_s * motor_rel_rad_s)
+        return out
+
+
 class SimLab:
     """The emulated lab of ``emulator_config`` in this process. Use as an async context manager around a
     Session built with ``open_link=lab.open_link``; the world ticks while the session runs."""
@@ -95,6 +161,7 @@ class SimLab:
 
             raise ConfigError(f"{emulator_config}: plant: {exc}") from None
         self.world = SimWorld(config, self._to_host)
+        self.truth = PlantTruth(self.world.plant)  # the oracle's truth source (only this clock has one)
         self.links: dict[str, SimLink] = {}
         self._wake = asyncio.Event()
         self._delivery_due = False
@@ -208,7 +275,8 @@ async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Cal
     Returns the session's result and the emulator's summary. A bad emulator or plant file raises ConfigError.
     ``capture_dir`` is refused (ValueError, before anything starts): the sim clock's links pass messages as
     objects, so there are no bytes to capture; the lockstep clock runs the same session over ptys. ``on_session``
-    gets the Session once it exists (hil.api: to interrupt it from another thread)."""
+    gets the Session once it exists (hil.api: to interrupt it from another thread). The session gets the lab's
+    :class:`PlantTruth`, which only the ``oracle`` controller reads."""
     from hil.session import Session
 
     if capture_dir is not None:
@@ -216,7 +284,8 @@ async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Cal
 
     lab = SimLab(config.emulator.config, seed=config.seed)
     session = Session(config, sim_ports(), out_dir, progress=progress, lockstep=True, open_link=lab.open_link,
-                      watchdog=False, log_attrs={"loopback": True, "clock": "sim", **(log_attrs or {})})
+                      watchdog=False, log_attrs={"loopback": True, "clock": "sim", **(log_attrs or {})},
+                      truth=lab.truth)
     lab.on_error = session.fault
     if on_session is not None:
         on_session(session)

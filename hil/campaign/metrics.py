@@ -61,6 +61,17 @@ METRICS: dict[str, Metric] = {
 }
 
 
+def gap_closed(value: float, baseline: float, oracle: float) -> float:
+    """The fraction of the gap from ``baseline`` to ``oracle`` (the best any rate controller could do: the
+    ``oracle`` controller, sim clock only) that ``value`` closes: ``(baseline - value) / (baseline - oracle)``.
+    0 at the baseline, 1 at the oracle, negative when worse than the baseline, above 1 past the oracle; the same
+    formula whichever way the metric improves. NaN when a value is not finite or the gap is zero."""
+    gap = baseline - oracle
+    if not (math.isfinite(value) and math.isfinite(baseline) and math.isfinite(oracle)) or gap == 0:
+        return math.nan
+    return (baseline - value) / gap
+
+
 def _nan_if_empty(x: np.ndarray, f: Any) -> float:
     return float(f(x)) if x.size else math.nan
 

@@ -5,8 +5,11 @@ and, for the plots, each controller's first logged seed per profile. It writes `
 ``report.html`` (PNGs embedded as data URIs, inline CSS: one file to mail) and the PNGs into
 ``CAMPAIGN_DIR/report/``. Contents (docs/campaigns.md, "Reports"): a verdict banner (which controller
 won, by how much, acceptance PASS/FAIL), per profile the paper's table (mean over seeds, min–max,
-the paper's value, gain vs the baseline) and plots (rate error, miss distance, PSD, metric bars, the
-analysis's own filter plot), the acceptance rules, every cell's pass/fail and the run info.
+the paper's value, gain vs the baseline, and with an ``oracle`` in the campaign the fraction of the
+baseline-to-oracle gap each controller closes) and plots (rate error, miss distance, PSD, metric bars, the
+analysis's own filter plot), the acceptance rules, every cell's pass/fail and the run info. The oracle
+(hil.control.oracle: the plant's truth, sim clock only) is a reference: it is never the winner or the best
+of a column.
 
 The document is built once as a list of neutral blocks (:class:`Heading`, :class:`Table`, ...) and
 rendered twice, so the Markdown and the HTML always say the same thing.
@@ -26,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.campaign.metrics import METRICS, low_pass
+from hil.campaign.metrics import METRICS, gap_closed, low_pass
 from hil.campaign.model import CampaignResult, slug
 from hil.campaign.runner import load_results
 
@@ -180,6 +183,37 @@ def _baseline(result: CampaignResult) -> str | None:
     return result.config.baseline if len(result.config.controllers) > 1 else None
 
 
+def _oracles(result: CampaignResult) -> list[str]:
+    """The labels of the campaign's oracle entries (controllers that need the plant's truth)."""
+    from hil.control.registry import needs_truth
+
+    return [c.label for c in result.config.controllers if needs_truth(c.name)]
+
+
+def _ranked(result: CampaignResult) -> list[str]:
+    """The controllers that compete for the verdict and the best of each column: all but the oracle."""
+    oracles = _oracles(result)
+    return [c for c in _labels(result) if c not in oracles]
+
+
+def oracle_label(result: CampaignResult) -> str | None:
+    """The oracle the gap-closed column measures against: the first oracle entry, if the campaign has a baseline
+    that is not an oracle; else None (no column)."""
+    base, oracles = _baseline(result), _oracles(result)
+    return oracles[0] if base is not None and oracles and base not in oracles else None
+
+
+def gap_closed_fraction(result: CampaignResult, profile: str, controller: str, metric: str) -> float:
+    """The fraction of the gap from the baseline to the oracle that ``controller`` closes on ``metric`` in
+    ``profile``, from the means over seeds (hil.campaign.metrics.gap_closed); NaN without an oracle and a baseline,
+    or without the values."""
+    oracle, base = oracle_label(result), _baseline(result)
+    if oracle is None or base is None:
+        return math.nan
+    return gap_closed(_stat(result, profile, controller, metric).mean, _stat(result, profile, base, metric).mean,
+                      _stat(result, profile, oracle, metric).mean)
+
+
 # --- the verdict -----------------------------------------------------------------------------
 
 
@@ -188,7 +222,7 @@ def _columns(result: CampaignResult) -> list[tuple[str, str]]:
 
 
 def _wins(result: CampaignResult) -> tuple[dict[str, int], int]:
-    wins = dict.fromkeys(_labels(result), 0)
+    wins = dict.fromkeys(_ranked(result), 0)
     total = 0
     for profile, metric in _columns(result):
         best = _best({c: _stat(result, profile, c, metric) for c in wins}, METRICS[metric].lower_is_better)
@@ -215,17 +249,24 @@ def _acceptance_summary(result: CampaignResult) -> str:
 
 def verdict(result: CampaignResult) -> Banner:
     """Which controller won (best in most table columns), by how much (mean gain over the baseline, or
-    over the runner-up when the baseline won), and the campaign's PASS/FAIL."""
-    labels = _labels(result)
+    over the runner-up when the baseline won), and the campaign's PASS/FAIL. The oracle is a reference, not ranked."""
+    labels = _ranked(result)
     wins, total = _wins(result)
+    oracles = _oracles(result)
     accept = f"Acceptance: {_acceptance_summary(result)}."
+    if oracles:
+        who = "The oracle" if oracles[0].lower() == "oracle" else f"The oracle ({oracles[0]})"
+        accept = f"{who} is a reference, not ranked: it runs on the plant's truth (sim clock only). {accept}"
+    if not labels:
+        return Banner("No winner: only the oracle ran", accept, result.passed)
     if len(labels) < 2:
-        return Banner(f"{labels[0]} (one controller, no comparison)", accept, result.passed)
+        besides = " besides the oracle" if oracles else ""
+        return Banner(f"{labels[0]} (one controller{besides}, no comparison)", accept, result.passed)
     if total == 0:
         return Banner("No winner: no results to compare yet", accept, result.passed)
     ranked = sorted(labels, key=lambda c: -wins[c])  # stable: the campaign's order breaks ties
     winner = ranked[0]
-    ref = result.config.baseline if result.config.baseline not in (None, winner) else ranked[1]
+    ref = result.config.baseline if result.config.baseline not in (None, winner, *oracles) else ranked[1]
     gains = _gains(result, winner, ref)
     by = (f"{np.mean(gains):.1f} % better than {ref} on average ({_pct(min(gains))} to {_pct(max(gains))})"
           if gains else f"no metric to compare with {ref}")
@@ -249,11 +290,17 @@ def _gain_cell(result: CampaignResult, profile: str, metric: str, controller: st
     return Cell(text + (f" (paper {_pct(theirs)})" if math.isfinite(theirs) else ""))
 
 
+def _gap_text(fraction: float) -> str:
+    return f"{100.0 * fraction:.1f} %" if math.isfinite(fraction) else "n/a"
+
+
 def _metric_columns(result: CampaignResult, profile: str, metric: str) -> list[tuple[str, list[Cell]]]:
-    """Ours (best emphasised), the paper's value if it has one, the gain vs the baseline."""
+    """Ours (best emphasised, the oracle never), the paper's value if it has one, the gain vs the baseline, the
+    fraction of the baseline-to-oracle gap closed (with an oracle)."""
     meta, labels = METRICS[metric], _labels(result)
     stats = {c: _stat(result, profile, c, metric) for c in labels}
-    best = _best(stats, meta.lower_is_better)
+    ranked = set(_ranked(result))
+    best = _best({c: s for c, s in stats.items() if c in ranked}, meta.lower_is_better)
     cols = [(f"{meta.label} [{meta.unit}]",
              [Cell(format_values(result.values(profile, c, metric), metric=metric), best=c == best) for c in labels])]
     paper = result.config.paper.get(profile, {})
@@ -262,6 +309,9 @@ def _metric_columns(result: CampaignResult, profile: str, metric: str) -> list[t
         cols.append(("paper", [Cell("—" if x is None else _value(metric, x, "{:g}".format)) for x in theirs]))
     if _baseline(result) is not None:
         cols.append((f"vs {_baseline(result)}", [_gain_cell(result, profile, metric, c, stats) for c in labels]))
+    if oracle_label(result) is not None:
+        cols.append(("gap closed", [Cell(_gap_text(gap_closed_fraction(result, profile, c, metric)))
+                                    for c in labels]))
     return cols
 
 

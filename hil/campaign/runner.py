@@ -2,28 +2,35 @@
 
 Each cell is one `hil run CELL/session.yaml --json` in its own process (with ``--loopback`` against its
 own emulated lab, on the ``sim`` clock by default or ``lockstep`` over ptys, so cells are reproducible and
-may run ``jobs`` at a time; on the lab's hardware one after another). A cell's ``result.json`` is written
-when it finishes, and the campaign's ``campaign.json`` after every cell, so an interrupted campaign resumes
-where it stopped.
+may run ``jobs`` at a time; on the lab's hardware one after another). An engine (:mod:`hil.campaign.engines`)
+runs them: ``local`` here, ``dask`` on a dask.distributed cluster, where a worker runs the same
+:func:`run_cell` and sends the cell's files back (or leaves them in a shared directory) for this process to
+put where the local engine would. A cell's ``result.json`` is written when it finishes, and the campaign's
+``campaign.json`` after every cell, so an interrupted campaign resumes where it stopped, with either engine.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import functools
 import json
 import math
 import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor, as_completed
+import uuid
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import yaml
 from pydantic import ValidationError
 
+from hil.campaign.engines import Engine, EngineError, check_options, open_engine
 from hil.campaign.metrics import METRICS, compute_metrics
 from hil.campaign.model import CampaignConfig, CampaignResult, CellResult, CellSpec, RuleResult
 from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line, read_file_bytes
@@ -204,16 +211,155 @@ def cell_sessions(config: CampaignConfig, out_dir: Path, hardware: bool = False,
             for spec in config.cells()}
 
 
+@dataclasses.dataclass
+class CellOutput:
+    """What a cell run elsewhere sends back: its result, and its directory's files either as ``files``
+    (relative path, bytes) or as ``path``, the directory on a filesystem this process shares with the worker.
+    Neither: the cell never ran to the end (its worker failed)."""
+
+    result: CellResult
+    files: list[tuple[str, bytes]] | None = None
+    path: str | None = None
+
+
+def _worker_tmp() -> str | None:
+    """The dask worker's own scratch directory (removed with the worker), else the system's temp directory."""
+    with contextlib.suppress(ImportError, ValueError, AttributeError):
+        from distributed import get_worker
+
+        return str(get_worker().local_directory)
+    return None
+
+
+def run_cell_remote(config: CampaignConfig, hardware: bool, shared: str | None,
+                    item: tuple[CellSpec, dict[str, Any]]) -> CellOutput:
+    """On a worker: :func:`run_cell` for ``item`` (the cell's spec and session) into a directory of its own,
+    then the cell's files as bytes, or (``shared``: a directory the campaign's process sees too) left under
+    ``shared`` with their path. Every attempt has its own directory, so a retried cell never meets the files
+    of an attempt whose worker died."""
+    spec, session = item
+    if shared is not None:
+        base = Path(shared) / f"{spec.cell_id}-{uuid.uuid4().hex[:12]}"
+        result = run_cell(config, spec, base, hardware=hardware, session=session)
+        return CellOutput(result=result, path=str(base / "cells" / spec.cell_id))
+    base = Path(tempfile.mkdtemp(prefix="hil-cell-", dir=_worker_tmp()))
+    try:
+        result = run_cell(config, spec, base, hardware=hardware, session=session)
+        cell_dir = base / "cells" / spec.cell_id
+        files = [(path.relative_to(cell_dir).as_posix(), path.read_bytes())
+                 for path in sorted(cell_dir.rglob("*")) if path.is_file() and path.name != RESULT]
+        return CellOutput(result=result, files=files)
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
+def _lost_cell(config: CampaignConfig, spec: CellSpec, exc: BaseException) -> CellOutput:
+    why = " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
+    result = CellResult(cell_id=spec.cell_id, profile=spec.profile.label, controller=spec.controller.label,
+                        controller_name=spec.controller.name, seed=spec.seed, status="error", exit_code=-1,
+                        message=why, failures=[f"the cell's worker failed: {why}"])
+    return CellOutput(result=_check(config, spec, result))
+
+
+def _store(out: CellOutput, out_dir: Path, spec: CellSpec, session: dict[str, Any]) -> CellResult:
+    """Put a cell run elsewhere where the local engine puts it, ``out_dir/cells/ID``; result.json last."""
+    cell_dir = out_dir / "cells" / spec.cell_id
+    if cell_dir.exists():
+        shutil.rmtree(cell_dir)
+    cell_dir.mkdir(parents=True)
+    if out.files is not None:
+        for rel, data in out.files:
+            target = cell_dir / rel
+            if Path(rel).is_absolute() or ".." in Path(rel).parts or rel == RESULT:
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(data)
+    elif out.path is not None:
+        source = Path(out.path)
+        for path in sorted(source.rglob("*")):
+            if path.is_file() and path.name != RESULT:
+                target = cell_dir / path.relative_to(source)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.move(path, target)
+        shutil.rmtree(source.parent.parent, ignore_errors=True)  # the attempt's directory
+    else:
+        (cell_dir / "session.yaml").write_text(yaml.safe_dump(session, sort_keys=False))
+    (cell_dir / RESULT).write_text(out.result.model_dump_json(indent=2))
+    return out.result
+
+
+def _run_here(config: CampaignConfig, out_dir: Path, hardware: bool,
+              item: tuple[CellSpec, dict[str, Any]]) -> CellResult:
+    spec, session = item
+    return run_cell(config, spec, out_dir, hardware=hardware, session=session)
+
+
+def iter_cells(config: CampaignConfig, out_dir: Path, specs: list[CellSpec], engine: Engine, *,
+               sessions: dict[str, dict[str, Any]], hardware: bool = False) -> Iterator[CellResult]:
+    """Run ``specs`` on ``engine`` (an open :class:`hil.campaign.engines.Engine`); yield each cell's result as it
+    completes, its directory in place under ``out_dir/cells/ID`` whichever engine ran it. ``sessions``: every
+    cell's session by id (:func:`cell_sessions`). A cell whose worker failed (every retry used) comes back as an
+    ``error`` result; on the local engine an exception raised by a cell is raised here."""
+    items = [(spec, sessions[spec.cell_id]) for spec in specs]
+    if not engine.remote:
+        for _, result in engine.map_cells(functools.partial(_run_here, config, out_dir, hardware), items,
+                                          key=lambda item: item[0].cell_id):
+            yield result
+        return
+    staging = None
+    if engine.shared_dir is not None:  # this run's corner of the shared directory; each attempt has its own
+        staging = Path(engine.shared_dir) / f".hil-{config.name}-{uuid.uuid4().hex[:8]}"
+        staging.mkdir(parents=True)
+    fn = functools.partial(run_cell_remote, config, hardware, None if staging is None else str(staging))
+    try:
+        for (spec, session), out in engine.map_cells(fn, items, key=lambda item: item[0].cell_id,
+                                                     on_error=lambda item, exc: _lost_cell(config, item[0], exc)):
+            yield _store(out, out_dir, spec, session)
+    finally:
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _engine(engine: str | Engine, jobs: int, scheduler: str | None, workers: int | None,
+            shared_dir: str | Path | None) -> Iterator[Engine]:
+    """The named engine, started here and closed at the end; an Engine given is used as it is (its owner
+    closes it)."""
+    if not isinstance(engine, str):
+        yield engine.open()
+        return
+    try:
+        started = open_engine(engine, jobs=jobs, scheduler=scheduler, workers=workers, shared_dir=shared_dir).open()
+    except EngineError as exc:
+        raise CampaignError(str(exc)) from None
+    try:
+        yield started
+    finally:
+        started.close()
+
+
 def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume: bool = False,
                  hardware: bool = False, on_cell: Callable[[CellResult], None] | None = None,
-                 sessions: dict[str, dict[str, Any]] | None = None) -> CampaignResult:
+                 sessions: dict[str, dict[str, Any]] | None = None, engine: str | Engine = "local",
+                 scheduler: str | None = None, workers: int | None = None,
+                 shared_dir: str | Path | None = None) -> CampaignResult:
     """Run (or finish) every cell; returns the campaign's result, also written to ``out_dir/campaign.json``.
     Every cell is validated before anything is written (``sessions``: from :func:`cell_sessions`, if the
-    caller already built them), so a campaign with a bad cell leaves nothing behind."""
+    caller already built them), so a campaign with a bad cell leaves nothing behind.
+
+    ``engine``: ``local`` (``jobs`` cells at a time in this machine's processes), ``dask`` (on a dask.distributed
+    cluster: ``scheduler`` an existing one's address, else a LocalCluster of ``workers`` (default ``jobs``)
+    worker processes started here; ``shared_dir`` a directory the workers and this process share, else the cells'
+    files come back as bytes), or an open :class:`hil.campaign.engines.Engine`. The engine is started (or the
+    scheduler reached) before anything is written."""
     if jobs < 1:
         raise CampaignError(f"--jobs: {jobs} (need at least 1)")
     if hardware:
         jobs = 1  # one lab
+    try:
+        check_options(engine, hardware=hardware, scheduler=scheduler, workers=workers, shared_dir=shared_dir)
+    except EngineError as exc:
+        raise CampaignError(str(exc)) from None
     specs = config.cells()
     if sessions is None:
         sessions = cell_sessions(config, out_dir, hardware)
@@ -232,25 +378,23 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
                 if cell.status == "completed":
                     run_failures = [f for f in cell.failures if f.split(" ", 1)[0] not in METRICS]
                     done[spec.cell_id] = _check(config, spec, cell.model_copy(update={"failures": run_failures}))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "campaign.yaml").write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
-    t0 = time.monotonic()
-    results = dict(done)
+    with _engine(engine, jobs, scheduler, workers, shared_dir) as runner:
+        slots = runner.slots
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "campaign.yaml").write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
+        t0 = time.monotonic()
+        results = dict(done)
 
-    def snapshot(complete: bool) -> CampaignResult:
-        cells = [results[s.cell_id] for s in specs if s.cell_id in results]
-        return CampaignResult(config=config, cells=cells, acceptance=judge(config, cells), jobs=jobs,
-                              wall_s=time.monotonic() - t0, complete=complete)
+        def snapshot(complete: bool) -> CampaignResult:
+            cells = [results[s.cell_id] for s in specs if s.cell_id in results]
+            return CampaignResult(config=config, cells=cells, acceptance=judge(config, cells), jobs=slots,
+                                  wall_s=time.monotonic() - t0, complete=complete)
 
-    for cell in done.values():
-        if on_cell is not None:
-            on_cell(cell)
-    todo = [s for s in specs if s.cell_id not in done]
-    with ThreadPoolExecutor(max_workers=jobs) as pool:
-        futures = {pool.submit(run_cell, config, spec, out_dir, hardware=hardware, session=sessions[spec.cell_id]): spec
-                   for spec in todo}
-        for future in as_completed(futures):
-            cell = future.result()
+        for cell in done.values():
+            if on_cell is not None:
+                on_cell(cell)
+        todo = [s for s in specs if s.cell_id not in done]
+        for cell in iter_cells(config, out_dir, todo, runner, sessions=sessions, hardware=hardware):
             results[cell.cell_id] = cell
             _write_json(out_dir / CAMPAIGN_JSON, snapshot(False).model_dump_json(indent=2))
             if on_cell is not None:

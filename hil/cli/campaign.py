@@ -28,22 +28,38 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     file: Annotated[Path, typer.Argument(help="Campaign YAML (see profiles/campaigns/).")],
     out: Annotated[Path | None, typer.Option(help="Campaign directory (default: runs/campaigns/NAME).")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Finish a campaign in --out, skipping done cells.")] = False,
-    jobs: Annotated[int, typer.Option(min=1, max=64, help="Cells run at once (loopback only).")] = 1,
+    jobs: Annotated[int, typer.Option(min=1, max=64, help=(
+        "Cells run at once (loopback only); with --engine dask and no --scheduler, the worker processes "
+        "started."))] = 1,
     hardware: Annotated[bool, typer.Option("--hardware", help="Run on the lab's ports, one cell at a time.")] = False,
     clock: Annotated[Literal["sim", "lockstep"], typer.Option(
         help="Loopback cells: sim (in-process) or lockstep (over ptys); the same logs either way.")] = "sim",
+    engine: Annotated[Literal["local", "dask"], typer.Option(
+        help="local: cells as processes of this machine; dask: on a dask.distributed cluster (docs/campaigns.md)."
+    )] = "local",
+    scheduler: Annotated[str | None, typer.Option(
+        help="--engine dask: an existing scheduler, tcp://HOST:8786 (default: a local cluster of --jobs workers)."
+    )] = None,
+    workers: Annotated[int | None, typer.Option(min=1, max=1024, help=(
+        "--engine dask: the local cluster's worker processes (default --jobs); with --scheduler, wait until "
+        "this many workers have joined."))] = None,
+    shared_dir: Annotated[Path | None, typer.Option(help=(
+        "--engine dask: a directory every worker sees at the same path; the workers leave the cells' files "
+        "there (default: they come back as bytes)."))] = None,
     report_too: Annotated[bool, typer.Option("--report/--no-report", help="Write the report at the end.")] = True,
     json_out: Annotated[bool, typer.Option("--json", help="Print the outcome as JSON.")] = False,
 ) -> None:
     """Run a swing campaign: profiles x controllers x seeds, each cell a session with its own log; then the
-    summary table, the acceptance verdict, and the report. Exit 1 if a threshold or an acceptance rule fails."""
+    summary table, the acceptance verdict, and the report. Cells run here (--engine local) or on a dask cluster
+    (--engine dask). Exit 1 if a threshold or an acceptance rule fails."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from hil import api
     from hil.config import ConfigError
 
     try:
-        config, out_dir, _ = api.prepare_campaign(file, out=out, hardware=hardware, clock=clock)
+        config, out_dir, _ = api.prepare_campaign(file, out=out, hardware=hardware, clock=clock, engine=engine,
+                                                  scheduler=scheduler, workers=workers, shared_dir=shared_dir)
     except ConfigError as exc:
         raise fail(str(exc)) from None
     n_cells = len(config.cells())
@@ -58,7 +74,8 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
 
         try:
             run = api.run_campaign(config, out=out_dir, jobs=jobs, resume=resume, hardware=hardware, clock=clock,
-                                   write_report=report_too, on_cell=on_cell)
+                                   write_report=report_too, on_cell=on_cell, engine=engine, scheduler=scheduler,
+                                   workers=workers, shared_dir=shared_dir)
         except ConfigError as exc:
             raise fail(str(exc)) from None
     if json_out:

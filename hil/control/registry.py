@@ -5,6 +5,11 @@ k_m = 0.023 deg/s^2 per count) and builds one :class:`RateController` per axis. 
 parameter raises :class:`ControllerConfigError` with one line that names it and lists what exists.
 :func:`effective_params` gives the full parameter set a config runs with (a session log records it).
 
+:data:`REGISTRY` holds the controllers that run from what a lab measures (gyro, encoders, their own drive): the
+bench, replays and benchmarks run every one of them. :data:`SIM_ONLY` holds the ``oracle``
+(hil.control.oracle), which needs the plant's true state and so runs only on the ``sim`` clock; names are looked
+up in both (:func:`needs_truth` tells them apart).
+
 Every parameter has a valid range (its Field bounds; NaN and infinities refused) and the derived
 quantities are checked too (docs/reliability.md has the table, tested against these models):
 a controller that validates cannot overflow, divide by zero or leave its discretisation's stable
@@ -25,6 +30,7 @@ from hil.control.eso import LinearESO, NonlinearESO
 from hil.control.filters import LowPass1, LowPass2
 from hil.control.kalman import EsoKalman
 from hil.control.loops import DAC_MAX_COUNTS, RateLoop
+from hil.control.oracle import TruthFeedback, truth_refusal
 from hil.control.ukf_imbalance import ImbalanceFeedForward, ImbalanceUKF
 
 K_M_DEFAULT = 0.023  # deg/s^2 per DAC count, seed 000 eq 38
@@ -155,6 +161,20 @@ class EsoKfUkfFfParams(EsoKfParams):
         return self
 
 
+class OracleParams(RateLoopParams):
+    """The oracle (sim clock only): the rate loop on the plant's true LOS rate, the true disturbance cancelled."""
+
+    @model_validator(mode="after")
+    def _sampled_p_loop(self) -> OracleParams:
+        """kp k_m h < 1 on the default plant (k_m 0.023): the sampled P loop's pole stays in (0, 1), as for the
+        ESO controllers."""
+        product = self.kp_counts_per_dps * K_M_DEFAULT * self.dt_s
+        if product >= 1.0:
+            raise ValueError(f"kp_counts_per_dps: kp * k_m * dt_s = {product:.3g} with the default plant's k_m "
+                             f"{K_M_DEFAULT:g}, need < 1 (a rate-loop bandwidth below the sample rate 1/dt_s)")
+        return self
+
+
 def _eso_kf(p: EsoKfParams) -> RateEstimator:
     return EsoKalman(
         omega_o_rad_s=p.omega_o_rad_s,
@@ -201,12 +221,37 @@ REGISTRY: dict[str, ControllerKind] = {
     "eso_kf_ukf_ff": ControllerKind(EsoKfUkfFfParams, _eso_kf, "ESO + Kalman filter + UKF imbalance feed-forward"),
 }
 
+# controllers that need the plant's true state (hil.control.oracle): sim clock only
+SIM_ONLY: dict[str, ControllerKind] = {
+    "oracle": ControllerKind(OracleParams, lambda p: TruthFeedback(),
+                             "oracle: true LOS rate fed back, true disturbance cancelled (sim clock only)"),
+}
+
+
+def _kind(name: str) -> ControllerKind | None:
+    return REGISTRY.get(name) or SIM_ONLY.get(name)
+
+
+def needs_truth(name: str) -> bool:
+    """Whether controller ``name`` needs the plant's true state (runs only on the sim clock)."""
+    return name in SIM_ONLY
+
+
+def require_sim_clock(name: str, clock: str) -> None:
+    """ControllerConfigError (one line naming controller.name) if controller ``name`` cannot run on ``clock``
+    (``sim``, ``lockstep``, ``realtime`` or ``hardware``): the oracle needs the sim clock. Call it before anything
+    starts."""
+    if clock != "sim" and needs_truth(name):
+        raise ControllerConfigError(truth_refusal(name, clock))
+
 
 def _describe(exc: ValidationError, name: str) -> str:
     err = exc.errors()[0]
     field = ".".join(str(part) for part in err["loc"])
     if err["type"] == "extra_forbidden":
-        known = ", ".join(REGISTRY[name].params.model_fields)
+        kind = _kind(name)
+        assert kind is not None
+        known = ", ".join(kind.params.model_fields)
         return f"controller {name!r}: unknown parameter {field!r} (parameters: {known})"
     if not field:  # a check across parameters: the message starts with the parameter it blames
         return f"controller {name!r}: parameter {str(err['msg']).removeprefix('Value error, ')}"
@@ -216,9 +261,10 @@ def _describe(exc: ValidationError, name: str) -> str:
 
 def controller_params(name: str, params: dict[str, Any] | None = None) -> RateLoopParams:
     """Validate ``params`` for controller ``name``; ControllerConfigError (one line) if either is wrong."""
-    kind = REGISTRY.get(name)
+    kind = _kind(name)
     if kind is None:
-        raise ControllerConfigError(f"unknown controller {name!r} (controllers: {', '.join(sorted(REGISTRY))})")
+        names = ", ".join(sorted({**REGISTRY, **SIM_ONLY}))
+        raise ControllerConfigError(f"unknown controller {name!r} (controllers: {names})")
     try:
         return kind.params.model_validate(params or {})
     except ValidationError as exc:
@@ -240,7 +286,9 @@ def build_controller(name: str, params: dict[str, Any] | RateLoopParams | None =
         params = params.model_dump(exclude_unset=True)
     p = controller_params(name, params)
     imbalance = _imbalance(p) if isinstance(p, EsoKfUkfFfParams) else None
-    return RateController(estimator=REGISTRY[name].estimator(p), loop=p.loop(), imbalance=imbalance)
+    kind = _kind(name)
+    assert kind is not None  # controller_params checked the name
+    return RateController(estimator=kind.estimator(p), loop=p.loop(), imbalance=imbalance)
 
 
 def effective_params(controller_config: Any) -> dict[str, Any]:

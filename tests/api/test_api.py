@@ -30,8 +30,9 @@ def test_run_async_inside_a_running_loop_returns_a_log_read_as_dataframes(tmp_pa
     result = asyncio.run(notebook_cell())
     assert result.status == "completed" and result.exit_code == 0 and result.clock == "sim"
     assert result.log_path is not None and result.log_path.parent == tmp_path
-    assert progress == sorted(progress) and progress[-1] >= 1990
     summary = result.summary()
+    # reported about ten times a second while it runs (the sim clock may finish between two reports)
+    assert progress and progress == sorted(progress) and progress[-1] <= summary["cycles"]
     log = result.log
     assert len(log.loop) == summary["cycles"] >= 1990  # 2 s at 1 kHz, less the stream's start
     units = log.loop.attrs["units"]

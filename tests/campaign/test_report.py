@@ -389,3 +389,79 @@ def test_legends_are_below_the_axes_and_the_psd_is_on_log_axes(full, monkeypatch
     assert psd.get_xscale() == "log" and psd.get_yscale() == "log"
     f_lo = min(float(np.min(line.get_xdata())) for line in psd.get_lines())
     assert f_lo == pytest.approx(1000.0 / 1024)  # the first bin above DC
+
+
+# --- the oracle: the fraction of the baseline-to-oracle gap each controller closes ---------------------------------
+
+ORACLE_VALUES = {**METRIC_VALUES, ("oracle", "rate_err_el_range_dps"): [0.10, 0.12],
+                 ("oracle", "rate_err_el_std_dps"): [0.05, 0.07], ("oracle", "miss_std_px"): [1.0, 1.2]}
+
+
+def oracle_result(tmp_path: Path, oracle: str = "oracle", **changes: Any) -> CampaignResult:
+    """One profile, ESO (baseline), ESO+KF and the oracle (labelled ``oracle``), two seeds each, no logs."""
+    config = campaign_config(tmp_path, profiles=[{"label": P1, "path": "profiles/swing/swing-1deg-1hz.yaml"}],
+                             controllers=[{"label": "ESO", "name": "eso"}, {"label": "ESO+KF", "name": "eso_kf"},
+                                          {"label": oracle, "name": "oracle"}], **changes)
+    cells = [cell(config, P1, c, s, log=None,
+                  metrics={m: ORACLE_VALUES[("oracle" if c == oracle else c, m)][s - 1] for m in config.metrics})
+             for c in ("ESO", "ESO+KF", oracle) for s in (1, 2)]
+    return CampaignResult(config=config, cells=cells, acceptance=judge(config, cells), jobs=1, wall_s=1.0,
+                          complete=True)
+
+
+def test_gap_closed_formula():
+    from hil.campaign.metrics import gap_closed
+
+    assert gap_closed(0.17, 0.32, 0.06) == pytest.approx(0.15 / 0.26)
+    assert gap_closed(0.32, 0.32, 0.06) == 0.0 and gap_closed(0.06, 0.32, 0.06) == 1.0
+    assert gap_closed(0.45, 0.32, 0.06) == pytest.approx(-0.5)  # worse than the baseline
+    assert gap_closed(5.0, 2.0, 8.0) == 0.5  # higher is better: the same formula
+    assert np.isnan(gap_closed(0.2, 0.3, 0.3)) and np.isnan(gap_closed(float("nan"), 0.3, 0.1))
+
+
+def test_gap_closed_column_with_an_oracle(tmp_path):
+    result = oracle_result(tmp_path)
+    # means over the seeds: range ESO 0.72, ESO+KF 0.29, oracle 0.11; std 0.32, 0.17, 0.06; miss 6.1, 2.8, 1.1
+    assert report.oracle_label(result) == "oracle"
+    for metric, expected in (("rate_err_el_range_dps", 0.43 / 0.61), ("rate_err_el_std_dps", 0.15 / 0.26),
+                             ("miss_std_px", 3.3 / 5.0)):
+        assert report.gap_closed_fraction(result, P1, "ESO+KF", metric) == pytest.approx(expected)
+        assert report.gap_closed_fraction(result, P1, "ESO", metric) == pytest.approx(0.0, abs=1e-12)
+        assert report.gap_closed_fraction(result, P1, "oracle", metric) == pytest.approx(1.0)
+    table = profile_table(result, P1)
+    assert table.header == ["Controller", "seeds", "EL rate error +- [deg/s]", "paper", "vs ESO", "gap closed",
+                            "EL rate error std [deg/s]", "paper", "vs ESO", "gap closed", "miss std [px]", "paper",
+                            "vs ESO", "gap closed"]
+    rows = {row[0].text: row for row in table.rows}
+    assert [rows["ESO+KF"][i].text for i in (5, 9, 13)] == ["70.5 %", "57.7 %", "66.0 %"]
+    assert [rows["ESO"][i].text for i in (5, 9, 13)] == ["0.0 %"] * 3
+    assert [rows["oracle"][i].text for i in (5, 9, 13)] == ["100.0 %"] * 3
+    # the oracle is a reference: the best of each column is the best real controller
+    assert rows["ESO+KF"][2].best and not rows["oracle"][2].best
+    assert rows["oracle"][2].text == "+-0.110 (0.100–0.120)" and rows["oracle"][3].text == "—"
+    banner = report.verdict(result)
+    assert banner.headline == "ESO+KF wins" and "Best in 3 of 3 table columns" in banner.text
+    assert "The oracle is a reference, not ranked: it runs on the plant's truth (sim clock only)." in banner.text
+    renamed = oracle_result(tmp_path, oracle="truth")
+    assert "The oracle (truth) is a reference" in report.verdict(renamed).text
+    assert report.gap_closed_fraction(renamed, P1, "ESO+KF", "miss_std_px") == pytest.approx(3.3 / 5.0)
+
+    make_campaign(tmp_path, result.config, result.cells, complete=True)
+    files = write_report(tmp_path)
+    md = files.markdown.read_text()
+    assert ("| ESO+KF | 2/2 | **+-0.290 (0.280–0.300)** | +-0.28 | +59.7 % (paper +61.1 %) | 70.5 % "
+            "| **0.170 (0.160–0.180)** | 0.17 | +46.9 % (paper +46.9 %) | 57.7 % "
+            "| **2.80 (2.70–2.90)** | 2.71 | +54.1 % (paper +55.0 %) | 66.0 % |") in md
+    assert "| oracle | 2/2 | +-0.110 (0.100–0.120) | — | +84.7 % | 100.0 % |" in md
+    page = files.html.read_text()
+    assert page.count("<th>gap closed</th>") == 3 and "<td>70.5 %</td>" in page
+
+
+def test_no_gap_column_without_an_oracle_or_a_baseline(tmp_path):
+    no_baseline = oracle_result(tmp_path, baseline=None)
+    assert report.oracle_label(no_baseline) is None and "gap closed" not in profile_table(no_baseline, P1).header
+    oracle_baseline = oracle_result(tmp_path, baseline="oracle")
+    assert report.oracle_label(oracle_baseline) is None
+    assert "gap closed" not in profile_table(oracle_baseline, P1).header
+    plain = CampaignResult(config=campaign_config(tmp_path), cells=full_cells(campaign_config(tmp_path)))
+    assert report.oracle_label(plain) is None and "gap closed" not in profile_table(plain, P1).header
