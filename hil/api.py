@@ -36,7 +36,7 @@ CLOCKS: tuple[str, ...] = ("realtime", "lockstep", "sim")
 Progress = Callable[[int, int], None]  # (cycles done, cycles in the session)
 
 __all__ = ["CampaignRun", "IdentRun", "RunResult", "check_file", "ident", "load_session", "read_log", "replay_capture",
-           "replay_log", "report", "run", "run_async", "run_campaign"]
+           "replay_log", "report", "run", "run_async", "run_campaign", "tune"]
 
 
 @dataclasses.dataclass
@@ -482,6 +482,15 @@ def replay_capture(capture: str | Path, **options: Any) -> Any:
         return replay.replay_capture(Path(capture), **options)
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+
+
+def tune(campaign: Any, params: Any, **options: Any) -> Any:
+    """Controller gains by search (`hil tune`, docs/tuning.md): an Optuna study whose trials are the campaign's
+    cells for one controller with the trial's parameters; the study lives in an RDB (SQLite by default). Returns a
+    ``hil.tune.TuneResult``; ``options`` as ``hil.tune.tune``."""
+    from hil import tune as tuning
+
+    return tuning.tune(campaign, params, **options)
 
 
 def check_file(path: str | Path, kind: str | None = None) -> dict[str, Any]:

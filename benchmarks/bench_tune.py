@@ -1,0 +1,148 @@
+"""Tune a controller with `hil tune` and measure what the tuning bought (docs/tuning.md).
+
+    .venv/bin/python benchmarks/bench_tune.py [--campaign profiles/campaigns/tune-eso-kf-miss-3deg.yaml]
+        [--controller ESO+KF] [--params "..."] [--trials 200] [--workers 2] [--skip-tune] [--json PATH]
+
+1. The study: ``hil.tune.tune`` on the campaign (its cells, the tuned controller's entry), ``--trials`` trials,
+   ``--workers`` at a time; its wall time is printed.
+2. The comparison: one campaign with the baseline (the campaign's ``baseline``), the tuned entry with its
+   campaign parameters (the paper's defaults), the same entry with the tuned parameters, and the ``oracle``
+   controller (the plant's true rate, sim clock only; left out if the registry has none) on the campaign's own
+   cells (the seeds the study saw) and on held-out cells (other seeds, longer cells: ``--heldout-seeds``,
+   ``--heldout-duration``). For each: the objective's mean over the cells and the fraction of the
+   baseline-to-oracle gap it closes, ``(baseline - x) / (baseline - oracle)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from hil.campaign import load_campaign, run_campaign  # noqa: E402
+from hil.campaign.model import ControllerEntry  # noqa: E402
+from hil.config import ControllerConfig, load_model  # noqa: E402
+from hil.control import registry  # noqa: E402
+from hil.tune import choose_controller, tune  # noqa: E402
+
+SPACE = "omega_o_rad_s=100..2000:log, kp_counts_per_dps=1000..20000:log, q_dps2=1e-6..1e-2:log"
+
+
+def compare(config, entry, tuned_params, objective: str, *, jobs: int, seeds: list[int] | None,
+            duration_s: float | None) -> dict[str, dict[str, float]]:
+    """The objective's mean (and per-cell values) for baseline, default, tuned and oracle on one set of cells."""
+    base = next(c for c in config.controllers if c.label == config.baseline)
+    controllers = [base, entry, ControllerEntry(label=f"{entry.label} tuned", name=entry.name, params=tuned_params)]
+    if "oracle" in {**registry.REGISTRY, **getattr(registry, "SIM_ONLY", {})}:
+        controllers.append(ControllerEntry(label="oracle", name="oracle"))
+    update = {"controllers": controllers, "acceptance": [], "paper": {}, "name": f"{config.name}-compare"}
+    if seeds:
+        update["seeds"] = seeds
+    if duration_s:
+        update["duration_s"] = duration_s
+    cfg = config.model_copy(update=update)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        result = run_campaign(cfg, Path(tmp) / "c", jobs=jobs)
+        wall = time.perf_counter() - t0
+    out: dict[str, dict[str, float]] = {}
+    for c in controllers:
+        v = [x.metrics.get(objective, math.nan) for x in result.cells if x.controller == c.label]
+        bad = [x.cell_id for x in result.cells if x.controller == c.label and x.status != "completed"]
+        out[c.label] = {"mean": sum(v) / len(v) if v else math.nan, "values": v, "failed": bad,
+                        "ripple": _mean([x.metrics.get("drive_ripple_el_counts", math.nan) for x in result.cells
+                                         if x.controller == c.label])}
+    out["_wall_s"] = {"mean": wall}
+    return out
+
+
+def _mean(v: list[float]) -> float:
+    return sum(v) / len(v) if v else math.nan
+
+
+def table(title: str, numbers: dict[str, dict[str, float]], baseline: str, objective: str) -> list[str]:
+    ref = numbers[baseline]["mean"]
+    oracle = numbers.get("oracle", {}).get("mean", math.nan)
+    lines = [f"{title} ({numbers['_wall_s']['mean']:.0f} s wall)", "",
+             f"| controller | {objective}, mean | per cell | drive ripple el (counts) | gap closed |",
+             "|---|---:|---|---:|---:|"]
+    for label, n in numbers.items():
+        if label.startswith("_"):
+            continue
+        gap = (ref - n["mean"]) / (ref - oracle) if math.isfinite(oracle) and ref != oracle else math.nan
+        cells = ", ".join(f"{x:.4g}" for x in n["values"])
+        lines.append(f"| {label} | {n['mean']:.4g} | {cells} | {n['ripple']:.0f} | "
+                     f"{'n/a' if not math.isfinite(gap) else f'{100 * gap:.0f} %'} |")
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--campaign", type=Path, default=ROOT / "profiles" / "campaigns" / "tune-eso-kf-miss-3deg.yaml")
+    ap.add_argument("--controller", default=None)
+    ap.add_argument("--params", default=SPACE)
+    ap.add_argument("--objective", default="miss_std_px")
+    ap.add_argument("--constraint", action="append", default=[])
+    ap.add_argument("--trials", type=int, default=200)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--study", default=None)
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--skip-tune", action="store_true", help="use the tuned YAML already in --out")
+    ap.add_argument("--write-profile", type=Path, default=None)
+    ap.add_argument("--heldout-seeds", type=int, nargs="*", default=[3, 4, 5])
+    ap.add_argument("--heldout-duration", type=float, default=20.0)
+    ap.add_argument("--jobs", type=int, default=2, help="cells at once in the comparison campaigns")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    config = load_campaign(args.campaign)
+    entry = choose_controller(config, args.controller)
+    out = args.out or ROOT / "runs" / "tune" / (args.study or config.name)
+    report: dict[str, object] = {"campaign": str(args.campaign), "controller": entry.label}
+    if not args.skip_tune:
+        t0 = time.perf_counter()
+        result = tune(config, args.params, objective=args.objective, trials=args.trials, controller=entry.label,
+                      constraints=args.constraint, workers=args.workers, study=args.study, resume=args.resume,
+                      out=out, seed=args.seed, write_profile=args.write_profile)
+        wall = time.perf_counter() - t0
+        print(f"study {result.study}: {result.trials_run} trials run ({len(result.trials)} in the study), "
+              f"{args.workers} workers: {wall:.0f} s wall ({wall / max(result.trials_run, 1):.1f} s per trial); "
+              f"{result.n_complete} complete, {result.n_infeasible} infeasible, {result.n_failed} failed")
+        print(f"best trial {result.best_trial}: {args.objective} {result.best_value}: {result.best_params}")
+        report.update(study_wall_s=wall, trials_run=result.trials_run, trials=len(result.trials),
+                      failed=result.n_failed, infeasible=result.n_infeasible, best_trial=result.best_trial,
+                      best_value=result.best_value, best_params=result.best_params)
+        yaml_path = result.yaml_path
+    else:
+        yaml_path = out / f"{entry.name}-tuned.yaml"
+    if yaml_path is None or not yaml_path.exists():
+        print("no tuned controller: nothing to compare")
+        return
+    tuned = load_model(ControllerConfig, yaml_path).params
+    baseline = config.baseline or config.controllers[0].label
+    lines = []
+    for title, seeds, duration in (
+            (f"the study's cells ({config.duration_s:g} s, seeds {config.seeds})", None, None),
+            (f"held-out cells ({args.heldout_duration:g} s, seeds {args.heldout_seeds})", args.heldout_seeds,
+             args.heldout_duration)):
+        if seeds == []:
+            continue
+        numbers = compare(config, entry, tuned, args.objective, jobs=args.jobs, seeds=seeds, duration_s=duration)
+        report[title] = numbers
+        lines += [*table(title, numbers, baseline, args.objective), ""]
+    print("\n".join(lines))
+    if args.json is not None:
+        args.json.write_text(json.dumps(report, indent=2, default=str))
+
+
+if __name__ == "__main__":
+    main()
