@@ -325,6 +325,7 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
              *, check_logs: bool = True) -> tuple[float, list[float], dict[str, Any]]:
     """A trial's campaign result -> (objective, constraint values, attributes). ValueError (one line) when the
     trial is unstable or its numbers are missing: the caller scores it as failed."""
+    from hil.campaign.metrics import METRICS
     from hil.control.registry import effective_params
 
     config: CampaignConfig = result.config
@@ -366,6 +367,8 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
         return out
 
     obj = values(objective)
+    if METRICS[objective].magnitude:  # a lag's lead is no better than the same lag: scored by its magnitude
+        obj = [abs(v) for v in obj]
     attrs["cells"] = {c.cell_id: c.metrics.get(objective) for c in cells}
     every = list(constraints) + [Constraint(m, op, bound) for m, t in config.thresholds.items()  # type: ignore[arg-type]
                                  for op, bound in (("<=", t.max), (">=", t.min)) if bound is not None]

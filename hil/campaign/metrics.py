@@ -7,7 +7,14 @@ Three analyses (a campaign picks one; ``control`` metrics are always computed):
 - ``static_noise``: seed 000 Fig. 12: the elevation gyro at rest, raw vs the 150 Hz first-order
   low-pass (applied here to the logged raw gyro) vs the KF estimate the loop fed back;
 - ``filter_lag``: seed 000 Fig. 13: with a sine on the rate command, the lag of the 150 Hz low-pass
-  and of the KF behind the raw gyro at the sine's frequency, in 1 ms loop cycles.
+  and of the KF behind the raw gyro at the sine's frequency, in loop cycles of 1 ms (samples: 0.63 is
+  0.63 ms), never in periods of the excitation; negative is a lead.
+
+"Cycles" in a metric's name or unit are always the bench's 1 ms loop cycles (``lag_*_cycles``: a time in
+loop cycles; ``missed_cycles``: a count of loop cycles). Each metric has a ``kind`` (error, noise, lag,
+effort, health): a campaign's verdict ranks and averages its ``primary_metrics``, by default its error
+metrics (:func:`default_primary`), never effort or health. A lag is compared by its magnitude
+(:func:`score`): a lead is as far off in time as a lag of the same size, and never an improvement over it.
 """
 
 from __future__ import annotations
@@ -15,7 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -24,12 +31,23 @@ LOS_BAND_HZ = 20.0  # seed 001's LOS rate: the 2.5 Hz vibration's band, above it
 RECORD_S = 1.0  # peak-to-peak noise is read per 1 s record, as the paper's Fig. 12 shows one
 
 
+MetricKind = Literal["error", "noise", "lag", "effort", "health"]
+LOOP_CYCLES = "loop cycles of 1 ms"  # the unit of every lag metric: samples of the 1 kHz loop, i.e. ms
+
+
 @dataclass(frozen=True)
 class Metric:
+    """``kind``: ``error`` what the stabilisation leaves (rate error, miss distance, LOS rate); ``noise`` a
+    signal's noise at rest; ``lag`` a filter's lag; ``effort`` what the controller spends (drive ripple);
+    ``health`` the loop's timing. ``magnitude``: the sign is a direction, not better or worse (a lag's: + lag,
+    - lead), so improvements compare ``abs(value)``."""
+
     label: str
     unit: str
     description: str
     lower_is_better: bool = True
+    kind: MetricKind = "error"
+    magnitude: bool = False
 
 
 METRICS: dict[str, Metric] = {
@@ -37,8 +55,10 @@ METRICS: dict[str, Metric] = {
     "rate_err_el_range_dps": Metric("EL rate error +-", "deg/s", "half peak-to-peak of the elevation rate error"),
     "rate_err_az_std_dps": Metric("AZ rate error std", "deg/s", "std of command minus raw gyro, azimuth"),
     "rate_err_az_range_dps": Metric("AZ rate error +-", "deg/s", "half peak-to-peak of the azimuth rate error"),
-    "drive_ripple_el_counts": Metric("EL drive ripple", "counts", "std of the drive minus its 20 ms moving mean"),
-    "drive_ripple_az_counts": Metric("AZ drive ripple", "counts", "std of the drive minus its 20 ms moving mean"),
+    "drive_ripple_el_counts": Metric("EL drive ripple", "counts", "std of the drive minus its 20 ms moving mean",
+                                     kind="effort"),
+    "drive_ripple_az_counts": Metric("AZ drive ripple", "counts", "std of the drive minus its 20 ms moving mean",
+                                     kind="effort"),
     "miss_x_std_px": Metric("miss x std", "px", "std of the valid frames' x miss distance"),
     "miss_x_range_px": Metric("miss x +-", "px", "half peak-to-peak of the x miss distance"),
     "miss_y_std_px": Metric("miss y std", "px", "std of the valid frames' y miss distance"),
@@ -48,17 +68,52 @@ METRICS: dict[str, Metric] = {
     "los_rate_rms_dps": Metric("LOS rate rms", "deg/s", "rms of the gyro's y-z (line-of-sight) rate minus command"),
     "los_rate_lf_std_dps": Metric("LOS rate std < 20 Hz", "deg/s", "std of the y-z rate error after a 20 Hz "
                                   "first-order low-pass: the carrier-disturbance band without the gyro's white noise"),
-    "gyro_raw_peak_dps": Metric("raw gyro +-", "deg/s", "median over 1 s records of max |x - mean|, elevation"),
-    "gyro_raw_std_dps": Metric("raw gyro std", "deg/s", "std of the raw elevation gyro"),
-    "gyro_lpf_peak_dps": Metric("LPF 150 Hz +-", "deg/s", "the same after a 150 Hz first-order low-pass"),
-    "gyro_lpf_std_dps": Metric("LPF 150 Hz std", "deg/s", "std after the 150 Hz low-pass"),
-    "gyro_kf_peak_dps": Metric("KF +-", "deg/s", "the same for the KF estimate the loop fed back"),
-    "gyro_kf_std_dps": Metric("KF std", "deg/s", "std of the KF estimate"),
-    "lag_lpf_cycles": Metric("LPF lag", "cycles", "lag of the 150 Hz low-pass behind the raw gyro, 1 ms cycles"),
-    "lag_kf_cycles": Metric("KF lag", "cycles", "lag of the KF estimate behind the raw gyro, 1 ms cycles"),
-    "latency_p99_us": Metric("latency p99", "us", "bench side: sample decoded -> DRIVE_CMD written"),
-    "missed_cycles": Metric("missed cycles", "1", "samples the bench never saw"),
+    "gyro_raw_peak_dps": Metric("raw gyro +-", "deg/s", "median over 1 s records of max |x - mean|, elevation",
+                                kind="noise"),
+    "gyro_raw_std_dps": Metric("raw gyro std", "deg/s", "std of the raw elevation gyro", kind="noise"),
+    "gyro_lpf_peak_dps": Metric("LPF 150 Hz +-", "deg/s", "the same after a 150 Hz first-order low-pass",
+                                kind="noise"),
+    "gyro_lpf_std_dps": Metric("LPF 150 Hz std", "deg/s", "std after the 150 Hz low-pass", kind="noise"),
+    "gyro_kf_peak_dps": Metric("KF +-", "deg/s", "the same for the KF estimate the loop fed back", kind="noise"),
+    "gyro_kf_std_dps": Metric("KF std", "deg/s", "std of the KF estimate", kind="noise"),
+    "lag_lpf_cycles": Metric("LPF lag", LOOP_CYCLES, "lag of the 150 Hz low-pass behind the raw gyro at the "
+                             "excitation frequency, in 1 ms loop cycles (not periods of the excitation); "
+                             "negative = a lead, compared by magnitude", kind="lag", magnitude=True),
+    "lag_kf_cycles": Metric("KF lag", LOOP_CYCLES, "lag of the KF estimate behind the raw gyro at the excitation "
+                            "frequency, in 1 ms loop cycles (not periods of the excitation); negative = a lead, "
+                            "compared by magnitude", kind="lag", magnitude=True),
+    "latency_p99_us": Metric("latency p99", "us", "bench side: sample decoded -> DRIVE_CMD written", kind="health"),
+    "missed_cycles": Metric("missed loop cycles", "count", "1 ms loop cycles whose sample the bench never saw "
+                            "(a count, not a time)", kind="health"),
 }
+
+
+def default_primary(metrics: list[str]) -> list[str]:
+    """The metrics a campaign's verdict uses when it names no ``primary_metrics``: those of ``metrics`` (the
+    table's columns) of kind ``error``; if it has none, those of kind ``noise`` and ``lag``; never ``effort``
+    (drive ripple) or ``health`` (latency, missed cycles). May be empty (then the verdict names no winner)."""
+    errors = [m for m in metrics if METRICS[m].kind == "error"]
+    return errors or [m for m in metrics if METRICS[m].kind in ("noise", "lag")]
+
+
+def score(metric: str, value: float) -> float:
+    """``value`` as better-or-worse compares it: ``abs(value)`` for a magnitude metric (a lag: a lead of 0.4 loop
+    cycles is as far off as a lag of 0.4, and worse than a lag of 0.3), else the value itself."""
+    return abs(value) if METRICS[metric].magnitude else value
+
+
+def gain_pct(value: float, ref: float, lower_is_better: bool = True) -> float:
+    """How much better ``value`` is than ``ref``, % of ``ref`` (positive = better); NaN if undefined."""
+    if not (math.isfinite(value) and math.isfinite(ref)) or ref == 0:
+        return math.nan
+    return 100.0 * ((ref - value) if lower_is_better else (value - ref)) / abs(ref)
+
+
+def improvement_pct(metric: str, value: float, ref: float) -> float:
+    """How much better ``value`` is than ``ref`` on ``metric``, % of ``ref`` (positive = better), on the
+    :func:`score`: for a lag, ``100 * (|ref| - |value|) / |ref|``, so a lead never counts as more than a lag
+    removed (lag 0.63 -> lead -0.36 is +42.9 %, not +157 %; -> lead -0.9 is -42.9 %). NaN if undefined."""
+    return gain_pct(score(metric, value), score(metric, ref), METRICS[metric].lower_is_better)
 
 
 def gap_closed(value: float, baseline: float, oracle: float) -> float:
@@ -95,8 +150,9 @@ def low_pass(x: np.ndarray, cutoff_hz: float = PAPER_LPF_HZ, dt_s: float = 1e-3)
 
 
 def lag_cycles(reference: np.ndarray, filtered: np.ndarray, freq_hz: float, dt_s: float = 1e-3) -> float:
-    """How many samples ``filtered`` lags ``reference`` at ``freq_hz``: the phase difference of their
-    single-frequency DFT components over whole periods, divided by 2 pi f dt."""
+    """How many loop cycles (samples of ``dt_s``: 1 ms, so the lag in ms) ``filtered`` lags ``reference`` at
+    ``freq_hz``: the phase difference of their single-frequency DFT components over whole periods, divided by
+    2 pi f dt (a lag in periods of the excitation is this times ``freq_hz * dt_s``). Negative: a lead."""
     period = 1.0 / (freq_hz * dt_s)
     n = int(math.floor(reference.size / period) * period)
     if n < period:

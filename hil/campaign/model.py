@@ -2,7 +2,8 @@
 
 A campaign is a matrix: hexapod profiles x controllers (with parameters) x repetitions (seeds), each
 cell one session built from a base session file. Per-cell thresholds on named metrics decide pass/fail;
-acceptance rules compare controllers ("ESO+KF's miss std is >= 40 % lower than ESO's") on every seed.
+acceptance rules compare controllers ("high-gain ESO+KF's miss std is >= 40 % lower than ESO's") on every
+seed. The report's verdict ranks the controllers on the campaign's primary metrics only.
 The results land in ``CAMPAIGN_DIR/campaign.json`` as a :class:`CampaignResult`, which `hil report`
 turns into Markdown and HTML.
 """
@@ -16,7 +17,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
-from hil.campaign.metrics import METRICS
+from hil.campaign.metrics import METRICS, default_primary
 from hil.config import MAX_SESSION_S, NAME_PATTERN, Seed, Strict, _resolve
 
 _SLUG = re.compile(r"[^A-Za-z0-9]+")
@@ -66,7 +67,8 @@ class Threshold(Strict):
 
 class AcceptanceRule(Strict):
     """``better``'s ``metric`` is at least ``by_pct`` % lower than ``than``'s ``than_metric`` (default: the
-    same metric), per profile and seed. With better == than it compares two metrics of one run."""
+    same metric), per profile and seed. With better == than it compares two metrics of one run. A magnitude
+    metric (a lag) compares absolute values: a lead is not "lower" than a lag of the same size."""
 
     metric: str
     better: str = Field(description="controller label")
@@ -81,9 +83,13 @@ class AcceptanceRule(Strict):
 
     def describe(self) -> str:
         by = f" by >= {self.by_pct:g} %" if self.by_pct else ""
+
+        def name(metric: str) -> str:  # a magnitude metric (a lag) is compared by |value|
+            return f"|{metric}|" if metric in METRICS and METRICS[metric].magnitude else metric
+
         if self.reference_metric != self.metric:
-            return f"{self.better}: {self.metric} below {self.reference_metric}{by}"
-        return f"{self.better} lowers {self.metric} vs {self.than}{by}"
+            return f"{self.better}: {name(self.metric)} below {name(self.reference_metric)}{by}"
+        return f"{self.better} lowers {name(self.metric)} vs {self.than}{by}"
 
 
 Analysis = Literal["control", "static_noise", "filter_lag"]
@@ -104,6 +110,9 @@ class CampaignConfig(Strict):
     seeds: list[Seed] = Field(min_length=1, max_length=MAX_AXIS_ENTRIES, description="one repetition per seed")
     baseline: str | None = Field(None, description="controller label the improvements are relative to")
     metrics: list[str] = Field(min_length=1, description="the table's columns")
+    primary_metrics: list[str] | None = Field(
+        None, min_length=1, description="the metrics the report's verdict ranks and averages, each one of `metrics` "
+        "(default: the table's error metrics, hil.campaign.metrics.default_primary); the others are shown only")
     thresholds: dict[str, Threshold] = Field(default_factory=dict)
     acceptance: list[AcceptanceRule] = Field(default_factory=list)
     paper: dict[str, dict[str, dict[str, float]]] = Field(
@@ -111,13 +120,20 @@ class CampaignConfig(Strict):
 
     _rel = field_validator("session", mode="before")(_resolve)
 
-    @field_validator("metrics")
+    @field_validator("metrics", "primary_metrics")
     @classmethod
-    def _known_metrics(cls, names: list[str]) -> list[str]:
-        for name in names:
+    def _known_metrics(cls, names: list[str] | None) -> list[str] | None:
+        for name in names or []:
             if name not in METRICS:
                 raise ValueError(f"unknown metric {name!r} (metrics: {', '.join(METRICS)})")
+        if names is not None and len(set(names)) != len(names):
+            raise ValueError(f"{next(n for n in names if names.count(n) > 1)!r} appears twice")
         return names
+
+    @property
+    def verdict_metrics(self) -> list[str]:
+        """The metrics the verdict uses: ``primary_metrics``, or by default the table's error metrics."""
+        return list(self.primary_metrics) if self.primary_metrics is not None else default_primary(self.metrics)
 
     @model_validator(mode="after")
     def _consistent(self) -> CampaignConfig:
@@ -142,6 +158,10 @@ class CampaignConfig(Strict):
             raise ValueError(f"seeds: {n_cells} cells (profiles x controllers x seeds), more than {MAX_CELLS}")
         if self.baseline is not None and self.baseline not in labels:
             raise ValueError(f"baseline: {self.baseline!r} is not a controller label ({', '.join(labels)})")
+        for name in self.primary_metrics or []:
+            if name not in self.metrics:
+                raise ValueError(f"primary_metrics: {name!r} is not one of the campaign's metrics (the table's "
+                                 f"columns: {', '.join(self.metrics)})")
         for name in self.thresholds:
             if name not in METRICS:
                 raise ValueError(f"thresholds: unknown metric {name!r}")

@@ -4,12 +4,13 @@
 and, for the plots, each controller's first logged seed per profile. It writes ``report.md``,
 ``report.html`` (PNGs embedded as data URIs, inline CSS: one file to mail) and the PNGs into
 ``CAMPAIGN_DIR/report/``. Contents (docs/campaigns.md, "Reports"): a verdict banner (which controller
-won, by how much, acceptance PASS/FAIL), per profile the paper's table (mean over seeds, min–max,
-the paper's value, gain vs the baseline, and with an ``oracle`` in the campaign the fraction of the
-baseline-to-oracle gap each controller closes) and plots (rate error, miss distance, PSD, metric bars, the
-analysis's own filter plot), the acceptance rules, every cell's pass/fail and the run info. The oracle
+won on the campaign's primary metrics, by how much, acceptance PASS/FAIL), per profile the paper's table
+(mean over seeds, min–max, the paper's value, gain vs the baseline, and with an ``oracle`` in the campaign the
+fraction of the baseline-to-oracle gap each controller closes) and plots (rate error, miss distance, PSD, metric
+bars, the analysis's own filter plot), the acceptance rules, every cell's pass/fail and the run info. The oracle
 (hil.control.oracle: the plant's truth, sim clock only) is a reference: it is never the winner or the best
-of a column.
+of a column. A lag is ranked and compared by its magnitude (hil.campaign.metrics.score): a lead is no
+improvement over a lag of the same size.
 
 The document is built once as a list of neutral blocks (:class:`Heading`, :class:`Table`, ...) and
 rendered twice, so the Markdown and the HTML always say the same thing.
@@ -29,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.campaign.metrics import METRICS, gap_closed, low_pass
+from hil.campaign.metrics import METRICS, gain_pct, gap_closed, improvement_pct, low_pass, score
 from hil.campaign.model import CampaignResult, slug
 from hil.campaign.runner import load_results
 
@@ -156,20 +157,20 @@ def format_values(values: list[float], *, metric: str | None = None) -> str:
     return mean + (f" ({_num(min(v))}–{_num(max(v))})" if len(v) > 1 else "")
 
 
-def gain_pct(value: float, ref: float, lower_is_better: bool = True) -> float:
-    """How much better ``value`` is than ``ref``, % of ``ref`` (positive = better); NaN if undefined."""
-    if not (math.isfinite(value) and math.isfinite(ref)) or ref == 0:
-        return math.nan
-    return 100.0 * ((ref - value) if lower_is_better else (value - ref)) / abs(ref)
-
-
 def _pct(x: float) -> str:
     return f"{x:+.1f} %" if math.isfinite(x) else "n/a"
 
 
-def _best(stats: dict[str, Stat], lower_is_better: bool) -> str | None:
-    """The controller with the best mean, if at least two have one."""
-    have = {c: s.mean for c, s in stats.items() if math.isfinite(s.mean)}
+def _score_mean(result: CampaignResult, profile: str, controller: str, metric: str) -> float:
+    """The mean over the seeds of the metric as better-or-worse compares it (hil.campaign.metrics.score: the
+    magnitude of a lag, else the value itself, so then the table's mean)."""
+    v = [score(metric, x) for x in result.values(profile, controller, metric) if math.isfinite(x)]
+    return float(np.mean(v)) if v else math.nan
+
+
+def _best(scores: dict[str, float], lower_is_better: bool) -> str | None:
+    """The controller with the best mean score, if at least two have one."""
+    have = {c: s for c, s in scores.items() if math.isfinite(s)}
     if len(have) < 2:
         return None
     return (min if lower_is_better else max)(have, key=lambda c: have[c])
@@ -210,22 +211,23 @@ def gap_closed_fraction(result: CampaignResult, profile: str, controller: str, m
     oracle, base = oracle_label(result), _baseline(result)
     if oracle is None or base is None:
         return math.nan
-    return gap_closed(_stat(result, profile, controller, metric).mean, _stat(result, profile, base, metric).mean,
-                      _stat(result, profile, oracle, metric).mean)
+    return gap_closed(_score_mean(result, profile, controller, metric), _score_mean(result, profile, base, metric),
+                      _score_mean(result, profile, oracle, metric))
 
 
 # --- the verdict -----------------------------------------------------------------------------
 
 
 def _columns(result: CampaignResult) -> list[tuple[str, str]]:
-    return [(p.label, m) for p in result.config.profiles for m in result.config.metrics]
+    """The verdict's columns: every profile x the campaign's primary metrics (CampaignConfig.verdict_metrics)."""
+    return [(p.label, m) for p in result.config.profiles for m in result.config.verdict_metrics]
 
 
 def _wins(result: CampaignResult) -> tuple[dict[str, int], int]:
     wins = dict.fromkeys(_ranked(result), 0)
     total = 0
     for profile, metric in _columns(result):
-        best = _best({c: _stat(result, profile, c, metric) for c in wins}, METRICS[metric].lower_is_better)
+        best = _best({c: _score_mean(result, profile, c, metric) for c in wins}, METRICS[metric].lower_is_better)
         if best is not None:
             wins[best] += 1
             total += 1
@@ -233,9 +235,19 @@ def _wins(result: CampaignResult) -> tuple[dict[str, int], int]:
 
 
 def _gains(result: CampaignResult, controller: str, ref: str) -> list[float]:
-    out = [gain_pct(_stat(result, p, controller, m).mean, _stat(result, p, ref, m).mean,
+    out = [gain_pct(_score_mean(result, p, controller, m), _score_mean(result, p, ref, m),
                     METRICS[m].lower_is_better) for p, m in _columns(result)]
     return [g for g in out if math.isfinite(g)]
+
+
+def _on_what(result: CampaignResult) -> str:
+    """Which metrics the verdict is on, and which of the table's columns it leaves out."""
+    primary = result.config.verdict_metrics
+    others = [m for m in result.config.metrics if m not in primary]
+    default = "" if result.config.primary_metrics is not None else " (by default the error metrics)"
+    text = f"Verdict on the primary metric{'s' * (len(primary) != 1)}{default}: " \
+           f"{', '.join(METRICS[m].label for m in primary) or 'none'}"
+    return text + (f"; shown, not in the verdict: {', '.join(METRICS[m].label for m in others)}." if others else ".")
 
 
 def _acceptance_summary(result: CampaignResult) -> str:
@@ -248,8 +260,9 @@ def _acceptance_summary(result: CampaignResult) -> str:
 
 
 def verdict(result: CampaignResult) -> Banner:
-    """Which controller won (best in most table columns), by how much (mean gain over the baseline, or
-    over the runner-up when the baseline won), and the campaign's PASS/FAIL. The oracle is a reference, not ranked."""
+    """Which controller won (best in most primary columns: profile x primary metric), by how much (mean gain over
+    the baseline on the primary metrics, or over the runner-up when the baseline won), and the campaign's PASS/FAIL.
+    The table's other columns (drive ripple, ...) are not in it. The oracle is a reference, not ranked."""
     labels = _ranked(result)
     wins, total = _wins(result)
     oracles = _oracles(result)
@@ -262,31 +275,39 @@ def verdict(result: CampaignResult) -> Banner:
     if len(labels) < 2:
         besides = " besides the oracle" if oracles else ""
         return Banner(f"{labels[0]} (one controller{besides}, no comparison)", accept, result.passed)
+    if not result.config.verdict_metrics:
+        return Banner("No winner: no primary metric to rank on (name `primary_metrics` in the campaign)",
+                      f"{_on_what(result)} {accept}", result.passed)
     if total == 0:
-        return Banner("No winner: no results to compare yet", accept, result.passed)
+        return Banner("No winner: no results to compare yet", f"{_on_what(result)} {accept}", result.passed)
     ranked = sorted(labels, key=lambda c: -wins[c])  # stable: the campaign's order breaks ties
     winner = ranked[0]
     ref = result.config.baseline if result.config.baseline not in (None, winner, *oracles) else ranked[1]
     gains = _gains(result, winner, ref)
-    by = (f"{np.mean(gains):.1f} % better than {ref} on average ({_pct(min(gains))} to {_pct(max(gains))})"
-          if gains else f"no metric to compare with {ref}")
-    return Banner(f"{winner} wins", f"Best in {wins[winner]} of {total} table columns; {by}. {accept}",
-                  result.passed)
+    if gains:
+        mean = float(np.mean(gains))
+        by = (f"{abs(mean):.1f} % {'better' if mean >= 0 else 'worse'} than {ref} on average "
+              f"({_pct(min(gains))} to {_pct(max(gains))})")
+    else:
+        by = f"no primary metric to compare with {ref}"
+    return Banner(f"{winner} wins", f"Best in {wins[winner]} of {total} primary columns; {by}. {_on_what(result)} "
+                                    f"{accept}", result.passed)
 
 
 # --- tables ----------------------------------------------------------------------------------
 
 
-def _gain_cell(result: CampaignResult, profile: str, metric: str, controller: str, stats: dict[str, Stat]) -> Cell:
+def _gain_cell(result: CampaignResult, profile: str, metric: str, controller: str) -> Cell:
     base = _baseline(result)
     assert base is not None
     if controller == base:
         return Cell("baseline")
     lower = METRICS[metric].lower_is_better
-    text = _pct(gain_pct(stats[controller].mean, stats[base].mean, lower))
+    text = _pct(gain_pct(_score_mean(result, profile, controller, metric), _score_mean(result, profile, base, metric),
+                         lower))
     paper = result.config.paper.get(profile, {})
-    theirs = gain_pct(paper.get(controller, {}).get(metric, math.nan), paper.get(base, {}).get(metric, math.nan),
-                      lower)
+    theirs = improvement_pct(metric, paper.get(controller, {}).get(metric, math.nan),
+                             paper.get(base, {}).get(metric, math.nan))
     return Cell(text + (f" (paper {_pct(theirs)})" if math.isfinite(theirs) else ""))
 
 
@@ -298,9 +319,7 @@ def _metric_columns(result: CampaignResult, profile: str, metric: str) -> list[t
     """Ours (best emphasised, the oracle never), the paper's value if it has one, the gain vs the baseline, the
     fraction of the baseline-to-oracle gap closed (with an oracle)."""
     meta, labels = METRICS[metric], _labels(result)
-    stats = {c: _stat(result, profile, c, metric) for c in labels}
-    ranked = set(_ranked(result))
-    best = _best({c: s for c, s in stats.items() if c in ranked}, meta.lower_is_better)
+    best = _best({c: _score_mean(result, profile, c, metric) for c in _ranked(result)}, meta.lower_is_better)
     cols = [(f"{meta.label} [{meta.unit}]",
              [Cell(format_values(result.values(profile, c, metric), metric=metric), best=c == best) for c in labels])]
     paper = result.config.paper.get(profile, {})
@@ -308,7 +327,7 @@ def _metric_columns(result: CampaignResult, profile: str, metric: str) -> list[t
         theirs = [paper.get(c, {}).get(metric) for c in labels]
         cols.append(("paper", [Cell("—" if x is None else _value(metric, x, "{:g}".format)) for x in theirs]))
     if _baseline(result) is not None:
-        cols.append((f"vs {_baseline(result)}", [_gain_cell(result, profile, metric, c, stats) for c in labels]))
+        cols.append((f"vs {_baseline(result)}", [_gain_cell(result, profile, metric, c) for c in labels]))
     if oracle_label(result) is not None:
         cols.append(("gap closed", [Cell(_gap_text(gap_closed_fraction(result, profile, c, metric)))
                                     for c in labels]))

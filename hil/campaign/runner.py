@@ -31,7 +31,7 @@ import yaml
 from pydantic import ValidationError
 
 from hil.campaign.engines import Engine, EngineError, check_options, open_engine
-from hil.campaign.metrics import METRICS, compute_metrics
+from hil.campaign.metrics import METRICS, compute_metrics, score
 from hil.campaign.model import CampaignConfig, CampaignResult, CellResult, CellSpec, RuleResult
 from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line, read_file_bytes
 
@@ -161,27 +161,31 @@ def run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware:
 
 
 def judge(config: CampaignConfig, cells: list[CellResult]) -> list[RuleResult]:
-    """Every acceptance rule on every profile and seed."""
+    """Every acceptance rule on every profile and seed. A magnitude metric (a lag) is compared by its absolute
+    value (hil.campaign.metrics.score): a lead is never "lower" than a lag of the same size."""
     by_key = {(c.profile, c.controller, c.seed): c for c in cells}
     out = []
     for rule in config.acceptance:
         ok, details = True, []
+        by_size = METRICS[rule.metric].magnitude or METRICS[rule.reference_metric].magnitude
         for profile in rule.profiles or [p.label for p in config.profiles]:
             for seed in config.seeds:
                 better, than = by_key.get((profile, rule.better, seed)), by_key.get((profile, rule.than, seed))
                 b = better.metrics.get(rule.metric) if better and better.status == "completed" else None
                 a = than.metrics.get(rule.reference_metric) if than and than.status == "completed" else None
-                if a is None or b is None or math.isnan(a) or math.isnan(b) or a <= 0:
+                sa = math.nan if a is None else score(rule.reference_metric, a)
+                sb = math.nan if b is None else score(rule.metric, b)
+                if a is None or b is None or math.isnan(sa) or math.isnan(sb) or sa <= 0:
                     ok = False
                     details.append(f"{profile}, seed {seed}: not available")
                     continue
-                gain = 100.0 * (a - b) / a
-                holds = gain >= rule.by_pct and b < a
+                gain = 100.0 * (sa - sb) / sa
+                holds = gain >= rule.by_pct and sb < sa
                 ok &= holds
                 ref = rule.than if rule.reference_metric == rule.metric else rule.reference_metric
                 what = rule.better if rule.reference_metric == rule.metric else rule.metric
                 details.append(f"{profile}, seed {seed}: {ref} {a:.4g} -> {what} {b:.4g} "
-                               f"({gain:+.1f} %){'' if holds else '  FAILS'}")
+                               f"({gain:+.1f} %{' by magnitude' if by_size else ''}){'' if holds else '  FAILS'}")
         out.append(RuleResult(rule=rule.describe(), passed=ok, details=details))
     return out
 

@@ -26,7 +26,7 @@ hence ``K = M / (M + R)`` and ``P = (1 - K) M``.
 Behaviour (measured in tests/control/test_kalman.py, K = 0.089 i.e. S + Q = 1e-5, R = 0.034^2): static white gyro
 noise falls to 0.26 / 0.35 / 0.52 of its std at omega_o = 100 / 300 / 1000 rad/s (a first-order 150 Hz low-pass
 at 1 kHz: 0.66). Motion explained by the drive is tracked with no lag; motion the ESO must discover (a disturbance)
-lags by 0.17 / 0.08 / 0.007 cycles at 15 Hz for those omega_o (the low-pass: 0.0095). The ESO and the KF form a
+lags by 0.17 / 0.08 / 0.007 periods of a 15 Hz input for those omega_o (the low-pass: 0.0095). The ESO and the KF form a
 3-state loop (the ESO measures the KF, the KF predicts with the ESO) with a lightly damped complex pole pair, so
 the disturbance estimate overshoots a step by 15-60 %, more with larger omega_o.
 """

@@ -111,21 +111,15 @@ def shortened(name: str, tmp_path: Path, duration_s: float, seeds: list[int], **
     return path
 
 
-# The miss-distance campaign's ">= 40 %" rule is the paper's magnitude, which the default emulated plant does
-# not reach (ESO+KF is ~8 % better: docs/emulator.md); its short version checks the paper's order.
-ORDER_ONLY = [
-    {"metric": "miss_std_px", "better": "ESO+KF", "than": "ESO"},
-    {"metric": "miss_std_px", "better": "high-gain ESO+KF", "than": "ESO+KF"},
-]
-
-
 @pytest.mark.parametrize(
     ("name", "duration_s", "changes"),
     [
         ("static-gyro-noise.yaml", 3.0, {}),
         ("filter-lag-15hz.yaml", 2.0, {}),
         ("swing-rate-error.yaml", 4.0, {}),
-        ("swing-miss-distance.yaml", 4.0, {"acceptance": ORDER_ONLY}),
+        # its rules as shipped: high-gain ESO+KF >= 40 % below ESO (the paper's Tables 2-3: 55 % / 61 %; the
+        # default plant ~70 %), and below ESO+KF
+        ("swing-miss-distance.yaml", 4.0, {}),
         (
             "imbalance-ukf-ff.yaml",
             9.0,

@@ -133,7 +133,7 @@ def test_verdict_acceptance_cells_and_run_info(full):
     md = full[1].markdown.read_text()
     assert md.startswith("# ESO vs ESO+KF (synthetic)\n")
     verdict = md.splitlines()[2]
-    assert verdict.startswith("> **Verdict: ESO+KF wins.** Best in 6 of 6 table columns; ")
+    assert verdict.startswith("> **Verdict: ESO+KF wins.** Best in 6 of 6 primary columns; ")
     assert "better than ESO on average" in verdict and "Acceptance: PASS" in verdict
     mean_gain = np.mean([gain_pct(b, a) for a, b in ((0.72, 0.29), (0.32, 0.17), (6.1, 2.8))])
     assert f"{mean_gain:.1f} % better than ESO" in verdict
@@ -440,7 +440,7 @@ def test_gap_closed_column_with_an_oracle(tmp_path):
     assert rows["ESO+KF"][2].best and not rows["oracle"][2].best
     assert rows["oracle"][2].text == "+-0.110 (0.100–0.120)" and rows["oracle"][3].text == "—"
     banner = report.verdict(result)
-    assert banner.headline == "ESO+KF wins" and "Best in 3 of 3 table columns" in banner.text
+    assert banner.headline == "ESO+KF wins" and "Best in 3 of 3 primary columns" in banner.text
     assert "The oracle is a reference, not ranked: it runs on the plant's truth (sim clock only)." in banner.text
     renamed = oracle_result(tmp_path, oracle="truth")
     assert "The oracle (truth) is a reference" in report.verdict(renamed).text

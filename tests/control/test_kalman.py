@@ -46,7 +46,8 @@ def phase_rad(signal: np.ndarray, t: np.ndarray, f_hz: float) -> float:
     return math.atan2(c, s)
 
 
-def lag_cycles(reference: np.ndarray, filtered: np.ndarray, t: np.ndarray, skip: int = 2000) -> float:
+def lag_periods(reference: np.ndarray, filtered: np.ndarray, t: np.ndarray, skip: int = 2000) -> float:
+    """The lag at F_HZ in periods of the F_HZ sine (not 1 ms loop cycles: times 1 / (F_HZ * H_S) for those)."""
     d = phase_rad(reference[skip:], t[skip:], F_HZ) - phase_rad(filtered[skip:], t[skip:], F_HZ)
     return ((d + math.pi) % (2 * math.pi) - math.pi) / (2 * math.pi)
 
@@ -187,15 +188,15 @@ def test_lpf_lag_measurement_matches_its_analytic_phase() -> None:
     t, rate, _, gyro = sine_motion(20_000, np.random.default_rng(9))
     w = 2.0 * math.pi * F_HZ * H_S
     analytic = math.atan2((1.0 - LPF_A) * math.sin(w), 1.0 - (1.0 - LPF_A) * math.cos(w)) / (2.0 * math.pi)
-    assert lag_cycles(rate, lpf(gyro), t) == pytest.approx(analytic, abs=2e-4)  # ~0.0095 cycles, ~0.63 ms
+    assert lag_periods(rate, lpf(gyro), t) == pytest.approx(analytic, abs=2e-4)  # ~0.0095 periods, 0.63 ms
 
 
 @pytest.mark.parametrize("omega_o", [100.0, 300.0, 1000.0])
 def test_kf_lags_less_than_lpf_on_commanded_motion(omega_o: float) -> None:
     # Fig 13's case: the platform is driven (closed loop) at 15 Hz, so the drive explains the motion to the KF.
     t, rate, u, gyro = sine_motion(20_000, np.random.default_rng(10))
-    kf_lag = lag_cycles(rate, run(make(omega_o), gyro, u), t)
-    lpf_lag = lag_cycles(rate, lpf(gyro), t)
+    kf_lag = lag_periods(rate, run(make(omega_o), gyro, u), t)
+    lpf_lag = lag_periods(rate, lpf(gyro), t)
     assert abs(kf_lag) < 1e-3 < lpf_lag
 
 
@@ -204,8 +205,8 @@ def test_lag_on_unmodelled_motion_depends_on_eso_bandwidth(omega_o: float, kf_la
     # Same 15 Hz rate, caused by a disturbance (u = 0): the KF knows it only through the ESO's z2, so its lag
     # falls with omega_o (the paper's "high-gain ESO + KF"); at 100-300 rad/s it lags more than the 150 Hz LPF.
     t, rate, _, gyro = sine_motion(20_000, np.random.default_rng(12))
-    kf_lag = lag_cycles(rate, run(make(omega_o), gyro, None), t)
-    lpf_lag = lag_cycles(rate, lpf(gyro), t)
+    kf_lag = lag_periods(rate, run(make(omega_o), gyro, None), t)
+    lpf_lag = lag_periods(rate, lpf(gyro), t)
     assert kf_lag > 0.0
     assert (kf_lag < lpf_lag) is kf_lags_less
     if kf_lags_less:  # and it still filters more than the LPF
