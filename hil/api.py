@@ -286,9 +286,11 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
                      hardware: bool = False, clock: Literal["sim", "lockstep"] = "sim",
                      engine: Literal["local", "dask"] | Engine = "local", scheduler: str | None = None,
                      workers: int | None = None, shared_dir: str | Path | None = None,
+                     plant: str | Path | None = None,
                      ) -> tuple[CampaignConfig, Path, dict[str, dict[str, Any]]]:
     """Check a campaign without running it: (config, its directory, every cell's session). ConfigError otherwise.
-    The engine options are checked as given (the scheduler is not contacted here: :func:`run_campaign` does)."""
+    The engine options are checked as given (the scheduler is not contacted here: :func:`run_campaign` does).
+    ``plant``: run every cell on this plant file (a fitted twin, docs/fit.md) instead of the sessions' own."""
     from hil.campaign import CampaignError
     from hil.campaign.engines import EngineError, check_options
     from hil.campaign.runner import cell_sessions
@@ -297,6 +299,8 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
     config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore[assignment]
     out_dir = Path(out) if out is not None else Path("runs") / "campaigns" / config.name
     require_writable_dir(out_dir, "--out")
+    if plant is not None:
+        config = _on_plant(config, Path(plant), out_dir)
     if clock not in ("sim", "lockstep"):
         raise ConfigError(f"--clock: {clock!r} is not sim or lockstep")
     try:
@@ -317,11 +321,27 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
     return config, out_dir, sessions
 
 
+def _on_plant(config: CampaignConfig, plant: Path, out_dir: Path) -> CampaignConfig:
+    """The campaign with every cell's emulator on ``plant`` (an emulator file written into ``out_dir``)."""
+    from firmware_stub.plant import PlantConfigError, load_plant_config
+    from hil.fit.record import emulator_for_plant
+
+    try:
+        load_plant_config(plant)
+    except PlantConfigError as exc:
+        raise ConfigError(f"--plant: {exc}") from None
+    emulator = emulator_for_plant(plant, out_dir)
+    overrides = {**config.overrides, "emulator": {**(config.overrides.get("emulator") or {}),
+                                                  "config": str(emulator.resolve())}}
+    return config.model_copy(update={"overrides": overrides})
+
+
 def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | None = None, jobs: int = 1,
                  resume: bool = False, hardware: bool = False, clock: Literal["sim", "lockstep"] = "sim",
                  write_report: bool = True, on_cell: Callable[[CellResult], None] | None = None,
                  engine: Literal["local", "dask"] | Engine = "local", scheduler: str | None = None,
-                 workers: int | None = None, shared_dir: str | Path | None = None) -> CampaignRun:
+                 workers: int | None = None, shared_dir: str | Path | None = None,
+                 plant: str | Path | None = None) -> CampaignRun:
     """Run (or with ``resume`` finish) a swing campaign: every cell a session with its own log, then the
     acceptance verdict and (``write_report``) the report. ``out`` defaults to ``runs/campaigns/NAME``.
     Cells run ``jobs`` at a time on the ``sim`` clock (or ``lockstep``), or on the lab's ports (``hardware``).
@@ -331,13 +351,15 @@ def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | Non
     end; with a scheduler, ``workers`` waits for that many workers. The cells' files come back to ``out`` as bytes,
     or through ``shared_dir``, a directory every worker sees at the same path. An open
     :class:`hil.campaign.engines.Engine` may be given instead (its owner closes it). An unreachable scheduler is
-    a ConfigError naming ``--scheduler``, raised before anything is written.
+    a ConfigError naming ``--scheduler``, raised before anything is written. ``plant``: every cell on this plant
+    file (a fitted twin) instead of the one its session's emulator names.
     Blocking; inside a running event loop it runs the cells in worker threads, which is what it does anyway."""
     from hil.campaign import CampaignError
     from hil.campaign import run_campaign as run_cells
 
     config, out_dir, sessions = prepare_campaign(campaign, out=out, hardware=hardware, clock=clock, engine=engine,
-                                                 scheduler=scheduler, workers=workers, shared_dir=shared_dir)
+                                                 scheduler=scheduler, workers=workers, shared_dir=shared_dir,
+                                                 plant=plant)
     try:
         result = run_cells(config, out_dir, jobs=jobs, resume=resume, hardware=hardware, on_cell=on_cell,
                            sessions=sessions, engine=engine, scheduler=scheduler, workers=workers,

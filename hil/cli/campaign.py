@@ -32,6 +32,8 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
         "Cells run at once (loopback only); with --engine dask and no --scheduler, the worker processes "
         "started."))] = 1,
     hardware: Annotated[bool, typer.Option("--hardware", help="Run on the lab's ports, one cell at a time.")] = False,
+    plant: Annotated[Path | None, typer.Option(
+        help="Run every cell on this plant file (e.g. a fitted twin, profiles/plant/paper-000.yaml).")] = None,
     clock: Annotated[Literal["sim", "lockstep"], typer.Option(
         help="Loopback cells: sim (in-process) or lockstep (over ptys); the same logs either way.")] = "sim",
     engine: Annotated[Literal["local", "dask"], typer.Option(
@@ -59,7 +61,8 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
 
     try:
         config, out_dir, _ = api.prepare_campaign(file, out=out, hardware=hardware, clock=clock, engine=engine,
-                                                  scheduler=scheduler, workers=workers, shared_dir=shared_dir)
+                                                  scheduler=scheduler, workers=workers, shared_dir=shared_dir,
+                                                  plant=plant)
     except ConfigError as exc:
         raise fail(str(exc)) from None
     n_cells = len(config.cells())

@@ -17,6 +17,7 @@ import contextlib
 import datetime as _dt
 import json
 import os
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ import numpy as np
 from hil.log.schema import LOG_FORMAT_VERSION, schema_from_json
 from hil.log.writer import LogError, describe_error
 
+TRUNCATED_FRACTION = 0.9  # a file with less of its superblock's bytes is refused as truncated (see _open)
 _COPY_ROWS = 1 << 20  # recover copies this many rows per dataset at a time
 
 
@@ -89,8 +91,14 @@ def _open(path: Path) -> tuple[h5py.File, bool]:
         raise LogError(f"cannot read session log {path}: no such file")
     try:
         return h5py.File(path, "r"), True
-    except OSError:
-        pass
+    except OSError as exc:
+        cut = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", str(exc))
+        if cut and int(cut[1]) < TRUNCATED_FRACTION * int(cut[2]):
+            # much of what the superblock counts is gone (a copy cut short): HDF5's SWMR reader retries reads of
+            # the missing index blocks for minutes. A write that failed at the end (a full disk) loses a few
+            # blocks, and its flushed rows are read as a crashed log's are.
+            raise LogError(f"cannot read session log {path}: truncated file ({int(cut[1])} of {int(cut[2])} bytes: "
+                           "the end of the file is missing)") from None
     try:
         return h5py.File(path, "r", swmr=True), False
     except OSError as exc:

@@ -547,3 +547,19 @@ def test_log_format_document_is_generated_from_the_schema():
         assert f"| `{a.name}` |" in doc
     for needle in ("h5read", "swmr=True", "hil recover", "hil export", "--format parquet", "SIGKILL"):
         assert needle in doc, needle
+
+
+def test_a_copy_cut_short_is_refused_at_once(tmp_path):
+    """A log file missing most of what its superblock counts (a copy interrupted) is one LogError naming it, at once:
+    HDF5's SWMR reader would retry the missing index blocks for minutes."""
+    p = tmp_path / "full.h5"
+    log = make_log(p)
+    fill(log, 20_000)
+    log.close()
+    data = p.read_bytes()
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(data[: len(data) // 3])
+    t0 = time.monotonic()
+    with pytest.raises(LogError, match=r"cut\.h5: truncated file \(\d+ of \d+ bytes"):
+        read_log(cut)
+    assert time.monotonic() - t0 < 5.0

@@ -1,0 +1,932 @@
+"""``hil fit``: the plant fitted to one platform's session logs (the method is in docs/fit.md).
+
+Three estimators, each on the logs that carry its information, each returning :class:`Estimate` rows (value,
+1-sigma, source) in the vocabulary of :mod:`hil.fit.ranges`:
+
+- :func:`fit_noise` (static logs): per gyro axis, the white noise std and the band-limited component from the
+  spectrum above the rate loop's bandwidth (Welch); the bias from the mean (x) or the encoder's drift (y, z);
+- :func:`fit_frequency_response` (ident logs): the indirect closed-loop FRF of ``hil.ident`` and a least-squares fit
+  of ``k_m / s`` (sampled) x gyro lag x delay x two-mass mode x cable spring (seed 000 eqs 3, 33-38);
+- :func:`fit_mechanics` (every log with motion): an equation-error fit of the torque balance, per axis,
+  ``J dw/dt = K_t clip(i, I_max) - T_f(v) - k_c theta + T_imb`` with the gyro's own lag applied to the right-hand
+  side and both sides low-passed alike; linear in T_c, T_s - T_c, D, k_c, m rho for each Stribeck rate and current
+  limit on a grid. The carrier is the logged hexapod pose, the drive the logged one.
+
+:func:`fit_logs` runs them and writes the plant: fitted values where the logs determine them, the prior's elsewhere
+(said so in :attr:`TwinFit.estimates`).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from hil.fit.logs import AXES, FitInputError, FitLog, load_fit_logs
+from hil.fit.ranges import (
+    BY_NAME,
+    apply_params,
+    dump_plant,
+    get_param,
+    k_m_of,
+    load_plant_dict,
+    validate_plant,
+)
+
+D2R = math.pi / 180.0
+G0 = 9.80665
+Status = Literal["fitted", "prior", "bound"]
+HI_NPERSEG = 1024  # Welch segment of the high band (a chirp: longer segments hold more of it, fewer average it)
+
+
+@dataclass
+class Estimate:
+    """One parameter: the fitted value and its 1-sigma, or the prior kept (``status``), with where it came from."""
+
+    name: str
+    value: float | None
+    sigma: float | None
+    unit: str
+    status: Status
+    source: str
+    prior: float | None = None
+    note: str = ""
+
+    @property
+    def relative_sigma(self) -> float | None:
+        if self.value is None or self.sigma is None or self.value == 0:
+            return None
+        return abs(self.sigma / self.value)
+
+
+def _unit(name: str, default: str = "") -> str:
+    if name in BY_NAME:
+        return BY_NAME[name].unit
+    for suffix, unit in (("_dps", "deg/s"), ("_hz", "Hz"), ("_s", "s"), ("_n_m", "N m"), ("_a", "A"),
+                         ("_ratio", "1"), ("_kg_mm", "kg mm"), ("_n_m_per_rad", "N m/rad")):
+        if name.endswith(suffix):
+            return unit
+    return default
+
+
+# --- gyro noise (static logs) ------------------------------------------------------------------------------------
+
+
+def _bandpass_shape(f_hz: np.ndarray, centre_hz: float, bandwidth_hz: float, fs_hz: float) -> np.ndarray:
+    """|H|^2 of the plant's coloured-noise band-pass (``scipy.signal.iirpeak``), normalised to unit variance gain:
+    the one-sided PSD of a component of std 1 is ``2 / fs * shape``."""
+    from scipy.signal import freqz, iirpeak
+
+    b, a = iirpeak(centre_hz, centre_hz / bandwidth_hz, fs=fs_hz)
+    grid = np.linspace(0.0, fs_hz / 2.0, 4097)
+    _, h_grid = freqz(b, a, worN=grid, fs=fs_hz)
+    gain = float(np.mean(np.abs(h_grid) ** 2))  # variance gain for white input (Parseval on the uniform grid)
+    _, h = freqz(b, a, worN=f_hz, fs=fs_hz)
+    return np.abs(h) ** 2 / gain
+
+
+def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float = 150.0, settle_s: float = 1.0,
+              modes_hz: Mapping[str, float] | None = None,
+              driven: Mapping[str, Mapping[str, Any]] | None = None) -> tuple[list[Estimate], dict[str, Any]]:
+    """Gyro white noise std per axis and one band-limited component (``gyro.noise_psd``) from static logs.
+
+    Welch PSD (1024-sample Hann segments) of each gyro axis above ``f_min_hz`` (above the rate loop's bandwidth, so
+    the closed loop does not shape it), fitted with ``2/fs (sigma_w^2 + sigma_c^2 shape_c(f))`` + the quantisation
+    floor ``LSB^2/12`` (LSB from the data's value grid): least squares on log PSD. The component's width is the
+    prior's (not separable from its std at this resolution). On y and z the loop's own drive moves the gimbal (the
+    noise fed back, ringing the structure): with ``driven`` (gyro axis -> a plant whose drive -> gyro response the
+    ident fit has set), the spectrum is that of ``gyro - P drive``, ``S_yy - 2 Re(P* S_uy) + |P|^2 S_uu``
+    (:func:`linear_plant_frf`); and bins within 20 % of ``modes_hz`` (gyro axis -> structural mode) are left out.
+    Bias: x from its mean (no loop on it), y and z from the encoders' drift (the loop holds the measured rate at
+    zero, so the gimbal turns at minus the bias)."""
+    from scipy.optimize import least_squares
+    from scipy.signal import welch
+
+    static = [lg for lg in logs if lg.kind == "static"]
+    extras: dict[str, Any] = {"psd": {}}
+    if not static:
+        return [Estimate(n, get_param(prior, n), None, _unit(n, "deg/s"), "prior", "no static log")
+                for n in ("gyro.noise_std_dps", "gyro.noise_psd.std_dps", "gyro.noise_psd.centre_hz")], extras
+    psd_prior = (prior["gyro"].get("noise_psd") or [{"centre_hz": 450.0, "bandwidth_hz": 100.0, "std_dps": 0.0}])[0]
+    bw = float(psd_prior["bandwidth_hz"])
+    rows: dict[str, list[np.ndarray]] = {ax: [] for ax in "xyz"}
+    for lg in static:
+        k0 = int(settle_s / lg.dt_s)
+        for ax in "xyz":
+            rows[ax].append(lg.loop[f"gyro_{ax}_dps"][k0:])
+    fs = 1.0 / static[0].dt_s
+    out: list[Estimate] = []
+    comps: list[tuple[float, float, float]] = []  # (std_c, centre, weight)
+    for ax in "xyz":
+        x = np.concatenate([r - r.mean() for r in rows[ax]])
+        levels = np.unique(np.round(np.concatenate(rows[ax]), 7))
+        steps = np.diff(levels)
+        lsb = float(np.median(steps[steps > 0])) if steps.size else 0.0
+        f, pxx = welch(x, fs=fs, nperseg=1024)
+        sel = (f >= f_min_hz) & (f < 0.5 * fs * 0.98)
+        motor = {"y": "el", "z": "az"}.get(ax)
+        if driven is not None and motor is not None and ax in driven:
+            from scipy.signal import csd
+
+            u = np.concatenate([lg.loop[f"drive_{motor}_counts"][int(settle_s / lg.dt_s):] for lg in static])
+            u = u - u.mean()
+            _, s_uu = welch(u, fs=fs, nperseg=1024)
+            _, s_uy = csd(u, x, fs=fs, nperseg=1024)
+            resp = np.zeros(f.size, dtype=complex)
+            resp[1:] = linear_plant_frf(driven[ax], motor, f[1:])
+            pxx = np.maximum(pxx - 2.0 * np.real(np.conj(resp) * s_uy) + np.abs(resp) ** 2 * s_uu, 1e-3 * pxx)
+        if (mode := (modes_hz or {}).get(ax)):  # the mode's damping is the least certain part of P
+            sel &= np.abs(f - mode) > 0.2 * mode
+        f, pxx = f[sel], pxx[sel]
+        q_floor = lsb * lsb / 12.0
+
+        def model(p: np.ndarray, f: np.ndarray = f, q_floor: float = q_floor) -> np.ndarray:
+            sw, sc, fc = p
+            return 2.0 / fs * (sw * sw + q_floor + sc * sc * _bandpass_shape(f, fc, bw, fs))
+
+        best = None
+        for fc0 in (320.0, 380.0, 440.0, float(psd_prior["centre_hz"])):
+            p0 = np.array([math.sqrt(max(np.median(pxx) * fs / 2.0 - q_floor, 1e-8)), 0.01, fc0])
+            res = least_squares(lambda p, pxx=pxx: pxx / model(p) - 1.0, p0,  # unbiased (log would be biased by ~1/K)
+                                bounds=([1e-5, 0.0, 0.55 * f_min_hz + 0.45 * fs / 2.0 - 60.0], [1.0, 1.0, 0.49 * fs]))
+            if best is None or res.cost < best.cost:
+                best = res
+        assert best is not None
+        sw, sc, fc = (float(v) for v in best.x)
+        # 1-sigma from the Jacobian; each Welch bin of ~2 x (segments) averages has a log-PSD std of 1/sqrt(K)
+        k_avg = max(1, x.size // 512 - 1)
+        jac = best.jac
+        cov = np.linalg.pinv(jac.T @ jac) / k_avg
+        sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        name = f"gyro.noise_std_dps.{ax}"
+        out.append(Estimate(name, sw, float(sig[0]), "deg/s", "fitted", f"static: PSD above {f_min_hz:g} Hz",
+                            prior=get_param(prior, name), note=f"quantisation LSB {lsb:.3g} deg/s"))
+        comps.append((sc, fc, 1.0 / max(float(sig[1]) ** 2, 1e-12)))
+        extras["psd"][ax] = {"f_hz": f, "psd": pxx, "model": model(best.x), "lsb": lsb}
+    wts = np.array([c[2] for c in comps])
+    std_c = float(np.average([c[0] for c in comps], weights=wts))
+    centre = float(np.average([c[1] for c in comps], weights=[c[2] * max(c[0], 1e-6) for c in comps]))
+    strong = std_c > 0.2 * min(e.value or 0.0 for e in out)
+    out.append(Estimate("gyro.noise_psd.std_dps", std_c, float(np.std([c[0] for c in comps])), "deg/s", "fitted",
+                        "static: PSD band component", prior=get_param(prior, "gyro.noise_psd.std_dps")))
+    if strong:
+        out.append(Estimate("gyro.noise_psd.centre_hz", centre, float(np.std([c[1] for c in comps])), "Hz",
+                            "fitted", "static: PSD band component",
+                            prior=get_param(prior, "gyro.noise_psd.centre_hz")))
+    else:
+        out.append(Estimate("gyro.noise_psd.centre_hz", get_param(prior, "gyro.noise_psd.centre_hz"), None, "Hz",
+                            "prior", "static: the band component is too weak to place",
+                            prior=get_param(prior, "gyro.noise_psd.centre_hz")))
+    # bias
+    k0s = [int(settle_s / lg.dt_s) for lg in static]
+    bx = float(np.mean(np.concatenate([lg.loop["gyro_x_dps"][k:] for lg, k in zip(static, k0s, strict=True)])))
+    slopes = {}
+    for ax, enc in (("y", "el_deg"), ("z", "az_deg")):
+        vals = []
+        for lg, k in zip(static, k0s, strict=True):
+            t = lg.loop["t_s"][k:]
+            vals.append(-float(np.polyfit(t - t[0], np.unwrap(lg.loop[enc][k:], period=360.0), 1)[0]))
+        slopes[ax] = float(np.mean(vals))
+    extras["bias_dps"] = [bx, slopes["y"], slopes["z"]]
+    return out, extras
+
+
+# --- frequency response (ident logs) ------------------------------------------------------------------------------
+
+
+@dataclass
+class FrfFit:
+    """The joint fit of one ident log: ``k_m / s`` (sampled) x lag x delay x mode x cable spring."""
+
+    axis: str
+    k_m: float
+    bandwidth_hz: float
+    delay_s: float
+    mode_hz: float | None
+    damping: float | None
+    spring_q: float | None  # K / J of the low-frequency spring, (rad/s)^2, signed
+    sigma: dict[str, float]
+    rms_db: float
+    rms_deg: float
+    f_range_hz: tuple[float, float]
+    frf: Any = None
+    log: str = ""
+    bandwidth_identified: bool = True  # False: the coherent band ends below the pole; the prior's bandwidth is used
+
+    def response(self, f_hz: np.ndarray) -> np.ndarray:
+        from hil.ident import plant_response
+
+        s = 2j * math.pi * np.asarray(f_hz, dtype=float)
+        p = plant_response(f_hz, self.k_m, bandwidth_hz=self.bandwidth_hz, delay_s=self.delay_s, dt_s=1e-3)
+        return p * _mode_factor(s, self.mode_hz, self.damping) * _spring_factor(s, self.spring_q)
+
+
+def _mode_factor(s: np.ndarray, mode_hz: float | None, zeta: float | None) -> np.ndarray:
+    """Load rate over rigid-body rate of a free-free two-mass axis, drive on the motor, gyro on the load:
+    ``(2 zeta w s + w^2) / (s^2 + 2 zeta w s + w^2)`` (docs/emulator.md, two-mass compliance)."""
+    if mode_hz is None or zeta is None:
+        return np.ones_like(s)
+    w = 2.0 * math.pi * mode_hz
+    return (2.0 * zeta * w * s + w * w) / (s * s + 2.0 * zeta * w * s + w * w)
+
+
+def _spring_factor(s: np.ndarray, q: float | None) -> np.ndarray:
+    """A spring on an integrator: ``s^2 / (s^2 + q)``, ``q = K / J`` ((rad/s)^2): the cable (K = k_c > 0) plus,
+    over an elevation sweep's travel, gravity on the imbalance (either sign: a top-heavy assembly is a negative
+    spring)."""
+    if not q:
+        return np.ones_like(s)
+    return s * s / (s * s + q)
+
+
+def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n_ticks: int = 2048) -> np.ndarray:
+    """The emulated plant's own drive -> gyro response of ``axis`` (deg/s per count) at ``f_hz``, as the 1 kHz loop
+    sees it (drive k held over the tick after sample k): the plant kernel run on a doublet with friction, cable,
+    imbalance, current limit and noise off, then the DFT ratio. Exact for whatever the kernel does (zero-order hold,
+    the two-mass mode, the gyro's lag and delay discretised as the emulator does them)."""
+    from firmware_stub.plant import Plant, PlantConfig
+
+    c = copy.deepcopy(dict(plant))
+    for ax in AXES:
+        c["friction"][ax] = {"coulomb_n_m": 0.0, "viscous_n_m_s_per_rad": 0.0,
+                             "smoothing_rate_dps": c["friction"][ax].get("smoothing_rate_dps", 0.1), "model": "tanh"}
+    for key in ("cable", "ripple", "drive"):
+        c.pop(key, None)
+    c["imbalance"] = {**c["imbalance"], "mass_kg": 0.0}
+    c["gyro"] = {**c["gyro"], "noise_std_dps": [0.0, 0.0, 0.0], "noise_psd": [], "random_walk": 0.0,
+                 "quantisation_lsb_dps": 0.0, "bias_dps": [0.0, 0.0, 0.0]}
+    c["camera"] = {**c["camera"], "centroid_noise_std_px": 0.0}
+    plant_obj = Plant(PlantConfig.model_validate(c), seed=1)
+    u = np.zeros(n_ticks)
+    u[8], u[9] = 1000.0, -1000.0  # a doublet: the rate returns to rest, so the response decays within the record
+    zero = np.zeros(n_ticks)
+    out = plant_obj.run(u if axis == "az" else zero, u if axis == "el" else zero, np.zeros((n_ticks, 18)))
+    y = out["gyro_z_dps" if axis == "az" else "gyro_y_dps"]
+    w = 2.0 * math.pi * np.asarray(f_hz, dtype=float) * 1e-3
+    k = np.arange(n_ticks)
+    basis = np.exp(-1j * np.outer(w, k))
+    # the loop logs drive k beside sample k and the board applies it from the next tick on: one tick later than the
+    # kernel's own indexing (checked against hil.ident.plant_response, whose delay matches the plant's T_d)
+    return (basis @ y) / (basis @ u) * np.exp(-1j * w)
+
+
+def _exact_refine(plant: Mapping[str, Any], axis: str, fs: np.ndarray, p: np.ndarray, wt: np.ndarray,  # noqa: PLR0917
+                  x0: np.ndarray, with_mode: bool, bw_fixed: float | None, spring_fixed: bool = False) -> Any:
+    """Least squares of the kernel's own response (:func:`linear_plant_frf`) from the analytic fit's ``x0``."""
+    from scipy.optimize import least_squares
+
+    s = 2j * math.pi * fs
+
+    def model(x: np.ndarray) -> np.ndarray:
+        ln_k, ln_bw, td, ln_fr, ln_z, q = x
+        vals = {f"motor_{axis}.k_m_dps2_per_count": float(np.exp(ln_k)), "gyro.delay_s": float(td),
+                "gyro.bandwidth_hz": float(bw_fixed or np.exp(ln_bw))}
+        if with_mode:
+            vals |= {f"structure.{axis}.mode_hz": float(np.exp(ln_fr)),
+                     f"structure.{axis}.damping_ratio": float(np.exp(ln_z))}
+        c = apply_params(plant, vals)
+        if not with_mode:
+            c.get("structure", {}).pop(axis, None)
+            if not c.get("structure"):
+                c.pop("structure", None)
+        return linear_plant_frf(c, axis, fs) * _spring_factor(s, float(q))
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        e = np.log(p / model(x))
+        return np.concatenate([wt * e.real, wt * np.angle(np.exp(1j * e.imag))])
+
+    q_max = float((2 * math.pi * 4 * max(float(fs.min()) / 2.0, 0.25)) ** 2)
+    lo = [-12.0, math.log(20.0), 0.0, math.log(5.0), math.log(0.005), -q_max]
+    hi = [2.0, math.log(5000.0), 3e-3, math.log(499.0), math.log(0.7), q_max]
+    free = [0, 2] + ([] if spring_fixed else [5]) + ([] if bw_fixed else [1]) + ([3, 4] if with_mode else [])
+    if spring_fixed:
+        lo[5], hi[5] = float(x0[5]) - 1e-6, float(x0[5]) + 1e-6
+    full = np.clip(np.asarray(x0, dtype=float), np.array(lo) + 1e-9, np.array(hi) - 1e-9)
+
+    def sub(y: np.ndarray) -> np.ndarray:
+        x = full.copy()
+        x[free] = y
+        return resid(x)
+
+    res = least_squares(sub, full[free], bounds=([lo[i] for i in free], [hi[i] for i in free]), x_scale="jac",
+                        diff_step=1e-4, max_nfev=40)
+    full[free] = res.x
+    res.x_full, res.free = full, free
+    return res
+
+
+def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
+                           spring_q: float | None = None) -> FrfFit:
+    """The ident log's FRF (``hil.ident.estimate_frf``, indirect) and the joint least-squares fit on its coherent
+    bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as ``hil.ident.fit_plant``. The rigid
+    fit of ``hil.ident`` starts it; the mode's frequency starts from a grid over the band."""
+    from scipy.optimize import least_squares
+
+    from hil.ident import Frf, SweptSine, _Shapes, _sweep_start, estimate_frf, fit_plant
+
+    ax = log.axis or "el"
+    sweep = SweptSine(**log.excitation) if log.excitation else None
+    r, u, y = log.loop[f"rate_cmd_{ax}_dps"], log.loop[f"drive_{ax}_counts"], log.gyro(ax)
+    dt = log.dt_s
+    if sweep is None:
+        raise FitInputError(f"{log.path}: an ident log without its sweep (config 'excitation')")
+    k0 = _sweep_start(r, sweep, dt)
+    pad = 0.5 * sweep.settle_s
+    a, b = max(0, k0 + round((sweep.window_s[0] - pad) / dt)), min(r.size, k0 + round((sweep.window_s[1] + pad) / dt))
+    f_lo, f_hi = sorted((sweep.f_start_hz, sweep.f_stop_hz))
+    f_hi = min(f_hi, 0.45 / dt)
+    # two resolutions: long segments for the low band (k_m, the cable spring), short ones (more averages, so
+    # coherent further up) above ``split``: the lag, the delay and the structural mode live there
+    frf_lo = estimate_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi)
+    frf_hi = estimate_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi, nperseg=HI_NPERSEG)
+    split = max(20.0, 8.0 / (HI_NPERSEG * dt))
+    lo_sel, hi_sel = frf_lo.freq_hz < split, frf_hi.freq_hz >= split
+    frf = Frf(np.concatenate([frf_lo.freq_hz[lo_sel], frf_hi.freq_hz[hi_sel]]),
+              np.concatenate([frf_lo.response[lo_sel], frf_hi.response[hi_sel]]),
+              np.concatenate([frf_lo.coherence[lo_sel], frf_hi.coherence[hi_sel]]), dt, frf_lo.n_segments)
+    try:
+        rigid = fit_plant(frf, coherence_min=coherence_min, f_min_hz=2.0 * f_lo, lag=True)
+    except ValueError as exc:
+        raise FitInputError(f"{log.path}: the {ax} sweep has no usable response ({exc}); check that the axis "
+                            "followed the sweep (drive saturation, a restrained axis) and record it again") from None
+    f = frf.freq_hz
+    sel = np.isfinite(frf.response) & (np.abs(frf.response) > 0) & (frf.coherence >= coherence_min) & (f >= 2 * f_lo)
+    if np.count_nonzero(sel) < 8:
+        raise FitInputError(f"{log.path}: only {np.count_nonzero(sel)} coherent bins in the sweep")
+    fs, p = f[sel], frf.response[sel]
+    w = 2.0 * math.pi * fs
+    s = 1j * w
+    g = np.minimum(frf.coherence[sel], 0.99)
+    wt = np.sqrt(g / (1.0 - g) / fs)
+    shapes = _Shapes(w, dt)
+    f_top = float(fs.max())
+
+    def model(x: np.ndarray, with_mode: bool) -> np.ndarray:
+        ln_k, ln_bw, td, ln_fr, ln_z, q = x
+        m = np.exp(ln_k) * shapes.shape(float(np.exp(ln_bw)), float(td))
+        if with_mode:
+            m = m * _mode_factor(s, float(np.exp(ln_fr)), float(np.exp(ln_z)))
+        return m * _spring_factor(s, float(q))
+
+    def resid(x: np.ndarray, with_mode: bool) -> np.ndarray:
+        e = np.log(p / model(x, with_mode))
+        return np.concatenate([wt * e.real, wt * np.angle(np.exp(1j * e.imag))])
+
+    def search(bw_fixed: float | None) -> tuple[float, bool, Any, float | None]:
+        bw0 = bw_fixed or rigid.gyro_bandwidth_hz or 2.0 * f_top
+        base = [math.log(rigid.k_m_dps2_per_count), math.log(min(bw0, 3000.0)), rigid.model_delay_s]
+        q_max = float((2 * math.pi * 4 * f_lo) ** 2)
+        lo = [-12.0, math.log(20.0), 0.0, math.log(max(5.0, 2 * f_lo)), math.log(0.005), -q_max]
+        hi = [2.0, math.log(5000.0), 3e-3, math.log(0.499 / dt), math.log(0.7), q_max]
+        if spring_q is not None:  # known from the torque balance: k_c (+ gravity on the imbalance) over J
+            lo[5], hi[5] = spring_q - 1e-6, spring_q + 1e-6
+        if bw_fixed:
+            lo[1], hi[1] = math.log(bw_fixed) - 1e-9, math.log(bw_fixed) + 1e-9
+        fits = []
+        for with_mode in (False, True):
+            grid = np.geomspace(max(20.0, 4 * f_lo), 0.49 / dt, 14) if with_mode else [100.0]
+            for fr0 in grid:
+                q_starts = (0.0, (2 * math.pi * f_lo) ** 2, -((2 * math.pi * f_lo) ** 2) / 2)
+                for q0 in (spring_q,) if spring_q is not None else q_starts:
+                    x0 = np.array([*base, math.log(fr0), math.log(0.05), q0])
+                    x0 = np.clip(x0, np.array(lo) + 1e-10, np.array(hi) - 1e-10)
+                    try:
+                        res = least_squares(resid, x0, args=(with_mode,), bounds=(lo, hi), x_scale="jac")
+                    except ValueError:
+                        continue
+                    fits.append((res.cost, with_mode, res))
+        rigid_cost = min(c for c, m, _ in fits if not m)
+        cost, with_mode, res = min(fits, key=lambda t: t[0])
+        mode_hz = float(np.exp(res.x[3])) if with_mode else None
+        # the mode counts only if it explains the data (halves the residual) and sits inside the measured band
+        if with_mode and (cost > 0.5 * rigid_cost or mode_hz is None or mode_hz > 1.05 * f_top):
+            cost, with_mode, res = min(((c, m, r_) for c, m, r_ in fits if not m), key=lambda t: t[0])
+            mode_hz = None
+        return cost, with_mode, res, mode_hz
+
+    prior_bandwidth_hz = float(prior["gyro"]["bandwidth_hz"]) if prior is not None else 200.0
+    _, with_mode, res, mode_hz = search(None)
+    # the gyro's pole is told from a delay only where the coherent band reaches it (and pins it to 10 %); else the
+    # prior's bandwidth, and the delay absorbs what lag there is
+    bandwidth_identified = (float(np.exp(res.x[1])) <= 1.25 * f_top
+                            and _sigmas(res, with_mode, fs.size)[1] < 0.1)
+    if not bandwidth_identified:
+        _, with_mode, res, mode_hz = search(prior_bandwidth_hz)
+    if prior is not None:  # the analytic model approximates the kernel's sampling; finish on the kernel itself
+        ex = _exact_refine(prior, ax, fs, p, wt, res.x, with_mode, None if bandwidth_identified else prior_bandwidth_hz,
+                           spring_fixed=spring_q is not None)
+        cov = np.linalg.pinv(ex.jac.T @ ex.jac) * (2.0 * ex.cost / max(1, 2 * fs.size - len(ex.free)))
+        sd = np.zeros(6)
+        sd[ex.free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        if bandwidth_identified and sd[1] >= 0.1:
+            bandwidth_identified = False
+        res.x = ex.x_full
+        if mode_hz is not None:
+            mode_hz = float(np.exp(res.x[3]))
+    else:
+        sd = _sigmas(res, with_mode, fs.size)
+    e = np.log(p / model(res.x, with_mode))  # analytic model: the report's residual (the kernel's is close)
+    q = float(res.x[5])
+    return FrfFit(
+        axis=ax, k_m=float(np.exp(res.x[0])), bandwidth_hz=float(np.exp(res.x[1])), delay_s=float(res.x[2]),
+        mode_hz=mode_hz, damping=float(np.exp(res.x[4])) if with_mode else None,
+        spring_q=q,
+        sigma={"k_m": float(sd[0]) * float(np.exp(res.x[0])), "bandwidth_hz": float(sd[1]) * float(np.exp(res.x[1])),
+               "delay_s": float(sd[2]), "mode_hz": float(sd[3]) * (mode_hz or 0.0),
+               "damping": float(sd[4]) * float(np.exp(res.x[4])) if with_mode else 0.0,
+               "spring_q": float(sd[5])},
+        rms_db=float(np.sqrt(np.mean((e.real * 20 / math.log(10)) ** 2))),
+        rms_deg=float(np.degrees(np.sqrt(np.mean(np.angle(np.exp(1j * e.imag)) ** 2)))),
+        f_range_hz=(float(fs.min()), f_top), frf=frf, log=log.name, bandwidth_identified=bandwidth_identified,
+    )
+
+
+def _sigmas(res: Any, with_mode: bool, n_bins: int) -> np.ndarray:
+    """1-sigma of a least-squares fit's parameters from its Jacobian and residual (log-scale ones are relative)."""
+    dof = max(1, 2 * n_bins - (6 if with_mode else 4))
+    cov = np.linalg.pinv(res.jac.T @ res.jac) * (2.0 * res.cost / dof)
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
+# --- torque balance (logs with motion) ----------------------------------------------------------------------------
+
+
+def specific_force_el_frame(pose: Mapping[str, np.ndarray], az_deg: np.ndarray, el_deg: np.ndarray,
+                            pivot_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The specific force (m/s^2) at the gimbal's pivot in the elevation frame (seed 001 eqs 2-4): the hexapod's
+    linear acceleration minus gravity through its attitude (``C_lab^body = R_x(roll) R_y(pitch) R_z(yaw)``), plus
+    ``alpha x r + omega x (omega x r)`` for a pivot ``r`` off the rotation centre, then the gimbal's az, el."""
+    phi, th, psi = (np.radians(pose[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg"))
+    phid, thd, psid = (np.radians(pose[f"{k}_rate"]) for k in ("roll_deg", "pitch_deg", "yaw_deg"))
+    phidd, thdd, psidd = (np.radians(pose[f"{k}_accel"]) for k in ("roll_deg", "pitch_deg", "yaw_deg"))
+    sf, cf, st, ct, sp, cp = np.sin(phi), np.cos(phi), np.sin(th), np.cos(th), np.sin(psi), np.cos(psi)
+    c = np.array([[ct * cp, ct * sp, -st],
+                  [sf * st * cp - cf * sp, sf * st * sp + cf * cp, sf * ct],
+                  [cf * st * cp + sf * sp, cf * st * sp - sf * cp, cf * ct]])
+    a_lab = np.stack([pose["x_mm_accel"] * 1e-3, pose["y_mm_accel"] * 1e-3, pose["z_mm_accel"] * 1e-3 - G0])
+    f_b = np.einsum("ijn,jn->in", c, a_lab)
+    if any(pivot_m):
+        w = np.stack([phid - psid * st, thd * cf + psid * sf * ct, -thd * sf + psid * cf * ct])
+        wd = np.stack([phidd - psidd * st - psid * thd * ct,
+                       thdd * cf - thd * phid * sf + psidd * sf * ct + psid * (phid * cf * ct - thd * sf * st),
+                       -thdd * sf - thd * phid * cf + psidd * cf * ct - psid * (phid * sf * ct + thd * cf * st)])
+        r = np.asarray(pivot_m, dtype=float)[:, None] * np.ones_like(w)
+        f_b = f_b + np.cross(wd, r, axis=0) + np.cross(w, np.cross(w, r, axis=0), axis=0)
+    fbx, fby, fbz = f_b
+    az, el = np.radians(az_deg), np.radians(el_deg)
+    ca, sa, ce, se = np.cos(az), np.sin(az), np.cos(el), np.sin(el)
+    hxy = ca * fbx + sa * fby
+    return hxy * ce - fbz * se, ca * fby - sa * fbx, hxy * se + fbz * ce
+
+
+@dataclass
+class MechanicsFit:
+    """The torque-balance fit of one axis."""
+
+    axis: str
+    coulomb_n_m: float
+    stiction_n_m: float
+    stribeck_rate_dps: float
+    viscous_n_m_s_per_rad: float
+    cable_n_m_per_rad: float
+    m_rho_x_kg_mm: float | None
+    m_rho_z_kg_mm: float | None
+    current_limit_a: float | None  # None: not reached in these logs
+    current_peak_a: float  # the largest current the logs asked for
+    sigma: dict[str, float]
+    rms_n_m: dict[str, float]  # per log
+    n_rows: int
+    traces: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # per log: t, measured, model
+
+
+def _smooth(x: np.ndarray, half_width: int) -> np.ndarray:
+    """Zero-phase Hann-window average over ``2 half_width + 1`` rows (compact support: a row depends only on rows
+    within ``half_width``; first null at ``2 / ((2 half_width + 1) dt)``, sidelobes -31 dB)."""
+    from scipy.ndimage import convolve1d
+
+    w = np.hanning(2 * half_width + 3)[1:-1]
+    return convolve1d(x, w / w.sum(), axis=0, mode="nearest")
+
+
+def _gyro_lag(x: np.ndarray, bandwidth_hz: float, delay_s: float, dt: float) -> np.ndarray:
+    """The gyro's first-order lag and delay (seed 000 eq 3) applied to a regressor sampled every tick."""
+    from scipy.signal import lfilter
+
+    a = math.exp(-2.0 * math.pi * bandwidth_hz * dt)
+    y = lfilter([1.0 - a], [1.0, -a], x, axis=0)
+    shift = delay_s / dt
+    n = np.arange(x.shape[0], dtype=float)
+    if y.ndim == 1:
+        return np.interp(n - shift, n, y)
+    return np.stack([np.interp(n - shift, n, y[:, j]) for j in range(y.shape[1])], axis=1)
+
+
+def fit_mechanics(logs: list[FitLog], axis: str, plant: Mapping[str, Any], *, bandwidth_hz: float,
+                  delay_s: float, smooth_ms: int = 10, settle_s: float = 1.0, stick_dps: float = 0.1,
+                  fixed: Mapping[str, float] | None = None) -> MechanicsFit:
+    """Equation-error fit of the torque balance of one axis over every log with motion (docs/fit.md).
+
+    Left: ``J dw/dt`` from the gyro (J from the plant's k_m, which the ident fit has set). Right, per tick k (the
+    drive of row k acts over the tick that ends at row k + 1): ``K_t clip(i, I_max)`` with
+    ``i = (clip(u V_count, bus) - K_e v) / R``; friction ``T_c sgn v + (T_s - T_c) sgn v exp(-(v/v_s)^2) + D v``
+    (LuGre's steady state); cable ``k_c theta``; for elevation the imbalance ``-m (rho_z f_x - rho_x f_z)``.
+    v and theta are the encoder's (motor side). The right side goes through the gyro's lag and delay, both sides
+    through the same zero-phase Hann average (+-``smooth_ms``: nulls the structural modes); rows whose average
+    reaches a stick (|v| < ``stick_dps``, where friction is the unknown holding torque) are left out. ``fixed``
+    holds coefficients (``cable_n_m_per_rad``, ``m_rho_z_kg_mm``) at given values instead of fitting them."""
+    m = plant[f"motor_{axis}"]
+    kt, ke, r_ohm, vpc, bus = (m["torque_constant_n_m_per_a"], m["back_emf_v_s_per_rad"], m["resistance_ohm"],
+                               m["volts_per_count"], m["bus_voltage_v"])
+    j_kg_m2 = m["inertia_kg_m2"]
+    use = [lg for lg in logs if lg.kind in ("swing", "ident")]
+    if not use:
+        raise FitInputError("no swing or ident log: friction, cable and imbalance need motion")
+    blocks = []
+    for lg in use:
+        dt = lg.dt_s
+        k0, k1 = int(settle_s / dt), lg.loop["t_s"].size - 1
+        theta_deg = np.unwrap(lg.loop[f"{axis}_deg"], period=360.0)
+        from scipy.signal import savgol_filter
+
+        v_dps = savgol_filter(theta_deg, 9, 2, deriv=1, delta=dt)
+        v_mid = 0.5 * (v_dps[:-1] + v_dps[1:])  # over the tick k -> k + 1
+        th_mid = np.radians(0.5 * (theta_deg[:-1] + theta_deg[1:]))
+        u = lg.loop[f"drive_{axis}_counts"][:-1]
+        volts = np.clip(u * vpc, -bus, bus)
+        i_cmd = (volts - ke * np.radians(v_mid)) / r_ohm
+        g = lg.gyro(axis)
+        half = max(1, round(smooth_ms * 1e-3 / dt))
+        acc = np.radians(np.diff(_smooth(g, half))) / dt  # rad/s^2 over the tick k -> k + 1
+        pivot = tuple((plant.get("mount") or {}).get("pivot_offset_m") or (0.0, 0.0, 0.0))
+        fx, _, fz = specific_force_el_frame(lg.pose, lg.loop["az_deg"], lg.loop["el_deg"], pivot)  # type: ignore[arg-type]
+        fx, fz = 0.5 * (fx[:-1] + fx[1:]), 0.5 * (fz[:-1] + fz[1:])
+        stick = np.abs(v_mid) < stick_dps
+        pad = half + 2
+        bad = np.convolve(stick.astype(float), np.ones(2 * pad + 1), mode="same") > 0
+        bad[: k0] = True
+        bad[k1 - pad:] = True
+        tick = lg.loop["tick"]
+        gaps = np.flatnonzero(np.diff(tick) != 1)
+        for gi in gaps:
+            bad[max(0, gi - pad): gi + pad + 1] = True
+        blocks.append(dict(log=lg.name, dt=dt, half=half, v=v_mid, th=th_mid, i=i_cmd, lhs=j_kg_m2 * acc, fx=fx, fz=fz,
+                           keep=~bad, t=lg.loop["t_s"][:-1]))
+    i_peak = float(max(np.max(np.abs(b["i"][b["keep"]])) if b["keep"].any() else 0.0 for b in blocks))
+    limits: list[float | None] = [None]
+    limits += [float(x) for x in np.geomspace(0.35 * i_peak, 0.98 * i_peak, 12)] if i_peak > 0 else []
+    vs_grid = np.geomspace(2.0 * stick_dps, 2.0, 9)  # a Stribeck rate inside the stick band cannot be seen
+    with_imb = axis == "el"
+    order = ["coulomb_n_m", "stribeck_n_m", "viscous_n_m_s_per_rad", "cable_n_m_per_rad"]
+    order += ["m_rho_z_kg_mm", "m_rho_x_kg_mm"] if with_imb else []
+    held = {order.index(k): float(v) for k, v in (fixed or {}).items() if k in order}
+
+    def filt(b: dict[str, Any], cols: list[np.ndarray]) -> np.ndarray:
+        return _smooth(_gyro_lag(np.stack(cols, axis=1), bandwidth_hz, delay_s, b["dt"]), b["half"])
+
+    for b in blocks:  # the columns that do not depend on the grid, filtered once
+        b["sgn"] = np.tanh(b["v"] / 0.02)
+        fixed = [-b["sgn"], -np.radians(b["v"]), -b["th"]]
+        if with_imb:
+            fixed += [-b["fx"] * 1e-3, b["fz"] * 1e-3]  # coefficients m rho_z, m rho_x in kg mm
+        b["fixed"] = filt(b, fixed)
+        b["motor"] = {}
+
+    def design(b: dict[str, Any], vs: float, limit: float | None) -> tuple[np.ndarray, np.ndarray]:
+        if limit not in b["motor"]:
+            i = b["i"] if limit is None else np.clip(b["i"], -limit, limit)
+            b["motor"][limit] = filt(b, [kt * i])[:, 0]
+        stribeck = filt(b, [-b["sgn"] * np.exp(-(b["v"] / vs) ** 2)])[:, 0]
+        f = b["fixed"]
+        x = np.column_stack([b["motor"][limit], f[:, 0], stribeck, f[:, 1:]])
+        return x, b["lhs"]
+
+    best: tuple[float, float, float | None, np.ndarray, np.ndarray, np.ndarray] | None = None
+    cache: dict[tuple[float, float | None], tuple[np.ndarray, np.ndarray]] = {}
+    for limit in limits:
+        for vs in vs_grid:
+            xs, ys = [], []
+            for b in blocks:
+                x, y = design(b, float(vs), limit)
+                xs.append(x[b["keep"]])
+                ys.append(y[b["keep"]])
+            x_all, y_all = np.concatenate(xs), np.concatenate(ys)
+            y_adj = y_all - x_all[:, 0]  # the motor torque is known: coefficient 1
+            coef = _lstsq_fixed(x_all[:, 1:], y_adj, held)
+            sse = float(np.sum((y_adj - x_all[:, 1:] @ coef) ** 2))
+            cache[(float(vs), limit)] = (x_all, y_adj)
+            if best is None or sse < best[0]:
+                best = (sse, float(vs), limit, coef, x_all, y_adj)
+    assert best is not None
+    sse, vs, limit, coef, x_all, y_adj = best
+    # a limit counts only if it explains the data better than none by more than noise would (F-test-like, 1 %)
+    sse_none = min(float(np.sum((yn - xn[:, 1:] @ _lstsq_fixed(xn[:, 1:], yn, held)) ** 2))
+                   for xn, yn in (cache[(float(v), None)] for v in vs_grid))
+    clipped = (float(np.mean(np.concatenate([np.abs(b["i"][b["keep"]]) > limit for b in blocks])))
+               if limit is not None else 0.0)
+    if limit is not None and (sse > 0.98 * sse_none or clipped < 0.005):
+        limit = None  # a limit counts where saturation episodes (>= 0.5 % of rows) explain the data (2 % less residual)
+        sse, vs, coef = min(((float(np.sum((yn - xn[:, 1:] @ c) ** 2)), float(v), c)
+                             for v in vs_grid for xn, yn in [cache[(float(v), None)]]
+                             for c in [_lstsq_fixed(xn[:, 1:], yn, held)]), key=lambda t: t[0])
+        x_all, y_adj = cache[(vs, None)]
+    n = y_adj.size
+    n_eff = max(10.0, n / blocks[0]["half"])  # the average leaves ~1 independent row per half width
+    s2 = sse / max(1.0, n - coef.size)
+    free = [j for j in range(coef.size) if j not in held]
+    sd = np.zeros(coef.size)
+    cov = np.linalg.pinv(x_all[:, 1:][:, free].T @ x_all[:, 1:][:, free]) * s2 * (n / n_eff)
+    sd[free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    tc, dts, visc, kc = (float(c) for c in coef[:4])
+    rms: dict[str, float] = {}
+    traces: dict[str, dict[str, np.ndarray]] = {}
+    for b in blocks:
+        x, y = design(b, vs, limit)
+        pred = x[:, 0] + x[:, 1:] @ coef
+        k = b["keep"]
+        rms[b["log"]] = float(np.sqrt(np.mean((y[k] - pred[k]) ** 2))) if k.any() else float("nan")
+        traces[b["log"]] = {"t_s": b["t"], "measured_n_m": y, "model_n_m": pred, "kept": k}
+    return MechanicsFit(
+        axis=axis, coulomb_n_m=tc, stiction_n_m=tc + dts, stribeck_rate_dps=vs, viscous_n_m_s_per_rad=visc,
+        cable_n_m_per_rad=kc,
+        m_rho_z_kg_mm=float(coef[4]) if with_imb else None, m_rho_x_kg_mm=float(coef[5]) if with_imb else None,
+        current_limit_a=limit, current_peak_a=i_peak,
+        sigma={"coulomb_n_m": float(sd[0]), "stiction_n_m": float(math.hypot(sd[0], sd[1])),
+               "viscous_n_m_s_per_rad": float(sd[2]), "cable_n_m_per_rad": float(sd[3]),
+               **({"m_rho_z_kg_mm": float(sd[4]), "m_rho_x_kg_mm": float(sd[5])} if with_imb else {})},
+        rms_n_m=rms, n_rows=n, traces=traces,
+    )
+
+
+def _lstsq_fixed(x: np.ndarray, y: np.ndarray, held: Mapping[int, float]) -> np.ndarray:
+    """Least squares with the columns in ``held`` at given coefficients."""
+    coef = np.zeros(x.shape[1])
+    free = [j for j in range(x.shape[1]) if j not in held]
+    y2 = y - sum((x[:, j] * v for j, v in held.items()), np.zeros_like(y))
+    coef[free] = np.linalg.lstsq(x[:, free], y2, rcond=None)[0]
+    for j, v in held.items():
+        coef[j] = v
+    return coef
+
+
+# --- the whole fit ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class TwinFit:
+    """A fitted plant: ``plant`` (dict, valid ``PlantConfig``), every parameter's :class:`Estimate`, the logs."""
+
+    prior: dict[str, Any]
+    plant: dict[str, Any]
+    estimates: list[Estimate]
+    logs: list[FitLog]
+    frf: list[FrfFit] = field(default_factory=list)
+    mechanics: dict[str, MechanicsFit] = field(default_factory=dict)
+    noise: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    def estimate(self, name: str) -> Estimate | None:
+        return next((e for e in self.estimates if e.name == name), None)
+
+    def fitted(self) -> dict[str, float]:
+        return {e.name: e.value for e in self.estimates if e.status == "fitted" and e.value is not None}
+
+    def write(self, out: str | Path, command: str = "hil fit") -> Path:
+        lines = [f"Plant fitted by `{command}` (hil.fit; docs/fit.md) to {len(self.logs)} logs:"]
+        lines += [f"  {lg.name} ({lg.kind}{', ' + lg.axis if lg.axis else ''})" for lg in self.logs]
+        lines.append("Fitted (value +- 1 sigma); every other value is the prior's:")
+        for e in self.estimates:
+            if e.status == "fitted" and e.value is not None:
+                sig = "" if e.sigma is None else f" +- {e.sigma:.3g}"
+                lines.append(f"  {e.name} = {e.value:.5g}{sig} {e.unit}  ({e.source})")
+        return dump_plant(self.plant, out, "\n".join(lines))
+
+
+def _mean_sigma(values: list[tuple[float, float]]) -> tuple[float, float]:
+    """Inverse-variance mean of (value, sigma) pairs and its sigma."""
+    w = np.array([1.0 / max(s, 1e-12) ** 2 for _, s in values])
+    v = np.array([x for x, _ in values])
+    return float(np.sum(w * v) / np.sum(w)), float(1.0 / math.sqrt(np.sum(w)))
+
+
+def fit_logs(paths: list[str | Path], *, prior: str | Path | Mapping[str, Any] | None = None,
+             progress: Any = None) -> TwinFit:
+    """Fit the plant to the logs of one platform (docs/fit.md). ``prior``: the plant whose values are kept where the
+    logs say nothing (default: the emulator's default plant). :class:`FitInputError` (one line) for bad input."""
+    from firmware_stub.plant import DEFAULT_PLANT_CONFIG
+
+    def say(text: str) -> None:
+        if progress is not None:
+            progress(text)
+
+    base = dict(prior) if isinstance(prior, Mapping) else load_plant_dict(prior or DEFAULT_PLANT_CONFIG)
+    logs = load_fit_logs(list(paths))
+    plant = copy.deepcopy(base)
+    est: list[Estimate] = []
+    notes = [f"{lg.name}: {n}" for lg in logs for n in lg.notes]
+
+    say("frequency response (ident logs)")
+    plant, lin_est, frfs = _linear_pass(logs, base, plant, None)
+    plant, mech_est, mech = _mechanics_pass(logs, base, plant, say)
+    if frfs:  # again, with the low-frequency spring the torque balance found (k_c, gravity on the imbalance)
+        say("frequency response, with the springs of the torque balance")
+        springs = {f.axis: _spring_q(plant, f.axis, logs) for f in frfs}
+        plant, lin_est, frfs = _linear_pass(logs, base, plant, springs)
+        plant, mech_est, mech = _mechanics_pass(logs, base, plant, say)
+    say("gyro noise (static logs)")
+    plant, noise_est, noise_extra = _noise_pass(logs, plant, frfs)
+    est = lin_est + noise_est + mech_est
+    validate_plant(plant)
+    return TwinFit(prior=base, plant=plant, estimates=est, logs=logs, frf=frfs, mechanics=mech,
+                   noise=noise_extra, notes=notes)
+
+
+def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, Any],
+                 springs: Mapping[str, float] | None) -> tuple[dict[str, Any], list[Estimate], list[FrfFit]]:
+    """k_m, the structural modes, the gyro's bandwidth and delay from the ident logs, set in ``plant``."""
+    frfs = [fit_frequency_response(lg, prior=plant, spring_q=(springs or {}).get(lg.axis or ""))
+            for lg in logs if lg.kind == "ident"]
+    est: list[Estimate] = []
+    shared: dict[str, list[tuple[float, float]]] = {"gyro.bandwidth_hz": [], "gyro.delay_s": []}
+    for axis in AXES:
+        mine = [f for f in frfs if f.axis == axis]
+        name = f"motor_{axis}.k_m_dps2_per_count"
+        if not mine:
+            est.append(Estimate(name, k_m_of(base, axis), None, _unit(name), "prior", f"no ident log on {axis}",
+                                prior=k_m_of(base, axis)))
+            continue
+        km, km_s = _mean_sigma([(f.k_m, f.sigma["k_m"]) for f in mine])
+        est.append(Estimate(name, km, km_s, _unit(name), "fitted", "ident: FRF " + ", ".join(f.log for f in mine),
+                            prior=k_m_of(base, axis)))
+        plant = apply_params(plant, {name: km})
+    # bandwidth and delay trade against each other: the pair of the log that pins the pole best (smallest relative
+    # sigma), else every log's delay with the prior's bandwidth
+    resolved = sorted((f for f in frfs if f.bandwidth_identified),
+                      key=lambda f: f.sigma["bandwidth_hz"] / max(f.bandwidth_hz, 1e-9))
+    if resolved:
+        best_pair = resolved[0]
+        shared["gyro.bandwidth_hz"].append((best_pair.bandwidth_hz, max(best_pair.sigma["bandwidth_hz"], 1e-3)))
+        shared["gyro.delay_s"].append((best_pair.delay_s, max(best_pair.sigma["delay_s"], 1e-7)))
+    else:
+        for f in frfs:
+            shared["gyro.delay_s"].append((f.delay_s, max(f.sigma["delay_s"], 1e-7)))
+    for axis in AXES:
+        mine = [f for f in frfs if f.axis == axis]
+        if not mine:
+            for pname in (f"structure.{axis}.mode_hz", f"structure.{axis}.damping_ratio"):
+                est.append(Estimate(pname, get_param(base, pname), None, _unit(pname), "prior",
+                                    f"no ident log on {axis}", prior=get_param(base, pname)))
+            continue
+        modes = [f for f in mine if f.mode_hz is not None]
+        for key, attr in (("mode_hz", "mode_hz"), ("damping_ratio", "damping")):
+            pname = f"structure.{axis}.{key}"
+            if modes:
+                val, sig = _mean_sigma([(getattr(f, attr), max(f.sigma["mode_hz" if attr == "mode_hz" else
+                                                                        "damping"], 1e-6)) for f in modes])
+                est.append(Estimate(pname, val, sig, _unit(pname), "fitted", "ident: resonance in the FRF",
+                                    prior=get_param(base, pname)))
+                plant = apply_params(plant, {pname: val})
+            else:
+                top = max(f.f_range_hz[1] for f in mine)
+                est.append(Estimate(pname, get_param(base, pname), None, _unit(pname), "prior",
+                                    f"ident: no resonance below {top:.0f} Hz (the sweep's top)",
+                                    prior=get_param(base, pname)))
+    for pname, vals in shared.items():
+        if vals:
+            val, sig = _mean_sigma(vals)
+            est.append(Estimate(pname, val, sig, _unit(pname), "fitted", "ident: FRF", prior=get_param(base, pname)))
+            plant = apply_params(plant, {pname: val})
+        else:
+            why = ("ident: the coherent band ends below the gyro's pole (the delay absorbs its lag)" if frfs
+                   else "no ident log")
+            est.append(Estimate(pname, get_param(base, pname), None, _unit(pname), "prior", why,
+                                prior=get_param(base, pname)))
+
+    return plant, est, frfs
+
+
+def _noise_pass(logs: list[FitLog], plant: dict[str, Any],
+                frfs: list[FrfFit]) -> tuple[dict[str, Any], list[Estimate], dict[str, Any]]:
+    """The gyro's noise and bias from the static logs, set in ``plant``."""
+    modes = {g: get_param(plant, f"structure.{ax}.mode_hz") for g, ax in (("y", "el"), ("z", "az"))}
+    fitted_axes = {f.axis for f in frfs}
+    driven = {g: plant for g, ax in (("y", "el"), ("z", "az")) if ax in fitted_axes}
+    noise_est, noise_extra = fit_noise(logs, plant, modes_hz={g: m for g, m in modes.items() if m}, driven=driven)
+    est = list(noise_est)
+    for e in noise_est:
+        if e.status == "fitted" and e.value is not None:
+            plant = apply_params(plant, {e.name: e.value})
+    if "bias_dps" in noise_extra:
+        plant["gyro"]["bias_dps"] = [float(b) for b in noise_extra["bias_dps"]]
+
+    return plant, est, noise_extra
+
+
+def _mechanics_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, Any],
+                    say: Any) -> tuple[dict[str, Any], list[Estimate], dict[str, MechanicsFit]]:
+    """Friction, cable, current limit and imbalance from the torque balance, set in ``plant``."""
+    mech: dict[str, MechanicsFit] = {}
+    est: list[Estimate] = []
+    bw = float(plant["gyro"]["bandwidth_hz"])
+    td = float(plant["gyro"]["delay_s"])
+    for axis in AXES:
+        say(f"torque balance, {axis}")
+        moving = [lg for lg in logs if lg.kind == "swing" or (lg.kind == "ident" and lg.axis == axis)]
+        if not moving:
+            for pname in (f"friction.{axis}.coulomb_n_m", f"friction.{axis}.stiction_ratio",
+                          f"cable.{axis}.stiffness_n_m_per_rad", f"drive.{axis}.current_limit_a"):
+                est.append(Estimate(pname, get_param(base, pname), None, _unit(pname), "prior",
+                                    "no swing or ident log", prior=get_param(base, pname)))
+            continue
+        mf = fit_mechanics(moving, axis, plant, bandwidth_hz=bw, delay_s=td)
+        mech[axis] = mf
+        est += _mechanics_estimates(mf, base, plant, axis, has_swing=any(lg.kind == "swing" for lg in moving))
+        plant = _apply_mechanics(plant, mf, axis, est)
+    return plant, est, mech
+
+
+def _spring_q(plant: Mapping[str, Any], axis: str, logs: list[FitLog]) -> float:
+    """K / J of the spring an ident sweep on ``axis`` feels: the cable, plus for elevation gravity on the imbalance
+    at the sweep's mean elevation (``T = -m rho_z g sin(el) - m rho_x g cos(el)``, linearised)."""
+    k = float(((plant.get("cable") or {}).get(axis) or {}).get("stiffness_n_m_per_rad") or 0.0)
+    if axis == "el" and plant.get("imbalance"):
+        el = [float(np.mean(lg.loop["el_deg"])) for lg in logs if lg.kind == "ident" and lg.axis == "el"]
+        e = math.radians(el[0]) if el else 0.0
+        m_rho_x = (get_param(plant, "imbalance.m_rho_x_kg_mm") or 0.0) * 1e-3  # kg m
+        m_rho_z = (get_param(plant, "imbalance.m_rho_z_kg_mm") or 0.0) * 1e-3
+        k += G0 * (m_rho_z * math.cos(e) - m_rho_x * math.sin(e))
+    return k / float(plant[f"motor_{axis}"]["inertia_kg_m2"])
+
+
+def _mechanics_estimates(mf: MechanicsFit, base: Mapping[str, Any], plant: Mapping[str, Any], axis: str,
+                         has_swing: bool) -> list[Estimate]:
+    out: list[Estimate] = []
+    src = "torque balance: " + ", ".join(mf.rms_n_m)
+    reversals = "swing logs (rate reversals)" if has_swing else "no swing log: no rate reversal"
+
+    def add(name: str, value: float | None, sigma: float | None, ok: bool, why: str) -> None:
+        out.append(Estimate(name, value if ok else get_param(base, name), sigma if ok else None, _unit(name),
+                            "fitted" if ok else "prior", src if ok else why, prior=get_param(base, name)))
+
+    add(f"friction.{axis}.coulomb_n_m", mf.coulomb_n_m, mf.sigma["coulomb_n_m"], mf.coulomb_n_m > 0, reversals)
+    ratio = mf.stiction_n_m / mf.coulomb_n_m if mf.coulomb_n_m > 0 else None
+    ratio_sigma = mf.sigma["stiction_n_m"] / max(mf.coulomb_n_m, 1e-9)
+    plausible = BY_NAME[f"friction.{axis}.stiction_ratio"]
+    add(f"friction.{axis}.stiction_ratio", ratio, ratio_sigma,
+        has_swing and ratio is not None and 1.0 <= ratio <= 1.2 * plausible.hi and ratio_sigma < 0.1,
+        reversals if not has_swing else "the breakaway is not resolved (a Stribeck rate inside the stick band)")
+    add(f"friction.{axis}.stribeck_rate_dps", mf.stribeck_rate_dps, None,
+        has_swing and ratio is not None and ratio > 1.02, "stiction not above Coulomb: no Stribeck rate")
+    # the balance sees bearing and harness damping together (both act on v): the harness keeps the prior's
+    cable_damping = float(((plant.get("cable") or {}).get(axis) or {}).get("damping_n_m_s_per_rad") or 0.0)
+    bearing = mf.viscous_n_m_s_per_rad - cable_damping
+    add(f"friction.{axis}.viscous_n_m_s_per_rad", bearing, mf.sigma["viscous_n_m_s_per_rad"], bearing > 0,
+        "not above the cable's damping in the fit")
+    add(f"cable.{axis}.stiffness_n_m_per_rad", mf.cable_n_m_per_rad, mf.sigma["cable_n_m_per_rad"],
+        mf.cable_n_m_per_rad > 0 and mf.sigma["cable_n_m_per_rad"] < 0.5 * abs(mf.cable_n_m_per_rad) + 0.05,
+        "not determined by the travel in these logs")
+    name = f"drive.{axis}.current_limit_a"
+    prior_limit = get_param(base, name)
+    if mf.current_limit_a is not None:
+        out.append(Estimate(name, mf.current_limit_a, 0.03 * mf.current_limit_a, "A", "fitted",
+                            "saturation episodes in the torque balance", prior=prior_limit))
+    else:
+        keep = prior_limit if prior_limit is None or prior_limit >= mf.current_peak_a else mf.current_peak_a
+        out.append(Estimate(name, keep, None, "A", "bound",
+                            f"not reached: the logs asked for at most {mf.current_peak_a:.2f} A", prior=prior_limit,
+                            note=f"limit >= {mf.current_peak_a:.2f} A"))
+    if mf.m_rho_x_kg_mm is not None and mf.m_rho_z_kg_mm is not None:
+        for key, val in (("x", mf.m_rho_x_kg_mm), ("z", mf.m_rho_z_kg_mm)):
+            pname = f"imbalance.m_rho_{key}_kg_mm"
+            out.append(Estimate(pname, val, mf.sigma[f"m_rho_{key}_kg_mm"], "kg mm", "fitted", src,
+                                prior=get_param(base, pname)))
+    return out
+
+
+def _apply_mechanics(plant: dict[str, Any], mf: MechanicsFit, axis: str, est: list[Estimate]) -> dict[str, Any]:
+    values: dict[str, float] = {}
+    for e in est:
+        if e.value is None or not (e.name.startswith((f"friction.{axis}.", f"cable.{axis}.", f"drive.{axis}."))
+                                   or (axis == "el" and e.name.startswith("imbalance."))):
+            continue
+        if e.status in ("fitted", "bound"):
+            values[e.name] = e.value
+    out = copy.deepcopy(plant)
+    fr = out["friction"][axis]
+    if "friction." + axis + ".coulomb_n_m" in values:
+        fr["coulomb_n_m"] = values.pop(f"friction.{axis}.coulomb_n_m")
+    ratio = values.pop(f"friction.{axis}.stiction_ratio", None)
+    if ratio is not None:
+        out = apply_params(out, {f"friction.{axis}.stiction_ratio": max(1.0, ratio)})
+    elif fr.get("model") == "lugre":
+        fr["stiction_n_m"] = max(fr["stiction_n_m"], fr["coulomb_n_m"])
+    return apply_params(out, values)
+
+
+__all__ = ["Estimate", "FrfFit", "MechanicsFit", "TwinFit", "fit_frequency_response", "fit_logs", "fit_mechanics",
+           "fit_noise"]

@@ -1,0 +1,114 @@
+"""The targets model (profiles/targets/*.yaml), the objective, and a tiny resumable study (hil.fit.targets)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import yaml
+
+from hil.fit.targets import PREMISES, fit_targets, load_targets, objective, premise_values
+
+ROOT = Path(__file__).resolve().parents[2]
+SEED_000 = ROOT / "profiles" / "targets" / "seed-000.yaml"
+STATIC = str(ROOT / "profiles" / "campaigns" / "static-gyro-noise.yaml")
+
+
+def _tiny(tmp_path: Path, **changes: object) -> Path:
+    data = {
+        "name": "tiny",
+        "plant": str(ROOT / "profiles" / "plant" / "default.yaml"),
+        "trial": {"seeds": [1], "duration_s": 2.5},
+        "verify": {"seeds": [1], "duration_s": 2.5},
+        "search": {"plant_params": ["gyro.noise_std_dps"]},
+        "targets": [{"id": "raw", "campaign": STATIC, "profile": "static", "controller": "ESO+KF",
+                     "metric": "gyro_raw_peak_dps", "paper": 0.102}],
+    }
+    data.update(changes)
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_shipped_targets_file_is_valid() -> None:
+    config = load_targets(SEED_000)
+    ids = {t.id for t in config.targets}
+    assert {"fig12-raw-peak", "fig13-kf-lag", "table1-hg-std", "table3-eso-std"} <= ids
+    needed = {k for p in PREMISES for k in p.needs}
+    assert needed <= ids | {m.id for m in config.measurements}
+
+
+@pytest.mark.parametrize(("change", "field"), [
+    ({"targets": [{"id": "raw", "campaign": STATIC, "profile": "static", "controller": "ESO+KF",
+                   "metric": "gyro_raw_peak_dps", "paper": 0.102, "wieght": 2}]}, "targets.0.wieght"),
+    ({"targets": [{"id": "raw", "kind": "spectrum", "campaign": STATIC, "profile": "static",
+                   "controller": "ESO+KF", "metric": "gyro_raw_peak_dps", "paper": 0.102}]}, "targets.0.kind"),
+    ({"targets": [{"id": "raw", "campaign": STATIC, "profile": "static", "controller": "ESO+KF",
+                   "metric": "no_such_metric", "paper": 0.102}]}, "targets.0.metric"),
+    ({"targets": [{"id": "raw", "campaign": STATIC, "profile": "windy", "controller": "ESO+KF",
+                   "metric": "gyro_raw_peak_dps", "paper": 0.102}]}, "targets.0.profile"),
+    ({"search": {"plant_params": ["gyro.colour"]}}, "search.plant_params"),
+    ({"search": {"controller_params": [{"name": "q", "fields": ["q_dps2"], "controllers": ["eso"], "low": 1e-5,
+                                        "high": 1e-3, "default": 1e-4}]}}, "search.controller_params.0"),
+])
+def test_bad_file_one_line_naming_the_field(tmp_path: Path, change: dict, field: str) -> None:
+    path = _tiny(tmp_path, **change)
+    with pytest.raises(ValueError, match=r"tiny\.yaml") as info:
+        load_targets(path)
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert field in msg
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="no such targets file"):
+        load_targets(tmp_path / "absent.yaml")
+
+
+def test_objective_is_the_weighted_sum_of_squared_log_ratios(tmp_path: Path) -> None:
+    targets = [{"id": "a", "campaign": STATIC, "profile": "static", "controller": "ESO+KF",
+                "metric": "gyro_raw_peak_dps", "paper": 0.1, "weight": 1.0},
+               {"id": "b", "campaign": STATIC, "profile": "static", "controller": "ESO+KF",
+                "metric": "gyro_kf_peak_dps", "paper": 2.0, "weight": 2.0},
+               {"id": "c", "campaign": STATIC, "profile": "static", "controller": "ESO+KF",
+                "metric": "gyro_lpf_peak_dps", "paper": 0.5, "weight": 0.5}]
+    config = load_targets(_tiny(tmp_path, targets=targets))
+    # a: x2, b: x0.5, c: a lead (negative) counts as a factor 10 short
+    expected = 1.0 * math.log(2.0) ** 2 + 2.0 * math.log(0.5) ** 2 + 0.5 * math.log(0.1) ** 2
+    assert objective(config, {"a": 0.2, "b": 1.0, "c": -0.3}) == pytest.approx(expected, rel=1e-12)
+    # a missing value (a session that faulted) counts as a factor 10 too large
+    assert objective(config, {"a": 0.1, "b": 2.0}) == pytest.approx(0.5 * math.log(10.0) ** 2, rel=1e-12)
+
+
+def test_premise_values() -> None:
+    v = {"eso-high-gain": 0.3, "table1-hg-std": 0.1, "table1-eso-std": 0.32, "table1-esokf-std": 0.16,
+         "table2-eso-std": 6.0, "table3-eso-std": 12.0, "table2-hg-std": 2.71, "table3-hg-std": 6.15}
+    got = premise_values(v)
+    assert got["a"] == pytest.approx(3.0)
+    assert got["b1"] == pytest.approx(0.5)
+    assert got["b2"] == pytest.approx(0.625)
+    assert got["c"] == pytest.approx(2.0)
+    assert got["d"] == pytest.approx(15.6 / 12.0)
+    by_id = {p.id: p for p in PREMISES}
+    assert by_id["a"].holds(0.9, {"eso-high-gain": "drive at its limit"})  # unstable plain ESO: the premise holds
+    assert not by_id["a"].holds(0.9, {})
+
+
+def test_tiny_study_runs_and_resumes(tmp_path: Path) -> None:
+    path = _tiny(tmp_path)
+    lines: list[str] = []
+    kwargs = {"out_plant": tmp_path / "plant.yaml", "out_dir": tmp_path / "fit", "study": "tiny", "seed": 3,
+              "verify": False}
+    first = fit_targets(path, trials=1, progress=lines.append, **kwargs)
+    assert first.trials == 1 and first.complete == 1 and first.trials_run == 1
+    assert first.best_trial == 0  # the base plant's own values come first
+    assert lines and lines[0].startswith("trial 0: objective")
+    with pytest.raises(ValueError, match="--resume"):
+        fit_targets(path, trials=2, **kwargs)
+    second = fit_targets(path, trials=2, resume=True, **kwargs)
+    assert second.trials == 2 and second.trials_run == 1
+    assert second.best_value is not None and second.best_value <= first.best_value
+    text = (tmp_path / "plant.yaml").read_text()
+    assert text.startswith("# ") and "hil fit --targets" in text and "noise_std_dps" in text
+    assert "| raw |" in (tmp_path / "fit" / "residuals.md").read_text()
