@@ -541,16 +541,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(10, max(2, trials // 10)),
                                              multivariate=True)
-    st = optuna.create_study(storage=rdb, sampler=sampler, study_name=study_name, direction=direction,
-                             load_if_exists=True)
-    if exists:
-        for key, value in meta.items():
-            if st.user_attrs.get(key) != value:
-                raise ConfigError(f"--resume: study {study_name!r} was made with {key} {st.user_attrs.get(key)!r}, "
-                                  f"not {value!r}; choose another --study")
-    else:
-        for key, value in meta.items():
-            st.set_user_attr(key, value)
+    st = open_study(rdb, study_name, sampler, direction, meta=meta, exists=exists)
     finished = {"COMPLETE", "FAIL", "PRUNED"}
     done = sum(t.state.name in finished for t in st.get_trials(deepcopy=False))
     todo = max(0, trials - done)
@@ -719,6 +710,23 @@ def _plot_importances(imp: dict[str, float], path: Path) -> Path | None:
     ax[0, 0].set(title="parameter importances (Optuna's default evaluator, complete trials)", xlabel="importance")
     ax[0, 0].grid(alpha=0.3, axis="x")
     return _save(fig, path)
+
+
+def open_study(rdb: Any, study_name: str, sampler: Any, direction: str, *, meta: dict[str, Any],
+               exists: bool) -> Any:
+    """Create the study, or load it (``exists``) and check it was made with the same ``meta`` (its user attributes:
+    the space, the objective, ...); ConfigError naming ``--resume`` if not. A new study gets ``meta`` stored."""
+    import optuna
+
+    st = optuna.create_study(storage=rdb, sampler=sampler, study_name=study_name, direction=direction,
+                             load_if_exists=True)
+    for key, value in meta.items():
+        if not exists:
+            st.set_user_attr(key, value)
+        elif st.user_attrs.get(key) != value:
+            raise ConfigError(f"--resume: study {study_name!r} was made with {key} {st.user_attrs.get(key)!r}, "
+                              f"not {value!r}; choose another --study")
+    return st
 
 
 def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> Any:

@@ -146,7 +146,7 @@ def _plot_torque(fit: TwinFit, path: Path) -> Path | None:
         a = int(np.searchsorted(t, t[0] + 3.0))
         b = min(t.size, a + 2000)
         ax.plot(t[a:b], tr["measured_n_m"][a:b], color="0.5", lw=0.8, label="logged: J dw/dt - motor torque")
-        ax.plot(t[a:b], tr["model_n_m"][a:b] - 0 * tr["measured_n_m"][a:b], color="C3", lw=1.0,
+        ax.plot(t[a:b], tr["model_n_m"][a:b], color="C3", lw=1.0,
                 label="fitted: friction + cable + imbalance")
         hidden = ~tr["kept"][a:b]
         if hidden.any():

@@ -570,7 +570,7 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
     targets file, an unknown target kind or metric, an existing study without ``resume``)."""
     import optuna
 
-    from hil.tune import _quiet_nan_warnings, _rdb, _storage_url
+    from hil.tune import _quiet_nan_warnings, _rdb, _storage_url, open_study
 
     config = load_targets(targets_path)
     if not 1 <= trials <= 100_000:
@@ -596,16 +596,8 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
     with _quiet_experimental():
         sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(20, max(2, trials // 10)),
                                              multivariate=True, constant_liar=True)
-    st = optuna.create_study(storage=rdb, sampler=sampler, study_name=study_name, direction="minimize",
-                             load_if_exists=True)
-    if exists:
-        for key, value in meta.items():
-            if st.user_attrs.get(key) != value:
-                raise ValueError(f"--resume: study {study_name!r} was made with {key} {st.user_attrs.get(key)!r}, "
-                                 f"not {value!r}; choose another --study")
-    else:
-        for key, value in meta.items():
-            st.set_user_attr(key, value)
+    st = open_study(rdb, study_name, sampler, "minimize", meta=meta, exists=exists)  # ConfigError is a ValueError
+    if not exists:
         st.enqueue_trial(_first_trial(config, base))
     done = sum(t.state.name in ("COMPLETE", "FAIL", "PRUNED") for t in st.get_trials(deepcopy=False))
     todo = max(0, trials - done)
