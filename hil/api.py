@@ -517,8 +517,8 @@ def tune(campaign: Any, params: Any, **options: Any) -> Any:
 
 def check_file(path: str | Path, kind: str | None = None) -> dict[str, Any]:
     """Validate one config file without running anything: {"file", "kind", "summary"}; ConfigError otherwise.
-    The kind (session, campaign, controller, swing, hexapod, emulator, plant) comes from ``kind``, else from the
-    folder it is in (``profiles/KIND/``), else from its keys."""
+    The kind (session, campaign, controller, swing, hexapod, emulator, plant, targets) comes from ``kind``, else
+    from the folder it is in (``profiles/KIND/``), else from its keys."""
     from hil.checks import check_config_file
 
     return check_config_file(Path(path), kind)

@@ -12,9 +12,9 @@ from typing import Any
 
 from hil.config import ConfigError, read_yaml_mapping
 
-KINDS: tuple[str, ...] = ("session", "campaign", "controller", "swing", "hexapod", "emulator", "plant")
+KINDS: tuple[str, ...] = ("session", "campaign", "controller", "swing", "hexapod", "emulator", "plant", "targets")
 FOLDERS = {"sessions": "session", "campaigns": "campaign", "controllers": "controller", "swing": "swing",
-           "hexapod": "hexapod", "emulator": "emulator", "plant": "plant"}
+           "hexapod": "hexapod", "emulator": "emulator", "plant": "plant", "targets": "targets"}
 
 
 def _models() -> dict[str, type]:
@@ -22,9 +22,11 @@ def _models() -> dict[str, type]:
     from firmware_stub.plant import PlantConfig
     from hil.campaign.model import CampaignConfig
     from hil.config import ControllerConfig, HexapodLimits, SessionConfig, SwingProfile
+    from hil.fit.targets import TargetsConfig
 
     return {"session": SessionConfig, "campaign": CampaignConfig, "controller": ControllerConfig,
-            "swing": SwingProfile, "hexapod": HexapodLimits, "emulator": EmulatorConfig, "plant": PlantConfig}
+            "swing": SwingProfile, "hexapod": HexapodLimits, "emulator": EmulatorConfig, "plant": PlantConfig,
+            "targets": TargetsConfig}
 
 
 def guess_kind(path: Path) -> str:
@@ -91,13 +93,20 @@ def _summary_plant(config: Any) -> str:
     return f"plant: internal step {config.internal_step_s * 1e6:g} us"
 
 
+def _summary_targets(config: Any) -> str:
+    return (f"targets {config.name}: {len(config.targets)} figures, {len(config.measurements)} extra measurement(s), "
+            f"{len(config.search.plant_ranges())} plant parameters searched")
+
+
 def _loaders() -> dict[str, tuple[Callable[[Path], Any], Callable[[Any], str]]]:
     from firmware_stub.config import load_emulator_config
     from firmware_stub.plant import load_plant_config
     from hil.campaign import load_campaign
     from hil.config import ControllerConfig, HexapodLimits, SwingProfile, load_model, load_session
+    from hil.fit.targets import load_targets
 
     return {"session": (load_session, _summary_session), "campaign": (load_campaign, _summary_campaign),
+            "targets": (load_targets, _summary_targets),
             "controller": (lambda p: load_model(ControllerConfig, p), _summary_controller),
             "swing": (lambda p: load_model(SwingProfile, p), _summary_swing),
             "hexapod": (lambda p: load_model(HexapodLimits, p), _summary_hexapod),

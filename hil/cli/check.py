@@ -9,7 +9,7 @@ import typer
 
 from hil.cli._common import app, console, fail, print_json
 
-Kind = Literal["session", "campaign", "controller", "swing", "hexapod", "emulator", "plant"]
+Kind = Literal["session", "campaign", "controller", "swing", "hexapod", "emulator", "plant", "targets"]
 
 
 @app.command()

@@ -113,7 +113,7 @@ def test_run_campaign_and_report_inside_a_running_loop(tmp_path: Path) -> None:
 @pytest.mark.parametrize("path", sorted(PROFILES.glob("*/*.yaml")), ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_check_file_knows_every_shipped_config(path: Path) -> None:
     folders = {"sessions": "session", "campaigns": "campaign", "controllers": "controller", "swing": "swing",
-               "hexapod": "hexapod", "emulator": "emulator", "plant": "plant"}
+               "hexapod": "hexapod", "emulator": "emulator", "plant": "plant", "targets": "targets"}
     checked = hil.check_file(path)
     assert checked["kind"] == folders[path.parent.name]
     assert checked["summary"]
