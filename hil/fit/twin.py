@@ -217,11 +217,18 @@ class FrfFit:
     frf: Any = None
     log: str = ""
     bandwidth_identified: bool = True  # False: the coherent band ends below the pole; the prior's bandwidth is used
+    kernel_plant: dict[str, Any] | None = None  # the plant the kernel fit finished on (None: analytic model only)
 
     def response(self, f_hz: np.ndarray) -> np.ndarray:
+        """The fitted response: the kernel's own (:func:`linear_plant_frf`) where the fit finished on it."""
         from hil.ident import plant_response
 
         s = 2j * math.pi * np.asarray(f_hz, dtype=float)
+        if self.kernel_plant is not None:
+            resp = np.ones(s.size, dtype=complex)
+            nz = s != 0
+            resp[nz] = linear_plant_frf(self.kernel_plant, self.axis, np.asarray(f_hz, dtype=float)[nz])
+            return resp * _spring_factor(s, self.spring_q)
         p = plant_response(f_hz, self.k_m, bandwidth_hz=self.bandwidth_hz, delay_s=self.delay_s, dt_s=1e-3)
         return p * _mode_factor(s, self.mode_hz, self.damping) * _spring_factor(s, self.spring_q)
 
@@ -283,18 +290,8 @@ def _exact_refine(plant: Mapping[str, Any], axis: str, fs: np.ndarray, p: np.nda
     s = 2j * math.pi * fs
 
     def model(x: np.ndarray) -> np.ndarray:
-        ln_k, ln_bw, td, ln_fr, ln_z, q = x
-        vals = {f"motor_{axis}.k_m_dps2_per_count": float(np.exp(ln_k)), "gyro.delay_s": float(td),
-                "gyro.bandwidth_hz": float(bw_fixed or np.exp(ln_bw))}
-        if with_mode:
-            vals |= {f"structure.{axis}.mode_hz": float(np.exp(ln_fr)),
-                     f"structure.{axis}.damping_ratio": float(np.exp(ln_z))}
-        c = apply_params(plant, vals)
-        if not with_mode:
-            c.get("structure", {}).pop(axis, None)
-            if not c.get("structure"):
-                c.pop("structure", None)
-        return linear_plant_frf(c, axis, fs) * _spring_factor(s, float(q))
+        return linear_plant_frf(_kernel_plant(plant, axis, x, with_mode, bw_fixed), axis, fs) * _spring_factor(
+            s, float(x[5]))
 
     def resid(x: np.ndarray) -> np.ndarray:
         e = np.log(p / model(x))
@@ -317,7 +314,26 @@ def _exact_refine(plant: Mapping[str, Any], axis: str, fs: np.ndarray, p: np.nda
                         diff_step=1e-4, max_nfev=40)
     full[free] = res.x
     res.x_full, res.free = full, free
+    res.kernel_plant = _kernel_plant(plant, axis, full, with_mode, bw_fixed)
     return res
+
+
+def _kernel_plant(plant: Mapping[str, Any], axis: str, x: np.ndarray, with_mode: bool,
+                  bw_fixed: float | None) -> dict[str, Any]:
+    """``plant`` with the FRF fit's parameters ``x`` = (ln k_m, ln bandwidth, delay, ln mode, ln damping, spring)
+    set on ``axis`` (without a mode: the axis rigid)."""
+    ln_k, ln_bw, td, ln_fr, ln_z, _ = x
+    vals = {f"motor_{axis}.k_m_dps2_per_count": float(np.exp(ln_k)), "gyro.delay_s": float(td),
+            "gyro.bandwidth_hz": float(bw_fixed or np.exp(ln_bw))}
+    if with_mode:
+        vals |= {f"structure.{axis}.mode_hz": float(np.exp(ln_fr)),
+                 f"structure.{axis}.damping_ratio": float(np.exp(ln_z))}
+    c = apply_params(plant, vals)
+    if not with_mode:
+        c.get("structure", {}).pop(axis, None)
+        if not c.get("structure"):
+            c.pop("structure", None)
+    return c
 
 
 def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
@@ -417,6 +433,7 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
                             and _sigmas(res, with_mode, fs.size)[1] < 0.1)
     if not bandwidth_identified:
         _, with_mode, res, mode_hz = search(prior_bandwidth_hz)
+    kernel_plant = None
     if prior is not None:  # the analytic model approximates the kernel's sampling; finish on the kernel itself
         ex = _exact_refine(prior, ax, fs, p, wt, res.x, with_mode, None if bandwidth_identified else prior_bandwidth_hz,
                            spring_fixed=spring_q is not None)
@@ -426,12 +443,15 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
         if bandwidth_identified and sd[1] >= 0.1:
             bandwidth_identified = False
         res.x = ex.x_full
+        kernel_plant = ex.kernel_plant
         if mode_hz is not None:
             mode_hz = float(np.exp(res.x[3]))
     else:
         sd = _sigmas(res, with_mode, fs.size)
-    e = np.log(p / model(res.x, with_mode))  # analytic model: the report's residual (the kernel's is close)
     q = float(res.x[5])
+    fitted = (linear_plant_frf(kernel_plant, ax, fs) * _spring_factor(s, q) if kernel_plant is not None
+              else model(res.x, with_mode))
+    e = np.log(p / fitted)
     return FrfFit(
         axis=ax, k_m=float(np.exp(res.x[0])), bandwidth_hz=float(np.exp(res.x[1])), delay_s=float(res.x[2]),
         mode_hz=mode_hz, damping=float(np.exp(res.x[4])) if with_mode else None,
@@ -443,6 +463,7 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
         rms_db=float(np.sqrt(np.mean((e.real * 20 / math.log(10)) ** 2))),
         rms_deg=float(np.degrees(np.sqrt(np.mean(np.angle(np.exp(1j * e.imag)) ** 2)))),
         f_range_hz=(float(fs.min()), f_top), frf=frf, log=log.name, bandwidth_identified=bandwidth_identified,
+        kernel_plant=kernel_plant,
     )
 
 
@@ -727,7 +748,6 @@ def fit_logs(paths: list[str | Path], *, prior: str | Path | Mapping[str, Any] |
     base = dict(prior) if isinstance(prior, Mapping) else load_plant_dict(prior or DEFAULT_PLANT_CONFIG)
     logs = load_fit_logs(list(paths))
     plant = copy.deepcopy(base)
-    est: list[Estimate] = []
     notes = [f"{lg.name}: {n}" for lg in logs for n in lg.notes]
 
     say("frequency response (ident logs)")
@@ -846,7 +866,7 @@ def _mechanics_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str
         mf = fit_mechanics(moving, axis, plant, bandwidth_hz=bw, delay_s=td)
         mech[axis] = mf
         est += _mechanics_estimates(mf, base, plant, axis, has_swing=any(lg.kind == "swing" for lg in moving))
-        plant = _apply_mechanics(plant, mf, axis, est)
+        plant = _apply_mechanics(plant, axis, est)
     return plant, est, mech
 
 
@@ -908,24 +928,16 @@ def _mechanics_estimates(mf: MechanicsFit, base: Mapping[str, Any], plant: Mappi
     return out
 
 
-def _apply_mechanics(plant: dict[str, Any], mf: MechanicsFit, axis: str, est: list[Estimate]) -> dict[str, Any]:
-    values: dict[str, float] = {}
-    for e in est:
-        if e.value is None or not (e.name.startswith((f"friction.{axis}.", f"cable.{axis}.", f"drive.{axis}."))
-                                   or (axis == "el" and e.name.startswith("imbalance."))):
-            continue
-        if e.status in ("fitted", "bound"):
-            values[e.name] = e.value
-    out = copy.deepcopy(plant)
-    fr = out["friction"][axis]
-    if "friction." + axis + ".coulomb_n_m" in values:
-        fr["coulomb_n_m"] = values.pop(f"friction.{axis}.coulomb_n_m")
-    ratio = values.pop(f"friction.{axis}.stiction_ratio", None)
-    if ratio is not None:
-        out = apply_params(out, {f"friction.{axis}.stiction_ratio": max(1.0, ratio)})
-    elif fr.get("model") == "lugre":
-        fr["stiction_n_m"] = max(fr["stiction_n_m"], fr["coulomb_n_m"])
-    return apply_params(out, values)
+def _apply_mechanics(plant: dict[str, Any], axis: str, est: list[Estimate]) -> dict[str, Any]:
+    """The torque balance's fitted and bound values of ``axis`` set in ``plant``: Coulomb before the stiction ratio
+    (setting Coulomb keeps the ratio, so the prior's ratio stays when the fit has none)."""
+    mine = {e.name: e.value for e in est if e.value is not None and e.status in ("fitted", "bound")
+            and (e.name.startswith((f"friction.{axis}.", f"cable.{axis}.", f"drive.{axis}."))
+                 or (axis == "el" and e.name.startswith("imbalance.")))}
+    ratio = f"friction.{axis}.stiction_ratio"
+    if ratio in mine:
+        mine[ratio] = max(1.0, mine.pop(ratio))  # last, over the fitted Coulomb
+    return apply_params(plant, mine)
 
 
 __all__ = ["Estimate", "FrfFit", "MechanicsFit", "TwinFit", "fit_frequency_response", "fit_logs", "fit_mechanics",
