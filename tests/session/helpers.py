@@ -94,7 +94,8 @@ def logged_events(log_path: Path) -> list[tuple[str, dict[str, Any]]]:
 HOST_CLOCK = {"t_host_ns", "latency_us"}  # the host's own monotonic clock: differs between any two runs
 # /image/loop_tick is the loop's last tick when the frame arrived: over ptys the host may read the servo pty
 # (sample k) before the image pty (a frame the board wrote before sample k), so two lockstep runs can differ by
-# one tick there; sim delivers in the order the boards wrote. Checked separately, within that one tick.
+# one tick there; sim delivers in the order the boards wrote. Checked separately, within that one tick (how
+# many frames differ depends on the machine's load: measured 0-30 % of a 1.5 s run's frames, so not bounded).
 ARRIVAL = {("image", "loop_tick")}
 
 
@@ -125,7 +126,7 @@ def assert_same_channels(a: Path, b: Path, ticks: int) -> int:
             assert len(x) == n and len(y) == n, (group, channel, len(x), len(y), n)
             if (group, channel) in ARRIVAL:
                 diff = np.abs(x.astype(np.int64) - y.astype(np.int64))
-                assert diff.max(initial=0) <= 1 and np.count_nonzero(diff) <= 0.05 * n, (group, channel, diff)
+                assert diff.max(initial=0) <= 1, (group, channel, diff)
             else:
                 np.testing.assert_array_equal(x, y, err_msg=f"/{group}/{channel}")
             compared += n
