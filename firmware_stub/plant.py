@@ -1575,6 +1575,12 @@ class Plant:
         valid = front > 0.0 and abs(x) <= cam.half_width_px and abs(y) <= cam.half_height_px
         return (x, y, valid)
 
+    def los_rate_dps(self) -> tuple[float, float, float]:
+        """The true (noise-free, unfiltered, undelayed) LOS rates x, y, z (deg/s) at ``t_s``: :meth:`truth`'s first
+        three values without building its dict (a per-tick recorder's cost)."""
+        v = kernel("truth")(self._p, self._s)
+        return (v[0] * R2D, v[1] * R2D, v[2] * R2D)
+
     def truth(self) -> dict[str, float]:
         """True (noise-free) values at ``t_s``. Torques (N m) are those acting on the axis; rates in deg/s. ``az_deg``,
         ``el_deg`` and the rates without ``motor`` are the load's (what the LOS, the gyro and the imbalance see);

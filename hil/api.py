@@ -309,6 +309,9 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
         raise ConfigError(str(exc)) from None
     from hil.control.registry import ControllerConfigError, require_sim_clock
 
+    if (clock != "sim" or hardware) and (use := config.sim_only_metric()) is not None:
+        raise ConfigError(f"{source}: {use} is read from the plant's truth, which only the sim clock records "
+                          f"(not {'hardware' if hardware else clock}); run with --clock sim")
     for entry in config.controllers:  # the oracle needs the sim clock's true plant state
         try:
             require_sim_clock(entry.name, "hardware" if hardware else clock)

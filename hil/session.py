@@ -84,12 +84,14 @@ class ControlLoop:
 
     def __init__(self, config: SessionConfig, drive: Callable[[int, int, int], None], log: SessionLog, *,
                  telemetry: Telemetry | None, duration_ticks: int, on_done: Callable[[], None],
-                 truth: TruthSource | None = None) -> None:
+                 truth: TruthSource | None = None, record_truth: Callable[[int], None] | None = None) -> None:
         """``drive(tick, az_counts, el_counts)`` sends DRIVE_CMD; ``on_done`` is called once, at the last tick of
         the run (from the loop's own thread: it must hand over to the event loop itself if it needs it). ``truth``:
-        the plant's true state (the sim clock's hil.sim.PlantTruth), which only the ``oracle`` controller reads."""
+        the plant's true state (the sim clock's hil.sim.PlantTruth), which only the ``oracle`` controller reads.
+        ``record_truth(tick)``: called with each loop row's sample counter (the sim clock's hil.sim.TruthLog)."""
         self.config = config
         self.truth = truth
+        self.record_truth = record_truth
         self.drive = drive
         self.log = log
         self.telemetry = telemetry
@@ -185,6 +187,8 @@ class ControlLoop:
             cmd_az, cmd_el, az.rate_fb_dps, el.rate_fb_dps, cmd_az - g.rate_z_dps, cmd_el - g.rate_y_dps,
             az.disturbance_counts, el.disturbance_counts, 0.0, self.ff_el, u_az, u_el, latency_ns / 1000,
             gap))
+        if self.record_truth is not None:
+            self.record_truth(g.tick)
         if self.telemetry is not None:
             self.telemetry.sample(t_s, lambda: {
                 "gyro_y_dps": g.rate_y_dps, "gyro_z_dps": g.rate_z_dps, "rate_err_el_dps": cmd_el - g.rate_y_dps,
@@ -250,7 +254,8 @@ class Session:
                  watchdog_ms: float | None = None, progress: Callable[[int, int], None] | None = None,
                  log_attrs: dict[str, Any] | None = None, lockstep: bool = False,
                  open_link: LinkOpener | None = None, watchdog: bool = True, emulated: bool = False,
-                 capture_dir: Path | None = None, truth: TruthSource | None = None) -> None:
+                 capture_dir: Path | None = None, truth: TruthSource | None = None,
+                 record_truth: Callable[[int], None] | None = None) -> None:
         """``lockstep``: the boards are an emulator in lockstep (its world waits for the bench). The bench then
         sends no HOST_ALIVE, which would land at wall-clock moments and change the bytes of the run; the
         emulator judges host liveness by the lockstep itself (docs/protocol.md, "Host liveness").
@@ -263,6 +268,7 @@ class Session:
         file there (hil.capture, docs/capture.md); ValueError with ``open_link`` (the sim clock's links carry no bytes).
         ``truth``: the plant's true state, which only the sim clock has (hil.sim.PlantTruth); a controller that needs
         it (``oracle``) without it is refused here, ConfigError naming ``controller.name``, before anything starts.
+        ``record_truth``: called with each loop row's sample counter (the sim clock's truth file, hil.log.truth).
 
         The loop runs in its own thread (hil.loop_thread) unless ``lockstep`` or ``open_link`` is given: lockstep and
         sim keep it on the event loop, where the boards wait for it and a run's bytes are reproducible."""
@@ -270,6 +276,7 @@ class Session:
             clock = "lockstep" if lockstep else "realtime" if emulated else "hardware"
             raise ConfigError(truth_refusal(config.controller.name, clock))
         self.truth = truth
+        self.record_truth = record_truth
         self.config = config
         self.ports = ports
         self.out_dir = out_dir
@@ -666,7 +673,8 @@ class Session:
             self.loop_ = ControlLoop(self.config, self.driver.drive, self.log, telemetry=self.telemetry,
                                      duration_ticks=round(self.config.duration_s * 1000),
                                      on_done=(lambda: aloop_.call_soon_threadsafe(self.finish, "completed"))
-                                     if self.use_thread else lambda: self.finish("completed"), truth=self.truth)
+                                     if self.use_thread else lambda: self.finish("completed"), truth=self.truth,
+                                     record_truth=self.record_truth)
             self.loop_.decoders = {name: link.decoder for name, link in self.links.items()}
             self.hexapod.on_pose = self.loop_.on_pose
             self.event("state", state="configured")

@@ -144,6 +144,28 @@ class PlantTruth:
         return out
 
 
+class TruthLog:
+    """The sim clock's truth recorder (hil.log.truth): called with each loop row's sample counter, it keeps the
+    plant's true LOS rates y and z at that tick; :meth:`write` puts them beside the session log."""
+
+    def __init__(self, plant: Plant) -> None:
+        self.plant = plant
+        self.ticks: list[int] = []
+        self.rates_y_dps: list[float] = []
+        self.rates_z_dps: list[float] = []
+
+    def __call__(self, tick: int) -> None:
+        _, y, z = self.plant.los_rate_dps()
+        self.ticks.append(tick)
+        self.rates_y_dps.append(y)
+        self.rates_z_dps.append(z)
+
+    def write(self, log_path: Path) -> Path:
+        from hil.log.truth import write_truth
+
+        return write_truth(log_path, self.ticks, self.rates_y_dps, self.rates_z_dps)
+
+
 class SimLab:
     """The emulated lab of ``emulator_config`` in this process. Use as an async context manager around a
     Session built with ``open_link=lab.open_link``; the world ticks while the session runs."""
@@ -162,6 +184,7 @@ class SimLab:
             raise ConfigError(f"{emulator_config}: plant: {exc}") from None
         self.world = SimWorld(config, self._to_host)
         self.truth = PlantTruth(self.world.plant)  # the oracle's truth source (only this clock has one)
+        self.truth_log = TruthLog(self.world.plant)  # the truth file beside the log (hil.log.truth)
         self.links: dict[str, SimLink] = {}
         self._wake = asyncio.Event()
         self._delivery_due = False
@@ -276,7 +299,8 @@ async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Cal
     ``capture_dir`` is refused (ValueError, before anything starts): the sim clock's links pass messages as
     objects, so there are no bytes to capture; the lockstep clock runs the same session over ptys. ``on_session``
     gets the Session once it exists (hil.api: to interrupt it from another thread). The session gets the lab's
-    :class:`PlantTruth`, which only the ``oracle`` controller reads."""
+    :class:`PlantTruth`, which only the ``oracle`` controller reads, and its :class:`TruthLog`, written beside the
+    log as its truth file (hil.log.truth: the true LOS rates per loop row), even when the session faults."""
     from hil.session import Session
 
     if capture_dir is not None:
@@ -285,12 +309,16 @@ async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Cal
     lab = SimLab(config.emulator.config, seed=config.seed)
     session = Session(config, sim_ports(), out_dir, progress=progress, lockstep=True, open_link=lab.open_link,
                       watchdog=False, log_attrs={"loopback": True, "clock": "sim", **(log_attrs or {})},
-                      truth=lab.truth)
+                      truth=lab.truth, record_truth=lab.truth_log)
     lab.on_error = session.fault
     if on_session is not None:
         on_session(session)
-    async with lab:
-        result = await session.run()
+    try:
+        async with lab:
+            result = await session.run()
+    finally:
+        if session.log_path is not None and session.log_path.exists():
+            lab.truth_log.write(session.log_path)
     return result, lab.summary
 
 

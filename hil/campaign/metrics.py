@@ -3,7 +3,8 @@
 Three analyses (a campaign picks one; ``control`` metrics are always computed):
 
 - ``control``: seed 000 Tables 1-3 and seed 001: rate error and miss distance range (+-, half the
-  peak-to-peak) and std, drive ripple, LOS rate, loop health (hil.summary.summarize_log);
+  peak-to-peak) and std, drive ripple, LOS rate, loop health (hil.summary.summarize_log); on the sim clock also
+  the true LOS rate (``los_rate_true_*``, from the session's truth file, hil.log.truth);
 - ``static_noise``: seed 000 Fig. 12: the elevation gyro at rest, raw vs the 150 Hz first-order
   low-pass (applied here to the logged raw gyro) vs the KF estimate the loop fed back;
 - ``filter_lag``: seed 000 Fig. 13: with a sine on the rate command, the lag of the 150 Hz low-pass
@@ -40,7 +41,8 @@ class Metric:
     """``kind``: ``error`` what the stabilisation leaves (rate error, miss distance, LOS rate); ``noise`` a
     signal's noise at rest; ``lag`` a filter's lag; ``effort`` what the controller spends (drive ripple);
     ``health`` the loop's timing. ``magnitude``: the sign is a direction, not better or worse (a lag's: + lag,
-    - lead), so improvements compare ``abs(value)``."""
+    - lead), so improvements compare ``abs(value)``. ``sim_only``: computed from the plant's truth, so only on the
+    sim clock."""
 
     label: str
     unit: str
@@ -48,6 +50,7 @@ class Metric:
     lower_is_better: bool = True
     kind: MetricKind = "error"
     magnitude: bool = False
+    sim_only: bool = False  # read from the plant's truth, which only the sim clock records (hil.log.truth)
 
 
 METRICS: dict[str, Metric] = {
@@ -68,6 +71,12 @@ METRICS: dict[str, Metric] = {
     "los_rate_rms_dps": Metric("LOS rate rms", "deg/s", "rms of the gyro's y-z (line-of-sight) rate minus command"),
     "los_rate_lf_std_dps": Metric("LOS rate std < 20 Hz", "deg/s", "std of the y-z rate error after a 20 Hz "
                                   "first-order low-pass: the carrier-disturbance band without the gyro's white noise"),
+    "los_rate_true_rms_dps": Metric("true LOS rate rms", "deg/s", "rms of the plant's true y-z (line-of-sight) "
+                                    "rate minus command: no gyro noise, filter or delay (sim clock only: its truth "
+                                    "file, hil.log.truth)", sim_only=True),
+    "los_rate_true_lf_std_dps": Metric("true LOS rate std < 20 Hz", "deg/s", "std of the true y-z rate error after "
+                                       "the same 20 Hz low-pass: what the LOS really does, which a controller that "
+                                       "follows its gyro's noise cannot read below (sim clock only)", sim_only=True),
     "gyro_raw_peak_dps": Metric("raw gyro +-", "deg/s", "median over 1 s records of max |x - mean|, elevation",
                                 kind="noise"),
     "gyro_raw_std_dps": Metric("raw gyro std", "deg/s", "std of the raw elevation gyro", kind="noise"),
@@ -166,6 +175,7 @@ def lag_cycles(reference: np.ndarray, filtered: np.ndarray, freq_hz: float, dt_s
 def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float = 1.0) -> dict[str, float]:
     """Every metric of ``analysis`` (plus the control ones) for the session log at ``path``."""
     from hil.log import read_log
+    from hil.log.truth import read_truth
     from hil.summary import summarize_log
 
     s = summarize_log(path, settle_s=settle_s)
@@ -194,6 +204,14 @@ def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float
     m["los_rate_rms_dps"] = _nan_if_empty(err_y, lambda _: np.sqrt(np.mean(err_y**2 + err_z**2)))
     lf_y, lf_z = (low_pass(e, LOS_BAND_HZ) for e in (err_y, err_z))
     m["los_rate_lf_std_dps"] = _nan_if_empty(err_y, lambda _: np.sqrt(np.var(lf_y) + np.var(lf_z)))
+    truth = read_truth(path, loop["tick"])  # the sim clock's true LOS rates; None on any other clock
+    if truth is not None:
+        true_y, true_z = truth
+        terr_y = (loop["rate_cmd_el_dps"] - true_y)[keep].astype(float)
+        terr_z = (loop["rate_cmd_az_dps"] - true_z)[keep].astype(float)
+        m["los_rate_true_rms_dps"] = _nan_if_empty(terr_y, lambda _: np.sqrt(np.mean(terr_y**2 + terr_z**2)))
+        tlf_y, tlf_z = (low_pass(e, LOS_BAND_HZ) for e in (terr_y, terr_z))
+        m["los_rate_true_lf_std_dps"] = _nan_if_empty(terr_y, lambda _: np.sqrt(np.var(tlf_y) + np.var(tlf_z)))
 
     raw_all = loop["gyro_y_dps"].astype(float)
     lpf_all = low_pass(raw_all)  # filtered from the start, so the window sees a settled filter

@@ -177,6 +177,14 @@ class CampaignConfig(Strict):
                     raise ValueError(f"acceptance.{i}: {p!r} is not a profile label")
         return self
 
+    def sim_only_metric(self) -> str | None:
+        """Where the campaign first uses a metric only the sim clock computes (``los_rate_true_*``), as
+        ``field: metric``; None if it uses none."""
+        uses = [("metrics", m) for m in self.metrics] + [("thresholds", m) for m in self.thresholds]
+        uses += [(f"acceptance.{i}", m) for i, rule in enumerate(self.acceptance)
+                 for m in (rule.metric, rule.reference_metric)]
+        return next((f"{where}: {m}" for where, m in uses if METRICS[m].sim_only), None)
+
     def cells(self) -> list[CellSpec]:
         """Every (profile, controller, seed) in run order: profile-major, so a partial run is a whole table."""
         return [CellSpec(cell_id=f"{slug(p.label)}--{slug(c.label)}--s{seed}", profile=p, controller=c, seed=seed)

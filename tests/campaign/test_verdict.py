@@ -237,3 +237,10 @@ def test_every_shipped_campaign_validates_and_names_its_primary_metrics() -> Non
         assert all(METRICS[m].kind not in ("effort", "health") for m in cfg.primary_metrics), path.name
     proc = subprocess.run([*HIL, "check", *map(str, files)], capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_every_metric_has_its_row_in_the_documented_table() -> None:
+    """docs/campaigns.md's metrics table names every metric with its kind and unit, as hil.campaign.metrics has it."""
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "campaigns.md").read_text()
+    missing = [name for name, m in METRICS.items() if f"| `{name}` | {m.kind} | {m.unit} |" not in doc]
+    assert not missing

@@ -138,3 +138,23 @@ def test_the_command_line_with_an_infeasible_constraint(tmp_path: Path) -> None:
     data = json.loads(out.stdout)
     assert (data["trials"], data["complete"], data["infeasible"], data["best_trial"]) == (2, 2, 2, None)
     assert data["constraints"] == ["miss_std_px<=0.0001"] and data["yaml"] is None
+
+
+def test_a_study_on_the_dask_engine_scores_each_trial_as_the_local_engine_does(tmp_path: Path) -> None:
+    """`hil tune --engine dask` with no scheduler: a LocalCluster of two worker processes runs the trials' cells;
+    each trial's value is the one the local engine gives for the same parameters (same seeds, sim clock)."""
+    from hil.campaign.model import ControllerEntry
+
+    campaign = tiny_campaign(tmp_path)
+    result = tune(campaign, SPACE, trials=3, workers=2, engine="dask", out=tmp_path / "dask", seed=3,
+                  write_report=False)
+    assert result.engine == "dask" and result.workers == 2 and result.trials_run == 3
+    assert [t.state for t in result.trials] == ["COMPLETE"] * 3, [t.failure for t in result.trials]
+    config = runner.load_campaign(campaign)
+    local = config.model_copy(update={"controllers": [
+        ControllerEntry(label=f"t{t.number}", name="eso_kf", params=t.params) for t in result.trials],
+        "baseline": None, "acceptance": []})
+    cells = {c.controller: c for c in runner.run_campaign(local, tmp_path / "local", jobs=2).cells}
+    for t in result.trials:
+        assert t.value == cells[f"t{t.number}"].metrics["miss_std_px"], t.params
+    assert len({t.value for t in result.trials}) == 3  # three different gains, three different scores
