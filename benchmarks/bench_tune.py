@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_tune.py [--campaign profiles/campaigns/tune-eso-kf-miss-3deg.yaml]
         [--controller ESO+KF] [--params "..."] [--trials 200] [--workers 2] [--skip-tune] [--json PATH]
+        [--also LABEL ...] [--show METRIC]
 
 1. The study: ``hil.tune.tune`` on the campaign (its cells, the tuned controller's entry), ``--trials`` trials,
    ``--workers`` at a time; its wall time is printed.
@@ -36,10 +37,13 @@ SPACE = "omega_o_rad_s=100..2000:log, kp_counts_per_dps=1000..20000:log, q_dps2=
 
 
 def compare(config, entry, tuned_params, objective: str, *, jobs: int, seeds: list[int] | None,
-            duration_s: float | None) -> dict[str, dict[str, float]]:
-    """The objective's mean (and per-cell values) for baseline, default, tuned and oracle on one set of cells."""
+            duration_s: float | None, also: list[str] = (), show: str | None = None) -> dict[str, dict[str, float]]:
+    """The objective's mean (and per-cell values) for baseline, the campaign's entries ``also``, default, tuned and
+    oracle on one set of cells; ``show``: a second metric's mean beside it."""
     base = next(c for c in config.controllers if c.label == config.baseline)
-    controllers = [base, entry, ControllerEntry(label=f"{entry.label} tuned", name=entry.name, params=tuned_params)]
+    others = [c for c in config.controllers if c.label in also and c.label not in (base.label, entry.label)]
+    controllers = [base, *others, entry,
+                   ControllerEntry(label=f"{entry.label} tuned", name=entry.name, params=tuned_params)]
     if "oracle" in {**registry.REGISTRY, **getattr(registry, "SIM_ONLY", {})}:
         controllers.append(ControllerEntry(label="oracle", name="oracle"))
     update = {"controllers": controllers, "acceptance": [], "paper": {}, "name": f"{config.name}-compare"}
@@ -59,6 +63,9 @@ def compare(config, entry, tuned_params, objective: str, *, jobs: int, seeds: li
         out[c.label] = {"mean": sum(v) / len(v) if v else math.nan, "values": v, "failed": bad,
                         "ripple": _mean([x.metrics.get("drive_ripple_el_counts", math.nan) for x in result.cells
                                          if x.controller == c.label])}
+        if show:
+            out[c.label]["show"] = _mean([x.metrics.get(show, math.nan) for x in result.cells
+                                          if x.controller == c.label])
     out["_wall_s"] = {"mean": wall}
     return out
 
@@ -67,18 +74,21 @@ def _mean(v: list[float]) -> float:
     return sum(v) / len(v) if v else math.nan
 
 
-def table(title: str, numbers: dict[str, dict[str, float]], baseline: str, objective: str) -> list[str]:
+def table(title: str, numbers: dict[str, dict[str, float]], baseline: str, objective: str,
+          show: str | None = None) -> list[str]:
     ref = numbers[baseline]["mean"]
     oracle = numbers.get("oracle", {}).get("mean", math.nan)
+    extra = f" {show}, mean |" if show else ""
     lines = [f"{title} ({numbers['_wall_s']['mean']:.0f} s wall)", "",
-             f"| controller | {objective}, mean | per cell | drive ripple el (counts) | gap closed |",
-             "|---|---:|---|---:|---:|"]
+             f"| controller | {objective}, mean | per cell |{extra} drive ripple el (counts) | gap closed |",
+             f"|---|---:|---|{'---:|' if show else ''}---:|---:|"]
     for label, n in numbers.items():
         if label.startswith("_"):
             continue
         gap = (ref - n["mean"]) / (ref - oracle) if math.isfinite(oracle) and ref != oracle else math.nan
         cells = ", ".join(f"{x:.4g}" for x in n["values"])
-        lines.append(f"| {label} | {n['mean']:.4g} | {cells} | {n['ripple']:.0f} | "
+        shown = f" {n.get('show', math.nan):.4g} |" if show else ""
+        lines.append(f"| {label} | {n['mean']:.4g} | {cells} |{shown} {n['ripple']:.0f} | "
                      f"{'n/a' if not math.isfinite(gap) else f'{100 * gap:.0f} %'} |")
     return lines
 
@@ -101,6 +111,9 @@ def main() -> None:
     ap.add_argument("--heldout-seeds", type=int, nargs="*", default=[3, 4, 5])
     ap.add_argument("--heldout-duration", type=float, default=20.0)
     ap.add_argument("--jobs", type=int, default=2, help="cells at once in the comparison campaigns")
+    ap.add_argument("--also", action="append", default=[],
+                    help="another controller label of the campaign to compare (repeatable)")
+    ap.add_argument("--show", default=None, help="a second metric shown beside the objective")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
@@ -136,9 +149,10 @@ def main() -> None:
              args.heldout_duration)):
         if seeds == []:
             continue
-        numbers = compare(config, entry, tuned, args.objective, jobs=args.jobs, seeds=seeds, duration_s=duration)
+        numbers = compare(config, entry, tuned, args.objective, jobs=args.jobs, seeds=seeds, duration_s=duration,
+                          also=args.also, show=args.show)
         report[title] = numbers
-        lines += [*table(title, numbers, baseline, args.objective), ""]
+        lines += [*table(title, numbers, baseline, args.objective, args.show), ""]
     print("\n".join(lines))
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=2, default=str))
