@@ -567,8 +567,11 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
             return math.nan  # Optuna: a NaN objective marks the trial FAIL
         finally:
             if not keep_logs and trial_dir.exists():
-                for h5 in trial_dir.rglob("*.h5"):
-                    h5.unlink(missing_ok=True)
+                from hil.log.truth import truth_path
+
+                for log in trial_dir.rglob("*.h5"):
+                    log.unlink(missing_ok=True)
+                    truth_path(log).unlink(missing_ok=True)  # the sim clock's truth file beside it
         for key, v in attrs.items():
             trial.set_user_attr(key, v)
         for name, v in zip(attrs["constraint_names"], cvals, strict=True):

@@ -60,6 +60,7 @@ def test_a_study_writes_its_database_controller_and_report_and_resumes(tmp_path:
                                  "missed_cycles<=0": 0.0} and t.feasible
         assert stored_constraints(result.storage, t.number) == t.constraints
         assert not list((out / "trials" / f"{t.number:05d}").rglob("*.h5"))  # logs dropped (no --keep-logs)
+        assert not list((out / "trials" / f"{t.number:05d}").rglob("*.truth.npz"))  # and their truth files
     best = min(result.trials, key=lambda t: t.value)
     assert (result.best_trial, result.best_value, result.best_params) == (best.number, best.value, best.params)
     controller = load_model(ControllerConfig, result.yaml_path)
