@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_tune.py [--campaign profiles/campaigns/tune-eso-kf-miss-3deg.yaml]
         [--controller ESO+KF] [--params "..."] [--trials 200] [--workers 2] [--skip-tune] [--json PATH]
-        [--also LABEL ...] [--show METRIC]
+        [--also LABEL ...] [--show METRIC] [--oracle ORACLE.yaml | --oracle-trials N]
 
 1. The study: ``hil.tune.tune`` on the campaign (its cells, the tuned controller's entry), ``--trials`` trials,
    ``--workers`` at a time; its wall time is printed.
@@ -11,7 +11,9 @@
    controller (the plant's true rate, sim clock only; left out if the registry has none) on the campaign's own
    cells (the seeds the study saw) and on held-out cells (other seeds, longer cells: ``--heldout-seeds``,
    ``--heldout-duration``). For each: the objective's mean over the cells and the fraction of the
-   baseline-to-oracle gap it closes, ``(baseline - x) / (baseline - oracle)``.
+   baseline-to-oracle gap it closes, ``(baseline - x) / (baseline - oracle)``. The oracle runs with the registry's
+   gains, or with its own tuned ones (``--oracle YAML``, or ``--oracle-trials N``: a study of its kp and ki on the
+   same cells first), so that the gap is measured to the best this loop could do on that plant.
 """
 
 from __future__ import annotations
@@ -34,18 +36,38 @@ from hil.control import registry  # noqa: E402
 from hil.tune import choose_controller, tune  # noqa: E402
 
 SPACE = "omega_o_rad_s=100..2000:log, kp_counts_per_dps=1000..20000:log, q_dps2=1e-6..1e-2:log"
+ORACLE_SPACE = "kp_counts_per_dps=300..40000:log, ki_counts_per_deg=1..1000000:log"  # kp k_m dt < 1, ki dt <= kp
+
+
+def tune_oracle(config, objective: str, trials: int, *, workers: int, out: Path, resume: bool,
+                seed: int) -> Path | None:
+    """The oracle's own gains tuned on the campaign's cells (its default kp can ring a plant's mode or sit far from
+    its best): a study of ``trials`` trials over ORACLE_SPACE; returns its controller YAML."""
+    base = next(c for c in config.controllers if c.label == config.baseline)
+    cfg = config.model_copy(update={"controllers": [base, ControllerEntry(label="oracle", name="oracle")],
+                                    "name": f"{config.name}-oracle", "acceptance": [], "paper": {}})
+    t0 = time.perf_counter()
+    result = tune(cfg, ORACLE_SPACE, objective=objective, trials=trials, controller="oracle", workers=workers,
+                  out=out, resume=resume, seed=seed)
+    wall = time.perf_counter() - t0
+    print(f"oracle study {result.study}: {result.trials_run} trials run, {wall:.0f} s wall; {result.n_complete} "
+          f"complete, {result.n_failed} failed; best trial {result.best_trial}: {objective} {result.best_value}: "
+          f"{result.best_params}")
+    return result.yaml_path
 
 
 def compare(config, entry, tuned_params, objective: str, *, jobs: int, seeds: list[int] | None,
-            duration_s: float | None, also: list[str] = (), show: str | None = None) -> dict[str, dict[str, float]]:
+            duration_s: float | None, also: list[str] = (), show: str | None = None,
+            oracle_params: dict | None = None) -> dict[str, dict[str, float]]:
     """The objective's mean (and per-cell values) for baseline, the campaign's entries ``also``, default, tuned and
-    oracle on one set of cells; ``show``: a second metric's mean beside it."""
+    oracle (with ``oracle_params``: its own tuned gains) on one set of cells; ``show``: a second metric's mean
+    beside it."""
     base = next(c for c in config.controllers if c.label == config.baseline)
     others = [c for c in config.controllers if c.label in also and c.label not in (base.label, entry.label)]
     controllers = [base, *others, entry,
                    ControllerEntry(label=f"{entry.label} tuned", name=entry.name, params=tuned_params)]
     if "oracle" in {**registry.REGISTRY, **getattr(registry, "SIM_ONLY", {})}:
-        controllers.append(ControllerEntry(label="oracle", name="oracle"))
+        controllers.append(ControllerEntry(label="oracle", name="oracle", params=oracle_params or {}))
     update = {"controllers": controllers, "acceptance": [], "paper": {}, "name": f"{config.name}-compare"}
     if seeds:
         update["seeds"] = seeds
@@ -114,6 +136,12 @@ def main() -> None:
     ap.add_argument("--also", action="append", default=[],
                     help="another controller label of the campaign to compare (repeatable)")
     ap.add_argument("--show", default=None, help="a second metric shown beside the objective")
+    ap.add_argument("--oracle", type=Path, default=None,
+                    help="the oracle's controller YAML (its gains tuned on the same cells: hil tune --controller "
+                         "oracle); default: the registry's")
+    ap.add_argument("--oracle-trials", type=int, default=0,
+                    help="first tune the oracle's kp and ki on the campaign's cells (a study of this many trials in "
+                         "OUT/oracle, resumed if there) and compare against that oracle")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
@@ -142,6 +170,17 @@ def main() -> None:
         return
     tuned = load_model(ControllerConfig, yaml_path).params
     baseline = config.baseline or config.controllers[0].label
+    oracle_params = None
+    oracle_yaml = args.oracle
+    if args.oracle_trials:
+        oracle_yaml = tune_oracle(config, args.objective, args.oracle_trials, workers=args.workers,
+                                  out=out / "oracle", resume=(out / "oracle" / "tune.db").exists(), seed=args.seed)
+    if oracle_yaml is not None:
+        oracle = load_model(ControllerConfig, oracle_yaml)
+        if oracle.name != "oracle":
+            raise SystemExit(f"--oracle {oracle_yaml}: a controller file of 'oracle', not {oracle.name!r}")
+        oracle_params = oracle.params
+        report["oracle_params"] = oracle_params
     lines = []
     for title, seeds, duration in (
             (f"the study's cells ({config.duration_s:g} s, seeds {config.seeds})", None, None),
@@ -150,7 +189,7 @@ def main() -> None:
         if seeds == []:
             continue
         numbers = compare(config, entry, tuned, args.objective, jobs=args.jobs, seeds=seeds, duration_s=duration,
-                          also=args.also, show=args.show)
+                          also=args.also, show=args.show, oracle_params=oracle_params)
         report[title] = numbers
         lines += [*table(title, numbers, baseline, args.objective, args.show), ""]
     print("\n".join(lines))
