@@ -23,6 +23,7 @@ import yaml
 import hil
 from hil.campaign import CellResult, load_results
 from hil.campaign.engines import DaskEngine, LocalEngine
+from hil.log.truth import truth_path
 from tests.campaign.test_campaign import write_campaign
 from tests.session.helpers import assert_same_channels
 
@@ -70,10 +71,10 @@ def assert_same_cells(out: Path, cells: list[CellResult], local_out: Path, local
         # where the local engine puts them: the log under cells/ID, beside the same files
         assert Path(cell.log or "").parent == Path("cells") / cell.cell_id
         here, there = out / "cells" / cell.cell_id, local_out / "cells" / cell.cell_id
-        assert sorted(p.name for p in here.iterdir() if p.suffix != ".h5") == ["result.json", "session.yaml",
-                                                                               "stderr.txt"]
-        assert sorted(p.name for p in there.iterdir() if p.suffix != ".h5") == ["result.json", "session.yaml",
-                                                                                "stderr.txt"]
+        for cell_dir, run in ((here, cell), (there, ref)):  # the log, the sim clock's truth file, the cell's files
+            log = log_of(cell_dir.parents[1], run)
+            assert sorted(p.name for p in cell_dir.iterdir()) == sorted(
+                [log.name, truth_path(log).name, "result.json", "session.yaml", "stderr.txt"])
         assert CellResult.model_validate_json((here / "result.json").read_text()) == cell
         session = yaml.safe_load((here / "session.yaml").read_text())
         assert session["logging"]["dir"] == str(here)  # this machine's path: the file re-runs by hand here
