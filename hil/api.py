@@ -356,7 +356,10 @@ def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | Non
     :class:`hil.campaign.engines.Engine` may be given instead (its owner closes it). An unreachable scheduler is
     a ConfigError naming ``--scheduler``, raised before anything is written. ``plant``: every cell on this plant
     file (a fitted twin) instead of the one its session's emulator names.
-    Blocking; inside a running event loop it runs the cells in worker threads, which is what it does anyway."""
+    Blocking; inside a running event loop it runs the cells in worker threads, which is what it does anyway.
+    A KeyboardInterrupt stops the cells running (each session the safe way) and raises
+    :class:`hil.campaign.runner.CampaignInterrupted` (a KeyboardInterrupt) naming the cells done and cut short;
+    the finished cells stay in ``out``, and ``resume=True`` runs the rest. No report is written then."""
     from hil.campaign import CampaignError
     from hil.campaign import run_campaign as run_cells
 

@@ -13,6 +13,10 @@ times.
 
 ``fn`` must be picklable by reference or by value (a module-level function or a ``functools.partial`` of one)
 for the dask engine, and importable on the workers: they need this project installed.
+
+A KeyboardInterrupt (Ctrl-C, or :class:`Interrupted` raised by a SIGTERM handler) while ``map_cells`` waits
+cancels the items not started and comes out as :class:`Interrupted` naming the items that were running; the
+local engine does not wait for them (their threads run on), so the caller can stop them first.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import contextlib
 import itertools
 import logging
 import os
+import signal
 import socket
 import uuid
 from collections.abc import Callable, Collection, Iterable, Iterator
@@ -45,6 +50,21 @@ class EngineError(ValueError):
     """Bad engine option or an unreachable cluster (one line, naming the option)."""
 
 
+class Interrupted(KeyboardInterrupt):
+    """A signal that stops the cells: ``signum`` (SIGINT or SIGTERM); ``running``, as :meth:`Engine.map_cells`
+    raises it, the keys of the items that were running when it came."""
+
+    def __init__(self, signum: int = signal.SIGINT, running: Iterable[str] = ()) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+        self.running = list(running)
+
+    @classmethod
+    def during(cls, exc: BaseException, running: Iterable[str]) -> Interrupted:
+        """``exc`` (a KeyboardInterrupt, perhaps an Interrupted naming its signal) with the items ``running``."""
+        return cls(getattr(exc, "signum", signal.SIGINT), running)
+
+
 @runtime_checkable
 class Engine(Protocol):
     """What runs cells. ``remote``: the cells run where this process's files are not theirs (their outputs come
@@ -67,7 +87,8 @@ class Engine(Protocol):
         at most ``in_flight`` items submitted and not yet yielded (defaults: see each engine). ``on_error(item,
         exc)`` turns a failed item into a result; without it the first failure is raised (and the items not yet
         started are cancelled). ``key(item)``: a readable task name. Closing the iterator early cancels the items
-        not yet started."""
+        not yet started. A KeyboardInterrupt cancels them too and is raised as :class:`Interrupted` naming (by
+        ``key``) the items that were running."""
         ...
 
     def __enter__(self) -> Engine: ...
@@ -94,7 +115,8 @@ class _Base:
 
 
 class LocalEngine(_Base):
-    """``jobs`` threads in this process (a ThreadPoolExecutor). ``in_flight`` defaults to ``jobs``."""
+    """``jobs`` threads in this process (a ThreadPoolExecutor). ``in_flight`` defaults to ``jobs``. On a
+    KeyboardInterrupt the running items are not waited for: their threads end when ``fn`` returns."""
 
     name = "local"
 
@@ -112,29 +134,35 @@ class LocalEngine(_Base):
         limit = max(1, in_flight or self.jobs)
         it = iter(items)
         pending: dict[Future[R], T] = {}
-        with ThreadPoolExecutor(max_workers=self.jobs, thread_name_prefix="hil-cell") as pool:
-            try:
-                while True:
-                    for item in itertools.islice(it, max(0, limit - len(pending))):
-                        pending[pool.submit(fn, item)] = item
-                    if not pending:
-                        return
-                    finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-                    ready = []
-                    for future in finished:
-                        item = pending.pop(future)
-                        try:
-                            ready.append((item, future.result()))
-                        except Exception as exc:
-                            if on_error is None:
-                                raise
-                            ready.append((item, on_error(item, exc)))
-                    for item in itertools.islice(it, max(0, limit - len(pending))):  # busy while the caller works
-                        pending[pool.submit(fn, item)] = item
-                    yield from ready
-            finally:
-                for future in pending:
-                    future.cancel()
+        pool = ThreadPoolExecutor(max_workers=self.jobs, thread_name_prefix="hil-cell")
+        wait_running = True
+        try:
+            while True:
+                for item in itertools.islice(it, max(0, limit - len(pending))):
+                    pending[pool.submit(fn, item)] = item
+                if not pending:
+                    return
+                finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+                ready = []
+                for future in finished:
+                    item = pending.pop(future)
+                    try:
+                        ready.append((item, future.result()))
+                    except Exception as exc:
+                        if on_error is None:
+                            raise
+                        ready.append((item, on_error(item, exc)))
+                for item in itertools.islice(it, max(0, limit - len(pending))):  # busy while the caller works
+                    pending[pool.submit(fn, item)] = item
+                yield from ready
+        except KeyboardInterrupt as exc:
+            wait_running = False
+            running = [key(item) if key is not None else repr(item) for f, item in pending.items() if f.running()]
+            raise Interrupted.during(exc, running) from None
+        finally:
+            for future in pending:
+                future.cancel()
+            pool.shutdown(wait=wait_running, cancel_futures=True)
 
 
 def check_scheduler(address: str) -> str:
@@ -283,6 +311,13 @@ class DaskEngine(_Base):
                 future.release()
                 refill()
                 yield item, result
+        except KeyboardInterrupt as exc:
+            running: list[str] = []
+            with contextlib.suppress(Exception):  # best effort: the tasks the workers are executing now
+                held = {k for keys in client.run(_executing).values() for k in keys}
+                running = [key(item) if key is not None else repr(item)
+                           for name, (_, item) in pending.items() if str(name) in held]
+            raise Interrupted.during(exc, running) from None
         finally:
             if pending:
                 with contextlib.suppress(Exception):
@@ -290,6 +325,11 @@ class DaskEngine(_Base):
 
 
 _END: Any = object()
+
+
+def _executing(dask_worker: Any) -> list[str]:
+    """Runs on a worker (``client.run``): the keys of the tasks it is executing now."""
+    return [str(ts.key) for ts in dask_worker.state.executing]
 
 
 def _require_distributed() -> None:

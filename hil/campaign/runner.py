@@ -7,6 +7,11 @@ runs them: ``local`` here, ``dask`` on a dask.distributed cluster, where a worke
 :func:`run_cell` and sends the cell's files back (or leaves them in a shared directory) for this process to
 put where the local engine would. A cell's ``result.json`` is written when it finishes, and the campaign's
 ``campaign.json`` after every cell, so an interrupted campaign resumes where it stopped, with either engine.
+
+A KeyboardInterrupt (Ctrl-C; SIGTERM where the caller maps it to :class:`hil.campaign.engines.Interrupted`) stops
+the campaign: the signal is passed on to the cells running here (each session ends the safe way: driver
+disabled, log closed), no other cell starts, and :func:`run_campaign` raises :class:`CampaignInterrupted` naming
+the cells done and those cut short, once the cut-short cells have ended.
 """
 
 from __future__ import annotations
@@ -18,19 +23,21 @@ import json
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Generator, Iterator
 from pathlib import Path
 from typing import Any
 
 import yaml
 from pydantic import ValidationError
 
-from hil.campaign.engines import Engine, EngineError, check_options, open_engine
+from hil.campaign.engines import Engine, EngineError, Interrupted, check_options, open_engine
 from hil.campaign.metrics import METRICS, compute_metrics, score
 from hil.campaign.model import CampaignConfig, CampaignResult, CellResult, CellSpec, RuleResult
 from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line, read_file_bytes
@@ -38,10 +45,92 @@ from hil.config import ConfigError, SessionConfig, load_model, load_session, one
 RESULT = "result.json"
 CAMPAIGN_JSON = "campaign.json"
 MAX_RESULTS_BYTES = 64 << 20  # campaign.json and result.json are read only up to this size
+STOP_GRACE_S = 60.0  # a stopped cell's session has this long to wind down before it is killed
 
 
 class CampaignError(ValueError):
     """Bad campaign input or output directory (one line)."""
+
+
+class CampaignInterrupted(KeyboardInterrupt):
+    """A campaign stopped by SIGINT or SIGTERM (``signum``), its finished cells on disk in ``out_dir``: ``done``
+    the cells ``--resume`` keeps, ``cut_short`` those running when the signal came, ``to_run`` what ``--resume``
+    runs; ``total`` cells in all. ``exit_code``: 130 for SIGINT, 143 for SIGTERM."""
+
+    def __init__(self, config: CampaignConfig, out_dir: Path, signum: int, done: list[str],
+                 cut_short: list[str]) -> None:
+        self.signal = signal.Signals(signum).name
+        super().__init__(f"{config.name}: interrupted by {self.signal}")
+        self.config, self.out_dir, self.signum = config, out_dir, int(signum)
+        self.done, self.cut_short = done, cut_short
+        self.to_run = [s.cell_id for s in config.cells() if s.cell_id not in set(done)]
+        self.total = len(done) + len(self.to_run)
+        self.exit_code = 128 + self.signum
+
+
+class _LiveCells:
+    """The cells running in this process, by campaign directory, with their `hil run` processes: a campaign that
+    stops passes its signal on to them, and starts none once it is stopping."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._cells: dict[tuple[Path, str], subprocess.Popen[str] | None] = {}
+        self._stopping: set[Path] = set()
+
+    @contextlib.contextmanager
+    def cell(self, out_dir: Path, cell_id: str) -> Iterator[bool]:
+        """Hold the cell as running while in the block; False (not held) if its campaign is stopping."""
+        key = (out_dir.absolute(), cell_id)
+        with self._cond:
+            held = key[0] not in self._stopping
+            if held:
+                self._cells[key] = None
+        try:
+            yield held
+        finally:
+            if held:
+                with self._cond:
+                    self._cells.pop(key, None)
+                    self._cond.notify_all()
+
+    def start(self, out_dir: Path, cell_id: str, cmd: list[str], **popen: Any) -> subprocess.Popen[str] | None:
+        """Start a held cell's process (``subprocess.Popen(cmd, **popen)``); None if its campaign is stopping."""
+        key = (out_dir.absolute(), cell_id)
+        with self._cond:
+            if key[0] in self._stopping:
+                return None
+            proc: subprocess.Popen[str] = subprocess.Popen(cmd, **popen)
+            self._cells[key] = proc
+            return proc
+
+    def running(self, out_dir: Path) -> list[str]:
+        where = out_dir.absolute()
+        with self._cond:
+            return [cell_id for (d, cell_id) in self._cells if d == where]
+
+    def reset(self, out_dir: Path) -> None:
+        """A new run of the campaign in ``out_dir``: its cells may start."""
+        with self._cond:
+            self._stopping.discard(out_dir.absolute())
+
+    def stop(self, out_dir: Path, signum: int) -> None:
+        """No cell of the campaign starts any more; ``signum`` to those running (SIGKILL: killed)."""
+        where = out_dir.absolute()
+        with self._cond:
+            self._stopping.add(where)
+            procs = [p for (d, _), p in self._cells.items() if d == where and p is not None]
+        for proc in procs:
+            with contextlib.suppress(OSError):  # it has just ended
+                proc.send_signal(signum)
+
+    def wait(self, out_dir: Path, timeout_s: float) -> bool:
+        """True once no cell of the campaign runs here; False after ``timeout_s``."""
+        where = out_dir.absolute()
+        with self._cond:
+            return self._cond.wait_for(lambda: all(d != where for d, _ in self._cells), timeout=timeout_s)
+
+
+_LIVE = _LiveCells()
 
 
 def load_campaign(path: str | Path) -> CampaignConfig:
@@ -107,10 +196,26 @@ def _check(config: CampaignConfig, spec: CellSpec, result: CellResult) -> CellRe
     return result.model_copy(update={"failures": failures})
 
 
+def _not_run(config: CampaignConfig, spec: CellSpec, status: str, why: str, wall_s: float = 0.0) -> CellResult:
+    result = CellResult(cell_id=spec.cell_id, profile=spec.profile.label, controller=spec.controller.label,
+                        controller_name=spec.controller.name, seed=spec.seed, status=status, exit_code=-1,
+                        message=why, failures=[why], wall_s=wall_s)
+    return _check(config, spec, result)
+
+
 def run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware: bool = False,
              timeout_s: float | None = None, session: dict[str, Any] | None = None) -> CellResult:
     """Run one cell in its own process; its log, session file and result.json go to ``out_dir/cells/ID``.
-    ``session``: the cell's session from :func:`cell_session` (built here if not given)."""
+    ``session``: the cell's session from :func:`cell_session` (built here if not given). A cell of a campaign
+    that is stopping (:class:`CampaignInterrupted`) does not start: it comes back ``interrupted``."""
+    with _LIVE.cell(out_dir, spec.cell_id) as held:
+        if not held:
+            return _not_run(config, spec, "interrupted", "the campaign was stopped before the cell started")
+        return _run_cell(config, spec, out_dir, hardware=hardware, timeout_s=timeout_s, session=session)
+
+
+def _run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware: bool,
+              timeout_s: float | None, session: dict[str, Any] | None) -> CellResult:
     cell_dir = out_dir / "cells" / spec.cell_id
     data = session if session is not None else cell_session(config, spec, cell_dir, hardware)
     if cell_dir.exists():
@@ -126,12 +231,15 @@ def run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware:
     base = {"cell_id": spec.cell_id, "profile": spec.profile.label, "controller": spec.controller.label,
             "controller_name": spec.controller.name, "seed": spec.seed}
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, check=False,
-                              timeout=timeout_s or 120.0 + 30.0 * duration, env={**os.environ, "COLUMNS": "200"})
+        proc = _hil_run(out_dir, spec.cell_id, cmd, timeout_s or 120.0 + 30.0 * duration)
     except subprocess.TimeoutExpired:
         result = CellResult(**base, status="error", exit_code=-1, message="timed out",
                             failures=["the session did not finish in time"], wall_s=time.monotonic() - t0)
     else:
+        if proc is None:
+            result = _not_run(config, spec, "interrupted", "the campaign was stopped before the cell started")
+            (cell_dir / RESULT).write_text(result.model_dump_json(indent=2))
+            return result
         (cell_dir / "stderr.txt").write_text(proc.stderr)
         try:
             summary = json.loads(proc.stdout)
@@ -158,6 +266,23 @@ def run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware:
     result = _check(config, spec, result)
     (cell_dir / RESULT).write_text(result.model_dump_json(indent=2))
     return result
+
+
+def _hil_run(out_dir: Path, cell_id: str, cmd: list[str], timeout_s: float) -> subprocess.CompletedProcess[str] | None:
+    """``subprocess.run(cmd)`` for a held cell, its process known to ``_LIVE`` so a campaign's stop reaches it
+    (None: the campaign is stopping, nothing started). TimeoutExpired after ``timeout_s``, the process killed."""
+    proc = _LIVE.start(out_dir, cell_id, cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                       env={**os.environ, "COLUMNS": "200"})
+    if proc is None:
+        return None
+    with proc:
+        try:
+            stdout, stderr = proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+            raise
+    return subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr)
 
 
 def judge(config: CampaignConfig, cells: list[CellResult]) -> list[RuleResult]:
@@ -299,7 +424,7 @@ def _run_here(config: CampaignConfig, out_dir: Path, hardware: bool,
 
 
 def iter_cells(config: CampaignConfig, out_dir: Path, specs: list[CellSpec], engine: Engine, *,
-               sessions: dict[str, dict[str, Any]], hardware: bool = False) -> Iterator[CellResult]:
+               sessions: dict[str, dict[str, Any]], hardware: bool = False) -> Generator[CellResult, None, None]:
     """Run ``specs`` on ``engine`` (an open :class:`hil.campaign.engines.Engine`); yield each cell's result as it
     completes, its directory in place under ``out_dir/cells/ID`` whichever engine ran it. ``sessions``: every
     cell's session by id (:func:`cell_sessions`). A cell whose worker failed (every retry used) comes back as an
@@ -342,6 +467,49 @@ def _engine(engine: str | Engine, jobs: int, scheduler: str | None, workers: int
         started.close()
 
 
+def kept_cells(config: CampaignConfig, out_dir: Path) -> dict[str, CellResult]:
+    """The cells ``--resume`` keeps, by id: those whose ``result.json`` says completed, their thresholds judged
+    again against ``config``."""
+    kept: dict[str, CellResult] = {}
+    for spec in config.cells():
+        path = out_dir / "cells" / spec.cell_id / RESULT
+        if path.exists():
+            try:
+                cell = CellResult.model_validate_json(read_file_bytes(path, MAX_RESULTS_BYTES))
+            except ValueError:  # unreadable or not a result: the cell runs again
+                continue
+            if cell.status == "completed":
+                run_failures = [f for f in cell.failures if f.split(" ", 1)[0] not in METRICS]
+                kept[spec.cell_id] = _check(config, spec, cell.model_copy(update={"failures": run_failures}))
+    return kept
+
+
+def interrupted(config: CampaignConfig, out_dir: Path, signum: int, cut_short: Collection[str] = (),
+                kept: Collection[str] | None = None) -> CampaignInterrupted:
+    """The :class:`CampaignInterrupted` for the campaign in ``out_dir`` as it stands on disk (``kept``: the ids of
+    :func:`kept_cells`, if already read). A cell of ``cut_short`` that completed all the same is done."""
+    kept = kept_cells(config, out_dir) if kept is None else kept
+    ids = [s.cell_id for s in config.cells()]
+    return CampaignInterrupted(config, out_dir, signum, done=[i for i in ids if i in kept],
+                               cut_short=[i for i in ids if i in cut_short and i not in kept])
+
+
+def _stop_cells(out_dir: Path, signum: int, grace_s: float = STOP_GRACE_S) -> None:
+    """Pass ``signum`` on to the campaign's cells running here (a second signal too) and wait until each has written
+    its result; one still running after ``grace_s`` is killed."""
+    _LIVE.stop(out_dir, signum)
+    deadline = time.monotonic() + grace_s
+    killed = False
+    while True:
+        try:
+            if _LIVE.wait(out_dir, max(0.0, deadline - time.monotonic())) or killed:
+                return
+            _LIVE.stop(out_dir, signal.SIGKILL)
+            killed, deadline = True, time.monotonic() + 10.0
+        except KeyboardInterrupt as again:
+            _LIVE.stop(out_dir, getattr(again, "signum", signal.SIGINT))
+
+
 def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume: bool = False,
                  hardware: bool = False, on_cell: Callable[[CellResult], None] | None = None,
                  sessions: dict[str, dict[str, Any]] | None = None, engine: str | Engine = "local",
@@ -355,7 +523,11 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
     cluster: ``scheduler`` an existing one's address, else a LocalCluster of ``workers`` (default ``jobs``)
     worker processes started here; ``shared_dir`` a directory the workers and this process share, else the cells'
     files come back as bytes), or an open :class:`hil.campaign.engines.Engine`. The engine is started (or the
-    scheduler reached) before anything is written."""
+    scheduler reached) before anything is written.
+
+    A KeyboardInterrupt (or :class:`hil.campaign.engines.Interrupted` for SIGTERM) stops the cells running here
+    with that signal, waits until they have ended, writes ``campaign.json`` and raises :class:`CampaignInterrupted`:
+    the finished cells stay, and ``resume`` runs the rest."""
     if jobs < 1:
         raise CampaignError(f"--jobs: {jobs} (need at least 1)")
     if hardware:
@@ -372,37 +544,45 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
         if not resume:
             raise CampaignError(f"{out_dir}: already holds a campaign; pass --resume to finish it, "
                                 "or choose another --out")
-        for spec in specs:
-            path = out_dir / "cells" / spec.cell_id / RESULT
-            if path.exists():
-                try:
-                    cell = CellResult.model_validate_json(read_file_bytes(path, MAX_RESULTS_BYTES))
-                except ValueError:  # unreadable or not a result: the cell runs again
-                    continue
-                if cell.status == "completed":
-                    run_failures = [f for f in cell.failures if f.split(" ", 1)[0] not in METRICS]
-                    done[spec.cell_id] = _check(config, spec, cell.model_copy(update={"failures": run_failures}))
-    with _engine(engine, jobs, scheduler, workers, shared_dir) as runner:
-        slots = runner.slots
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "campaign.yaml").write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
-        t0 = time.monotonic()
-        results = dict(done)
+        done = kept_cells(config, out_dir)
+    _LIVE.reset(out_dir)
+    t0 = time.monotonic()
+    results = dict(done)
+    slots = jobs
 
-        def snapshot(complete: bool) -> CampaignResult:
-            cells = [results[s.cell_id] for s in specs if s.cell_id in results]
-            return CampaignResult(config=config, cells=cells, acceptance=judge(config, cells), jobs=slots,
-                                  wall_s=time.monotonic() - t0, complete=complete)
+    def snapshot(complete: bool) -> CampaignResult:
+        cells = [results[s.cell_id] for s in specs if s.cell_id in results]
+        return CampaignResult(config=config, cells=cells, acceptance=judge(config, cells), jobs=slots,
+                              wall_s=time.monotonic() - t0, complete=complete)
 
-        for cell in done.values():
-            if on_cell is not None:
-                on_cell(cell)
-        todo = [s for s in specs if s.cell_id not in done]
-        for cell in iter_cells(config, out_dir, todo, runner, sessions=sessions, hardware=hardware):
-            results[cell.cell_id] = cell
+    running: Generator[CellResult, None, None] | None = None
+    try:
+        with _engine(engine, jobs, scheduler, workers, shared_dir) as runner:
+            slots = runner.slots
+            out_dir.mkdir(parents=True, exist_ok=True)
+            (out_dir / "campaign.yaml").write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
+            t0 = time.monotonic()
+            for cell in done.values():
+                if on_cell is not None:
+                    on_cell(cell)
+            todo = [s for s in specs if s.cell_id not in done]
+            running = iter_cells(config, out_dir, todo, runner, sessions=sessions, hardware=hardware)
+            for cell in running:
+                results[cell.cell_id] = cell
+                _write_json(out_dir / CAMPAIGN_JSON, snapshot(False).model_dump_json(indent=2))
+                if on_cell is not None:
+                    on_cell(cell)
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        cut_short = {*(exc.running if isinstance(exc, Interrupted) else ()), *_LIVE.running(out_dir)}
+        _stop_cells(out_dir, signum)
+        if running is not None:
+            running.close()  # its cells have ended: nothing to wait for
+        kept = kept_cells(config, out_dir)
+        if (out_dir / "cells").is_dir():
+            results.update(kept)
             _write_json(out_dir / CAMPAIGN_JSON, snapshot(False).model_dump_json(indent=2))
-            if on_cell is not None:
-                on_cell(cell)
+        raise interrupted(config, out_dir, signum, cut_short, kept) from None
     final = snapshot(len(results) == len(specs))
     _write_json(out_dir / CAMPAIGN_JSON, final.model_dump_json(indent=2))
     return final

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import shlex
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -23,8 +28,88 @@ def campaign_json(run: Any) -> dict[str, Any]:
                                                       "plots": [str(p) for p in run.report.pngs]}}
 
 
+def resume_command(ctx: typer.Context) -> str:
+    """The command line given, as ``hil ...`` with ``--resume`` (added if it was not there): the arguments, then
+    every option given in the order given, quoted for a POSIX shell."""
+    words = ["hil"]
+    for level in (ctx.parent, ctx):
+        if level is None:
+            continue
+        if level is ctx:
+            words.append(ctx.info_name or "campaign")
+        params = {p.name: p for p in level.command.params}
+        arguments, options = [], []
+        for name, value in level.params.items():  # click fills the options in the order they were given
+            param, source = params.get(name), level.get_parameter_source(name)
+            if param is None or source is None or source.name not in ("COMMANDLINE", "ENVIRONMENT"):
+                continue
+            flag = max(param.opts, key=len)
+            if param.param_type_name == "argument":
+                arguments.append(str(value))
+            elif getattr(param, "count", False):
+                options += [flag] * int(value)
+            elif getattr(param, "is_flag", False):
+                if value:
+                    options.append(flag)
+                elif param.secondary_opts:
+                    options.append(max(param.secondary_opts, key=len))
+            else:
+                options += [flag, str(value)]
+        words += arguments + options
+    if "--resume" not in words:
+        words.append("--resume")
+    return shlex.join(words)
+
+
+def interrupted_json(stop: Any, command: str) -> dict[str, Any]:
+    """An interrupted campaign as plain data: the cells done (kept by --resume), cut short, left to run, and the
+    command that finishes it."""
+    return {"status": "interrupted", "signal": stop.signal, "exit_code": stop.exit_code,
+            "campaign": stop.config.name, "dir": str(stop.out_dir), "cells_done": len(stop.done),
+            "cells_total": stop.total, "done": stop.done, "cut_short": stop.cut_short, "to_run": stop.to_run,
+            "resume_command": command}
+
+
+def print_interrupted(stop: Any, command: str) -> None:
+    """What an interrupted campaign leaves: the cells done and cut short, and the command that finishes it."""
+    from rich.markup import escape
+
+    def say(text: str) -> None:
+        console.print(text, highlight=False, soft_wrap=True)
+
+    done = f": {escape(', '.join(stop.done))}" if stop.done else ""
+    say(f"[bold yellow]interrupted[/] ({stop.signal}): {len(stop.done)} of {stop.total} cells done{done}")
+    say(f"cut short: {escape(', '.join(stop.cut_short)) or 'none'}")
+    if stop.to_run:
+        say(f"left to run: {len(stop.to_run)} ({escape(', '.join(stop.to_run))})")
+    say(f"campaign: {escape(str(stop.out_dir))}")
+    say(f"finish it with: {escape(command)}")
+
+
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[None]:
+    """While in the block, SIGINT and SIGTERM raise :class:`hil.campaign.engines.Interrupted` naming the signal
+    (the campaign then stops its cells with it); the previous handlers come back after."""
+    from hil.campaign.engines import Interrupted
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, _frame: object) -> None:
+        raise Interrupted(signum)
+
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 @app.command()
 def campaign(  # noqa: PLR0917 (typer maps parameters to options)
+    ctx: typer.Context,
     file: Annotated[Path, typer.Argument(help="Campaign YAML (see profiles/campaigns/).")],
     out: Annotated[Path | None, typer.Option(help="Campaign directory (default: runs/campaigns/NAME).")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Finish a campaign in --out, skipping done cells.")] = False,
@@ -53,10 +138,13 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
 ) -> None:
     """Run a swing campaign: profiles x controllers x seeds, each cell a session with its own log; then the
     summary table, the acceptance verdict, and the report. Cells run here (--engine local) or on a dask cluster
-    (--engine dask). Exit 1 if a threshold or an acceptance rule fails."""
+    (--engine dask). Exit 1 if a threshold or an acceptance rule fails. Interrupted (Ctrl-C, SIGTERM): the cells
+    running are stopped the safe way, the finished ones kept; it prints them and the --resume command that
+    finishes the campaign, exit 130 (SIGTERM: 143)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from hil import api
+    from hil.campaign.runner import CampaignInterrupted, interrupted
     from hil.config import ConfigError
 
     try:
@@ -66,21 +154,32 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     except ConfigError as exc:
         raise fail(str(exc)) from None
     n_cells = len(config.cells())
-    with Progress(TextColumn(f"[bold]{config.name}[/]"), BarColumn(), MofNCompleteColumn(),
-                  TextColumn("{task.fields[last]}"), TimeElapsedColumn(), console=err_console,
-                  transient=True, disable=no_progress(json_out)) as bar:
-        task = bar.add_task("cells", total=n_cells, last="")
+    try:
+        with stop_on_signals(), Progress(
+                TextColumn(f"[bold]{config.name}[/]"), BarColumn(), MofNCompleteColumn(),
+                TextColumn("{task.fields[last]}"), TimeElapsedColumn(), console=err_console, transient=True,
+                disable=no_progress(json_out)) as bar:
+            task = bar.add_task("cells", total=n_cells, last="")
 
-        def on_cell(cell) -> None:  # type: ignore[no-untyped-def]
-            mark = "ok" if cell.passed else "FAIL"
-            bar.update(task, advance=1, last=f"{cell.cell_id} {mark}")
+            def on_cell(cell) -> None:  # type: ignore[no-untyped-def]
+                mark = "ok" if cell.passed else "FAIL"
+                bar.update(task, advance=1, last=f"{cell.cell_id} {mark}")
 
-        try:
-            run = api.run_campaign(config, out=out_dir, jobs=jobs, resume=resume, hardware=hardware, clock=clock,
-                                   write_report=report_too, on_cell=on_cell, engine=engine, scheduler=scheduler,
-                                   workers=workers, shared_dir=shared_dir)
-        except ConfigError as exc:
-            raise fail(str(exc)) from None
+            try:
+                run = api.run_campaign(config, out=out_dir, jobs=jobs, resume=resume, hardware=hardware,
+                                       clock=clock, write_report=report_too, on_cell=on_cell, engine=engine,
+                                       scheduler=scheduler, workers=workers, shared_dir=shared_dir)
+            except ConfigError as exc:
+                raise fail(str(exc)) from None
+    except KeyboardInterrupt as exc:  # before or after the cells ran: the campaign as it stands on disk
+        stop = exc if isinstance(exc, CampaignInterrupted) else interrupted(
+            config, out_dir, getattr(exc, "signum", signal.SIGINT))
+        command = resume_command(ctx)
+        if json_out:
+            print_json(interrupted_json(stop, command))
+        else:
+            print_interrupted(stop, command)
+        raise typer.Exit(stop.exit_code) from None
     if json_out:
         print_json(campaign_json(run))
     else:
