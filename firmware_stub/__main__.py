@@ -9,6 +9,7 @@ directory, and exits 0. A bad config exits 2 with one line naming the file and f
 from __future__ import annotations
 
 import argparse
+import fcntl
 import gc
 import json
 import math
@@ -98,10 +99,36 @@ def check_inputs(args: argparse.Namespace) -> EmulatorConfig:
     return config
 
 
+def hold_ports_file(ports_file: Path) -> int:
+    """Own ``ports_file`` for this emulator's life: a ``flock`` on ``PORTS_FILE.lock`` that names our pid, so a second
+    emulator given the same file is refused (BadInput naming the first) instead of pointing its benches at other
+    boards. Returns the lock's descriptor (the kernel lets go when this process ends, however it ends)."""
+    lock = ports_file.with_name(ports_file.name + ".lock")
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "?"
+            os.close(fd)
+            raise BadInput(f"--ports-file {ports_file}: in use by the emulator with pid {holder}; stop it first, "
+                           "or give another file") from None
+        try:  # the file we locked is still the one at the path (a previous holder may have just removed it)
+            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            return fd
+        os.close(fd)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         config = check_inputs(args)
+        ports_lock = hold_ports_file(args.ports_file) if args.ports_file else None
     except (BadInput, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -112,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         emulator = Emulator(config, run_dir=run_dir, fault_log=args.fault_log, fingerprint=args.fingerprint)
     except BaseException:
         shutil.rmtree(run_dir, ignore_errors=True)
+        if ports_lock is not None:
+            args.ports_file.with_name(args.ports_file.name + ".lock").unlink(missing_ok=True)
         raise
 
     def on_signal(signum: int, _frame: object) -> None:
@@ -143,6 +172,9 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(run_dir, ignore_errors=True)
         if ports_file:
             ports_file.unlink(missing_ok=True)
+        if ports_lock is not None and ports_file:
+            ports_file.with_name(ports_file.name + ".lock").unlink(missing_ok=True)  # still held: nobody has it
+            os.close(ports_lock)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return 0

@@ -149,7 +149,7 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
         session = Session(config, ports, out_dir, progress=progress,
                           log_attrs={"loopback": False, "clock": "hardware"}, **_capture(capture_dir))
         hook(session)
-        return _result(await session.run(), "hardware", {})
+        return _result(await _run_session(session), "hardware", {})
     from hil.loopback import EmulatorProcess
     from hil.transport import LinkError
 
@@ -168,10 +168,20 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
                           log_attrs={"loopback": True, "clock": clock_name}, lockstep=clock_name == "lockstep",
                           emulated=True, **_capture(capture_dir))
         hook(session)
-        result = await session.run()
+        result = await _run_session(session)
     finally:
         summary = await asyncio.shield(asyncio.to_thread(emulator.stop))
     return _result(result, clock_name, summary)
+
+
+async def _run_session(session: Session) -> SessionResult:
+    """``session.run()``; a port it cannot own (missing, not a serial port, held by another bench) is bad input."""
+    from hil.ports import PortUnavailable
+
+    try:
+        return await session.run()
+    except PortUnavailable as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def _capture(capture_dir: Path | None) -> dict[str, Any]:

@@ -75,15 +75,18 @@ class DriveWriter:
         self._drive = FramePacker(DriveCmd, link.encoder, Board.DRIVER).pack
         self._disable = FramePacker(DriveDisable, link.encoder, Board.DRIVER).pack
         self.short_writes = 0
+        self._lock = link.write_lock
         cap = link.capture  # the driver link's capture: each write queued as (t_ns, link id, TX, bytes)
         self._capture = None if cap is None else cap.append
         self._capture_id = 0 if cap is None else cap.id
 
     def drive(self, tick: int, az_counts: int, el_counts: int) -> None:
-        self._write(self._drive(tick, az_counts, el_counts))
+        with self._lock:  # the link's: its sequence number, stamp and write go together (SerialLink._write)
+            self._write(self._drive(tick, az_counts, el_counts))
 
     def disable_now(self) -> None:
-        self._write(self._disable(AxisMask.BOTH))
+        with self._lock:
+            self._write(self._disable(AxisMask.BOTH))
 
     def _write(self, frame: bytes) -> None:
         capture = self._capture

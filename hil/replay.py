@@ -22,7 +22,8 @@ followed a sample in the capture goes out as long after the replayed stream's sa
 each), or at its original time from the first write (``timing="clock"``). The board's rules apply as to the bench,
 in either timing: the replay stops sending when the board stops streaming (a watchdog on the samples' arrival) or
 latches a driver fault, and whatever it left enabled, streaming or swinging it then disables, stops and idles, and
-sends nothing else.
+sends nothing else. A capture that ends with a sample after its last write (a session killed mid-run) is played to
+that sample: the safe end waits for it, so it cannot reach the board before the step that answers the last write.
 
 :func:`replay_log` and :func:`replay_capture` are what ``hil replay`` calls (through hil.api): everything but the
 parsing and printing, bad input refused with a ReplayError or CaptureError (ValueErrors) naming the option.
@@ -47,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from hil.capture import LINKS, Capture, CaptureReader, link_decoder, time_ordered
+from hil.ports import PortClaims, PortUnavailable, claim_ports, set_exclusive
 from hil.protocol import (
     CATALOGUE,
     NO_LATENCY_US,
@@ -678,7 +680,7 @@ class _Tx:
     """One write of the capture: when, on which link, the bytes and their frames; ``anchor`` the sample (stream
     number, tick) it followed and ``offset_ns`` how long after that sample's arrival it went out (``anchor`` None:
     before the first sample, ``offset_ns`` from the first write); ``gap_ns`` the capture's wait for that sample
-    after the one before it."""
+    after the one before it. ``end``: no write, but the sample the capture received after its last write."""
 
     t_ns: int
     link: str
@@ -687,6 +689,7 @@ class _Tx:
     anchor: tuple[int, int] | None = None
     offset_ns: int = 0
     gap_ns: int = 0
+    end: bool = False
 
 
 @dataclass
@@ -754,6 +757,7 @@ class _Port:
         self.path = path
         try:
             self.ser = serial.Serial(path, baudrate=baudrate, timeout=0, exclusive=True)
+            set_exclusive(self.ser.fd, True)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise ReplayError(f"{name}: cannot open {path}: {exc}") from None
         self.ser.reset_input_buffer()
@@ -777,6 +781,8 @@ class _Port:
         return done
 
     def close(self) -> None:
+        with contextlib.suppress(OSError):
+            set_exclusive(self.fd, False)
         with contextlib.suppress(Exception):
             self.ser.close()
 
@@ -834,7 +840,8 @@ def _scan_capture(path: Path) -> _Captured:
 
 def _writes(path: Path, links: set[str]) -> Iterator[_Tx]:
     """The capture's writes on ``links`` in time order, each timed from the last sample the bench had received
-    before it (streamed: memory stays bounded whatever the capture's length)."""
+    before it (streamed: memory stays bounded whatever the capture's length). When a sample came after the last
+    write (a capture cut mid-run), a last ``_Tx`` with ``end`` set names it: the board's answer to that write."""
     reader = CaptureReader(path)
     tx_dec = {name: link_decoder(name, "tx") for name in links}
     servo = link_decoder("servo", "rx")
@@ -842,12 +849,16 @@ def _writes(path: Path, links: set[str]) -> Iterator[_Tx]:
     last: tuple[int, int] | None = None
     last_t = prev_t = 0
     first: int | None = None
+    tail: _Tx | None = None  # the first sample after the latest write
     for rec in time_ordered(reader):
         if rec.direction == "rx" and rec.link == "servo":
             for f in servo.feed(rec.data):
                 if type(f.message) is GyroSample:
                     last, prev_t, last_t = streams.key(f.message.tick), last_t, rec.t_ns
+                    if tail is None and first is not None:
+                        tail = _Tx(rec.t_ns, "", b"", [], last, 0, last_t - prev_t if prev_t else 0, end=True)
         elif rec.direction == "tx" and rec.link in links:
+            tail = None
             frames = [(_ID[type(f.message)], f.seq, f.message) for f in tx_dec[rec.link].feed(rec.data)]
             if first is None:
                 first = rec.t_ns
@@ -856,6 +867,8 @@ def _writes(path: Path, links: set[str]) -> Iterator[_Tx]:
             else:
                 gap = last_t - prev_t if prev_t else 0
                 yield _Tx(rec.t_ns, rec.link, rec.data, frames, last, rec.t_ns - last_t, gap)
+    if tail is not None:
+        yield tail
 
 
 def _sample_key(g: GyroSample) -> int:
@@ -933,7 +946,12 @@ class CapturePlayer:
         t0 = time.monotonic()
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
+        claims: PortClaims | None = None
         try:
+            try:  # owned, as a session owns its ports: a port another bench holds is refused by name
+                claims = claim_ports({name: self.ports[name] for name in self.link_names}, f"replay {self.capture}")
+            except PortUnavailable as exc:
+                raise ReplayError(str(exc)) from None
             for name in self.link_names:
                 ports[name] = _Port(name, self.ports[name], self.baudrate)
             if self.record_dir is not None:
@@ -950,6 +968,8 @@ class CapturePlayer:
         finally:
             for port in ports.values():
                 port.close()
+            if claims is not None:
+                claims.release()
             if self.record is not None:
                 self.record.close()
             for fd in (self._wake_r, self._wake_w):
@@ -1036,6 +1056,10 @@ class CapturePlayer:
                 first = tx.t_ns
             if self._stop.is_set():
                 return
+            if tx.end:  # the capture's end: the sample that answered its last write, before the safe end
+                if tx.anchor is not None and self._state["streaming"]:
+                    self._await_tail(tx.anchor, tx.gap_ns)
+                return
             if self.timing == "samples" and tx.anchor is not None:
                 t_anchor = self._await_sample(tx.anchor, tx.gap_ns)
                 if t_anchor is None:
@@ -1057,6 +1081,13 @@ class CapturePlayer:
                 return
             self.lateness.add(time.monotonic_ns() - due)
             self._send(ports[tx.link], tx.link, tx.data, tx.frames)
+
+    def _await_tail(self, key: tuple[int, int], gap_ns: int) -> None:
+        """After the last write: wait for the sample ``key`` the capture received after it (or a later one), so the
+        safe end cannot reach the board before the step that answers that write and change or suppress the sample.
+        Gives up quietly after the capture's gap before it plus ``watchdog_s``: the capture is played either way."""
+        give_up = self.last_sample_rx + gap_ns + int(self.watchdog_s * 1e9)
+        self._serve(give_up, lambda: self._latest is not None and self._latest >= key)
 
     def _await_first(self) -> bool:
         """Clock timing: wait up to FIRST_SAMPLE_WAIT_S for the stream's first sample; False (stopped) if none."""

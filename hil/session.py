@@ -43,6 +43,7 @@ from hil.control.oracle import TruthSource, bind_truth, truth_refusal
 from hil.control.registry import build_controller, needs_truth
 from hil.log import SessionLog
 from hil.loop_thread import DriveWriter, LoopThread, link_fd
+from hil.ports import PortClaims, claim_ports
 from hil.protocol import (
     NO_LATENCY_US,
     ClockLate,
@@ -317,6 +318,9 @@ class Session:
                              "run on the lockstep clock for the same run over ptys")
         self.capture_dir = capture_dir
         self.capture: Capture | None = None  # opened with the first link, closed after the last (_shutdown)
+        self.claims: PortClaims | None = None  # the ports this session owns, from run() to the end of _shutdown
+        self._swing_t0_s = 0.0  # session time (board clock) at which the hexapod's profile clock read 0 ...
+        self._profile_offset_s = 0.0  # ... and the session profile's time then (not 0 once a swing was resumed)
 
     # --- frames from the boards ---------------------------------------------------------------------
 
@@ -645,7 +649,26 @@ class Session:
             self.progress(self.loop_.stats.cycles if self.loop_ else 0, total)
             await asyncio.sleep(0.1)
 
+    def claim_ports(self) -> None:
+        """Claim every port this session opens (hil.ports), before any is opened: PortUnavailable (bad input, one
+        line naming the port and its holder) if one is missing, not a serial port, or held by another bench. The
+        sim clock's links open no port."""
+        if self.open_link is not None or self.claims is not None:
+            return
+        self.claims = claim_ports({name: self.ports[name].port for name in self._bench_links()}, self.config.name)
+
     async def run(self) -> SessionResult:
+        """Run the session to its end and return how it ended. Raises PortUnavailable, having opened nothing, if
+        its ports cannot be claimed (:meth:`claim_ports`)."""
+        self.claim_ports()
+        try:
+            return await self._run()
+        finally:
+            if self.claims is not None:
+                self.claims.release()
+                self.claims = None
+
+    async def _run(self) -> SessionResult:
         aloop = asyncio.get_running_loop()
         self._finished = aloop.create_future()
         # Signals reach only the main thread's loop; a session run from a worker thread (hil.run inside a
@@ -673,11 +696,13 @@ class Session:
             self.loop_ = ControlLoop(self.config, self.driver.drive, self.log, telemetry=self.telemetry,
                                      duration_ticks=round(self.config.duration_s * 1000),
                                      on_done=(lambda: aloop_.call_soon_threadsafe(self.finish, "completed"))
-                                     if self.use_thread else lambda: self.finish("completed"), truth=self.truth,
+                                     if self.use_thread else self._duration_done, truth=self.truth,
                                      record_truth=self.record_truth)
             self.loop_.decoders = {name: link.decoder for name, link in self.links.items()}
-            self.hexapod.on_pose = self.loop_.on_pose
+            self.hexapod.on_pose = self._on_pose
             self.event("state", state="configured")
+            if self.claims is not None and self.claims.taken_over:  # their holders died without letting go
+                self.event("info", ports_taken_over={n: h.describe() for n, h in self.claims.taken_over.items()})
             segments = self.config.profile.protocol_segments()
             if segments:  # before the driver is enabled: a profile the hexapod refuses ends the session unarmed
                 await self.hexapod.load(segments)

@@ -11,6 +11,8 @@ frame it writes, with its time; the realtime loop thread records what it reads a
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import threading
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -18,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import serial
 import serial_asyncio_fast
 
+from hil.ports import open_refusal, set_exclusive
 from hil.protocol import CATALOGUE, Ack, Board, Decoder, Encoder, Frame, Nack
 from hil.protocol.framing import frame_seq
 
@@ -64,6 +67,7 @@ class SerialLink(asyncio.Protocol):
         self._lost_exc: Exception | None = None
         self._waiters: list[tuple[Callable[[Frame], bool], asyncio.Future[Frame]]] = []
         self.capture = capture
+        self.write_lock = threading.Lock()  # sequence number, stamp and write of one frame, whichever thread (_write)
 
     @classmethod
     async def open(
@@ -72,20 +76,32 @@ class SerialLink(asyncio.Protocol):
     ) -> SerialLink:
         """Open ``port`` (a device such as /dev/ttyUSB0, or an emulator's pty) to ``board``
         (default: the board the link name designates). With ``capture``, the link's bytes go to that capture
-        file under the link's name, from the moment it is open."""
+        file under the link's name, from the moment it is open.
+
+        The port is opened for this link alone (hil.ports): pyserial's advisory lock on the device, then the tty's
+        exclusive-use flag (TIOCEXCL), cleared again by :meth:`close`. Claim it first (hil.ports.claim_ports) to
+        refuse a second bench by name before anything is opened."""
         loop = asyncio.get_running_loop()
         handle = None if capture is None else capture.link(name)
         try:
             _, link = await serial_asyncio_fast.create_serial_connection(
-                loop, lambda: cls(name, on_frame, board=board, capture=handle), port, baudrate=baudrate
-            )
-        except (serial.SerialException, OSError) as exc:
-            raise LinkError(f"{name}: cannot open {port}: {exc}") from None
+                loop, lambda: cls(name, on_frame, board=board, capture=handle), port, baudrate=baudrate,
+                exclusive=True)
+        except serial.SerialException as exc:
+            cause = open_refusal(exc) if isinstance(exc.errno, int) else str(exc)
+            raise LinkError(f"{name}: cannot open {port}: {cause}") from None
+        except OSError as exc:
+            raise LinkError(f"{name}: cannot open {port}: {open_refusal(exc)}") from None
         await asyncio.sleep(0)  # let connection_made run
         link.port = port
         ser = getattr(link.transport, "serial", None)
-        if ser is not None:  # bytes the board sent while nobody listened are stale: drop them
-            ser.reset_input_buffer()
+        if ser is not None:
+            try:
+                set_exclusive(ser.fd, True)
+            except OSError as exc:
+                link.close()
+                raise LinkError(f"{name}: {port}: cannot take it for exclusive use: {exc.strerror or exc}") from None
+            ser.reset_input_buffer()  # bytes the board sent while nobody listened are stale: drop them
         return link
 
     # asyncio.Protocol ------------------------------------------------------------------------
@@ -114,8 +130,7 @@ class SerialLink(asyncio.Protocol):
         """The link failed where the event loop was not reading it (the realtime loop thread reads the servo link):
         close it, and let ``closed`` carry ``exc`` as a read failure of the transport would."""
         self._lost_exc = exc
-        if self.transport is not None:
-            self.transport.close()
+        self.close()
 
     def connection_lost(self, exc: Exception | None) -> None:
         exc = exc or self._lost_exc
@@ -134,13 +149,16 @@ class SerialLink(asyncio.Protocol):
         """Encode and write one message; returns the sequence number it went out with."""
         if self.transport is None:
             raise LinkError(f"{self.name}: link is closed")
-        data = self.encoder.encode(message, dst)
-        self._write(data)
+        with self.write_lock:
+            data = self.encoder.encode(message, dst)
+            self._write(data)
         return frame_seq(data)
 
     def _write(self, data: bytes) -> None:
-        """Write ``data`` (the transport is open), and capture it, stamped before the write: two threads write the
-        driver link, and the stamps keep the order their bytes went out in."""
+        """Write ``data`` (the transport is open), and capture it, stamped before the write. Call with
+        :attr:`write_lock` held: two threads write the driver link (the realtime loop thread its DRIVE_CMDs), and
+        the lock keeps each frame's sequence number, stamp and write together, so the frames go out in the order of
+        their sequence numbers and the capture's stamps in the order of the bytes."""
         assert self.transport is not None
         capture = self.capture
         if capture is None:
@@ -193,8 +211,7 @@ class SerialLink(asyncio.Protocol):
         spec = CATALOGUE.spec(message)
         if self.transport is None:
             raise LinkError(f"{self.name}: link is closed")
-        data = self.encoder.encode(message, dst)
-        seq = frame_seq(data)
+        seq = -1  # set just before the first write (a link that answers within the write is answered to it)
 
         def matches(frame: Frame) -> bool:
             msg = frame.message
@@ -209,12 +226,18 @@ class SerialLink(asyncio.Protocol):
         total_s = max(timeout_s, (self.max_resends + 1) * interval_s)
         t0 = loop.time()
         try:
-            for k in range(self.max_resends + 1):
-                if fut.done():
-                    break
-                if self.transport is None:
-                    raise LinkError(f"{self.name}: link is closed")
+            with self.write_lock:
+                data = self.encoder.encode(message, dst)
+                seq = frame_seq(data)
                 self._write(data)
+            for k in range(self.max_resends + 1):
+                if k:  # a resend: the same frame again
+                    if fut.done():
+                        break
+                    if self.transport is None:
+                        raise LinkError(f"{self.name}: link is closed")
+                    with self.write_lock:
+                        self._write(data)
                 until = t0 + (total_s if k == self.max_resends else (k + 1) * interval_s)
                 await asyncio.wait((fut,), timeout=max(0.0, until - loop.time()))
             if not fut.done():
@@ -242,5 +265,12 @@ class SerialLink(asyncio.Protocol):
                 f"misaddressed: is the right board on {self.port or 'this port'}?")
 
     def close(self) -> None:
-        if self.transport is not None:
-            self.transport.close()
+        """Close the port, its exclusive-use flag cleared first (an emulator's pty outlives the link)."""
+        if self.transport is None:
+            return
+        ser = getattr(self.transport, "serial", None)
+        fd = getattr(ser, "fd", None)
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                set_exclusive(fd, False)
+        self.transport.close()
