@@ -16,12 +16,14 @@ import contextlib
 import dataclasses
 import functools
 import logging
+import shutil
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from hil.config import ConfigError, SessionConfig, load_session, require_regular_file, require_writable_dir
+from hil.log.schema import estimated_log_bytes
 
 if TYPE_CHECKING:
     from hil.campaign import CampaignConfig, CampaignResult, CellResult
@@ -81,6 +83,7 @@ def prepare_run(config: SessionConfig | str | Path, *, loopback: bool = True, cl
         raise ConfigError(f"clock: {clock!r} is not realtime, lockstep or sim")
     out_dir = Path(out) if out is not None else config.logging.dir
     require_writable_dir(out_dir, "--out" if out is not None else "logging.dir")
+    _require_log_room(config, out_dir, "--out" if out is not None else "logging.dir")
     if not loopback:
         if clock == "sim":
             raise ConfigError("--clock sim: runs the emulated lab in this process; add --loopback")
@@ -98,6 +101,23 @@ def prepare_run(config: SessionConfig | str | Path, *, loopback: bool = True, cl
     clock_name = clock or config.emulator.clock
     _require_clock(config, clock_name)
     return config, clock_name, out_dir
+
+
+SETUP_AND_WIND_DOWN_S = 15.0  # logged beyond duration_s: connecting, arming, the hexapod's way home (<= 5 s)
+
+
+def _require_log_room(config: SessionConfig, out_dir: Path, what: str) -> None:
+    """The session's log fits on the disk it goes to (an estimate from the log's channels and rates, with
+    margin); ConfigError naming ``what`` otherwise, before anything starts."""
+    need = estimated_log_bytes(config.duration_s + SETUP_AND_WIND_DOWN_S)
+    probe = out_dir.absolute()
+    while not probe.exists():
+        probe = probe.parent
+    free = shutil.disk_usage(probe).free
+    if need > free:
+        raise ConfigError(f"{what} {out_dir}: the log of this {config.duration_s:g} s session needs about "
+                          f"{need / 1e6:.1f} MB and {probe} has {free / 1e6:.1f} MB free; free some space or log "
+                          "elsewhere")
 
 
 def _require_clock(config: SessionConfig, clock: str) -> None:

@@ -137,6 +137,12 @@ class ServoBoard(BoardClient):
     async def stop_stream(self) -> None:
         await self.command(ServoMode(StreamMode.IDLE))
 
+    def stop_stream_now(self) -> None:
+        """Write SERVO_MODE IDLE at once, without waiting for the ACK: a lockstep or sim wind-down sends it in place
+        of a sample's DRIVE_CMD, so the world stops at that tick (hil.session.TickWindDown)."""
+        if self.link.transport is not None:
+            self.link.send(ServoMode(StreamMode.IDLE), Board.SERVO)
+
 
 class DriverBoard(BoardClient):
     board_id = Board.DRIVER
@@ -165,6 +171,7 @@ class ImageBoard(BoardClient):
         await self.command(TrackCmd(TrackMode.TRACK if enabled else TrackMode.OFF, gate_px))
 
 
+_STOP_ID = CATALOGUE.spec(HexapodStop()).msg_id
 HEXAPOD_DRIVERS = "hil.hexapod_drivers"  # the entry-point group a hexapod driver registers in (docs/hexapod-drivers.md)
 
 PoseCallback = Callable[[float, tuple[float, ...]], None]  # (t_profile_s, pose6: x y z mm, roll pitch yaw deg)
@@ -226,6 +233,17 @@ class HexapodDriver(abc.ABC):
         """True while the table moves: swinging, or ramping down after ``stop``."""
 
     @property
+    def swinging(self) -> bool:
+        """True while the loaded profile runs (not ramping down after ``stop`` or a timeout of its own, not at
+        rest). Default: ``running``, for a controller that tells no difference."""
+        return self.running
+
+    async def await_status(self, timeout_s: float) -> None:
+        """Until the controller next reports its state, at most ``timeout_s`` (a driver built anew, after its link
+        was reopened, knows it only then)."""
+        await self._next_state(timeout_s)
+
+    @property
     def state(self) -> str:
         """The controller's state in a word, for the log."""
         return "running" if self.running else "idle"
@@ -276,6 +294,7 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
         super().__init__(link, interlock)
         self.hex_state: int = HexapodState.IDLE  # the last HEXAPOD_STATUS
         self._changed = asyncio.Event()
+        self._confirm: tuple[int, Callable[[], None]] | None = None  # stop_now: (its frame's seq, what to call)
 
     @classmethod
     def create(cls, options: HexapodOptions, link: SerialLink | None, interlock: Interlock) -> ProtocolHexapod:
@@ -291,10 +310,23 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
             self._changed.set()
         elif kind is Pose and self.on_pose is not None:
             self.on_pose(msg.t_ms / 1000, msg[1:])
+        elif kind is Ack and self._confirm is not None and msg.seq == self._confirm[0] and msg.msg_id == _STOP_ID:
+            confirmed, self._confirm = self._confirm[1], None
+            confirmed()
 
     @property
     def running(self) -> bool:
         return self.hex_state in (HexapodState.RUNNING, HexapodState.STOPPING)
+
+    @property
+    def swinging(self) -> bool:
+        return self.hex_state == HexapodState.RUNNING
+
+    async def await_status(self, timeout_s: float) -> None:
+        """Until the next HEXAPOD_STATUS (every 100 ms), at most ``timeout_s``."""
+        self._changed.clear()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._changed.wait(), timeout_s)
 
     @property
     def state(self) -> str:
@@ -323,6 +355,13 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
 
     async def stop(self) -> None:
         await self.command(HexapodStop())
+
+    def stop_now(self, confirmed: Callable[[], None]) -> None:
+        """HEXAPOD_STOP written at once, from code that cannot wait (a lockstep or sim wind-down acts between a
+        GYRO_SAMPLE and its DRIVE_CMD: hil.session.TickWindDown); ``confirmed()`` is called from :meth:`handle` with its
+        ACK. The ACK follows every frame the controller sent before the STOP, so :attr:`running` is then its state
+        as of the STOP. A later call replaces the callback of one still unanswered. LinkError if the link is closed."""
+        self._confirm = (self.link.send(HexapodStop(), self.board_id), confirmed)
 
 
 class GuardedHexapod(HexapodDriver):
@@ -401,9 +440,16 @@ class GuardedHexapod(HexapodDriver):
     async def close(self) -> None:
         await self._call("close", self.driver.close())
 
+    async def await_status(self, timeout_s: float) -> None:
+        await self._call("await_status", self.driver.await_status(timeout_s), timeout_s + self.CALL_TIMEOUT_S)
+
     @property
     def running(self) -> bool:
         return self.driver.running
+
+    @property
+    def swinging(self) -> bool:
+        return self.driver.swinging
 
     @property
     def state(self) -> str:

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from hil import __version__, host
-from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, InterlockClosed, ServoBoard
+from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, InterlockClosed, ProtocolHexapod, ServoBoard
 from hil.capture import Capture
 from hil.config import ConfigError, PortConfig, SessionConfig
 from hil.control.controller import RateController
@@ -54,6 +54,7 @@ from hil.protocol import (
     LoopTiming,
     MissDistance,
 )
+from hil.protocol.swing import profile_end_s, resume_segments
 from hil.telemetry import Telemetry, TelemetryProcess, schema_units
 from hil.transport import LinkError, SerialLink
 from hil.watchdog import EventLoopWatchdog, Watchdog
@@ -245,6 +246,8 @@ class SessionResult:
     message: str = ""
     telemetry: dict[str, Any] = field(default_factory=dict)  # published, dropped, reconnects (MQTT on)
     capture: dict[str, Any] = field(default_factory=dict)  # path, records, bytes, dropped, error (capture_dir given)
+    log_rows: int = 0  # loop rows in the log file (one per cycle while it was written)
+    log_error: str | None = None  # why logging stopped early (the session then ended as a fault); None: it did not
 
 
 class Session:
@@ -422,6 +425,20 @@ class Session:
                  "provenance": collect_provenance(self.config, emulated=bool(emulated)), **self.extra_attrs}
         self.log = SessionLog(self.log_path, attrs=attrs, flush_interval_s=self.config.logging.flush_interval_s,
                               fsync=self.config.logging.fsync)
+        aloop = asyncio.get_running_loop()
+
+        def log_failed(reason: str) -> None:  # from the log's flusher thread
+            with contextlib.suppress(RuntimeError):  # the event loop has closed: the session is over anyway
+                aloop.call_soon_threadsafe(self._log_failed, reason)
+
+        self.log.on_error = log_failed
+
+    def _log_failed(self, reason: str) -> None:
+        """Logging stopped (no space, directory gone, I/O error): a session whose data is lost is a fault, whatever
+        ``safety.on_fault`` says; it ends through the normal safe wind-down."""
+        if self.loop_ is not None:
+            self.fault(reason, recoverable=False)
+        self.finish("fault", reason)  # also while a recovery is under way (fault() leaves that one be)
 
     def _place(self) -> None:
         """The loop's CPU and scheduling class from ``config.host`` (hil.host); the helpers are already running
@@ -463,9 +480,9 @@ class Session:
         if self.telemetry is not None:
             self.telemetry.event(kind, **detail)
 
-    def fault(self, reason: str) -> None:
+    def fault(self, reason: str, *, recoverable: bool = True) -> None:
         """Zero drive and DISABLE now, record it, then stop or recover per config (never once the session is
-        ending: the interlock is closed then, and a fault only disables)."""
+        ending: the interlock is closed then, and a fault only disables; never when not ``recoverable``)."""
         loop = self.loop_
         if loop is None or (not loop.armed and self._recovering):
             return
@@ -479,9 +496,11 @@ class Session:
         safety = self.config.safety
         if self.interlock.closed:
             return  # winding down already: no recovery, the session ends as it was going to
-        if safety.on_fault == "recover" and loop.stats.recoveries < safety.max_recoveries:
+        if recoverable and safety.on_fault == "recover" and loop.stats.recoveries < safety.max_recoveries:
             self._recovering = True
-            self._recovery = self._spawn(self._recover(), "recovery")
+            if self._recovery is not None and not self._recovery.done():  # one still resuming the swing
+                self._recovery.cancel()
+            self._recovery = self._spawn(self._recover(loop.t_s + (loop.t0_s or 0.0)), "recovery")
         else:
             self.finish("fault", reason)
 
@@ -558,8 +577,9 @@ class Session:
             if self.loop_ is not None:  # DRIVE_CMDs the driver fd did not take whole (its buffer full)
                 self.loop_.stats.drive_short_writes += thread.writer.short_writes
 
-    async def _recover(self) -> None:
-        """Wait, reopen what was lost, restart the stream, re-arm with fresh controller states.
+    async def _recover(self, fault_t_s: float) -> None:
+        """Wait, reopen what was lost, restart the stream, re-arm with fresh controller states, and put the swing
+        back where it would be now if the hexapod stopped (:meth:`_resume_swing`).
 
         Every command that moves something goes through the interlock, so a recovery still under way when
         the session starts to end is refused (and cancelled by :meth:`finish`); any other failure ends the
@@ -570,9 +590,11 @@ class Session:
             await asyncio.sleep(self.config.safety.recover_after_ms / 1000)
             handlers = {"servo": self._on_servo, "driver": self._on_driver, "image": self._on_image,
                         "hexapod": self._on_hexapod}
+            reopened = set()
             for name in self._bench_links():
                 link = self.links.get(name)
                 if link is None or link.transport is None:
+                    reopened.add(name)
                     for _ in range(50):
                         self.interlock.check(f"reopening {name}")
                         try:
@@ -593,6 +615,7 @@ class Session:
             loop.last_tick = None
             loop.stats.recoveries += 1
             self._arm()
+            await self._resume_swing(fault_t_s, fresh_driver="hexapod" in reopened)
             self._recovering = False
             self.event("recovered", recoveries=loop.stats.recoveries)
         except InterlockClosed as exc:
@@ -603,7 +626,55 @@ class Session:
             loop.stats.faults.append(reason)
             self.finish("fault", reason)
         finally:
-            self._recovering = False
+            if self._recovery is None or self._recovery is asyncio.current_task():  # not one cancelled by a newer one
+                self._recovering = False
+
+    def profile_time_s(self) -> float:
+        """Where the session's swing profile is now (s of its clock), by the servo board's clock: the profile runs
+        from the swing's start whether or not the table follows it."""
+        assert self.loop_ is not None
+        return self._profile_offset_s + self.loop_.t_s - self._swing_t0_s
+
+    async def _resume_swing(self, fault_t_s: float, *, fresh_driver: bool) -> None:
+        """After a recovery: if the hexapod no longer runs the profile (its host timeout parked it: RUNNING ->
+        STOPPING -> LOADED at home), load the rest of the profile from where it would be now and start it
+        (docs/protocol.md 6.6 allows both in LOADED), logging a ``swing_gap`` event for the span the table did not
+        swing (``from_t_s`` .. ``to_t_s``: the loop's ``t_s``, the servo board's clock, from the fault that led here),
+        which the summary leaves out. A profile that would have ended by now is not restarted (the gap runs to the
+        end). Raises LinkError, ending the session as a fault, when the hexapod cannot be brought back."""
+        hexapod, loop = self.hexapod, self.loop_
+        if not self._swing_started or hexapod is None or loop is None:
+            return
+        if fresh_driver:  # built anew on a reopened link: it knows the controller's state at its next report
+            await hexapod.await_status(0.3)
+        if hexapod.swinging:
+            return
+        segments = self.config.profile.protocol_segments()
+        if hexapod.running and not await hexapod.wait_home(HEXAPOD_HOME_S):  # STOPPING: let it reach home first
+            raise LinkError(f"hexapod: still {hexapod.state} {HEXAPOD_HOME_S:g} s after it stopped the swing; "
+                            "cannot resume the profile")
+        for _ in range(200):  # the profile's time comes from the board's clock: a sample of the restarted stream
+            if loop.last_tick is not None:
+                break
+            await asyncio.sleep(0.005)
+        t_profile_s = self.profile_time_s()
+        parked = f"the hexapod had stopped the swing ({hexapod.state})"
+        if t_profile_s >= profile_end_s(segments):
+            self.event("swing_gap", from_t_s=fault_t_s, to_t_s=None, profile_s=round(t_profile_s, 3),
+                       reason=f"{parked}; the profile would have ended by now")
+            return
+        rest = resume_segments(segments, t_profile_s)
+        self.interlock.check("resuming the swing")
+        await hexapod.load(rest)
+        await hexapod.start()
+        self._swing_t0_s, self._profile_offset_s = loop.t_s, t_profile_s
+        self.event("swing_gap", from_t_s=fault_t_s, to_t_s=loop.t_s + (loop.t0_s or 0.0),
+                   profile_s=round(t_profile_s, 3), reason=f"{parked}; resumed at the profile's time")
+
+    def _on_pose(self, t_profile_s: float, pose: tuple[float, ...]) -> None:
+        """A POSE, its time on the session's profile clock (a resumed profile's clock starts again at 0)."""
+        if self.loop_ is not None:
+            self.loop_.on_pose(t_profile_s + self._profile_offset_s, pose)
 
     def finish(self, status: str, message: str = "") -> None:
         """The session ends: close the interlock (nothing enables, streams or swings again), cancel a recovery
@@ -715,6 +786,7 @@ class Session:
                 self.interlock.check("HEXAPOD_START")
                 self._swing_started = True  # from here on the shutdown always sends HEXAPOD_STOP
                 await self.hexapod.start()
+                self._swing_t0_s = self.loop_.t_s  # the profile's t = 0, near enough: the stream starts below
                 self.event("state", state="swing started", segments=len(segments))
             if self.telemetry:
                 self.telemetry.state("running", controller=self.config.controller.name)
@@ -755,16 +827,45 @@ class Session:
             shutdown.result()
             for sig in signals:
                 aloop.remove_signal_handler(sig)
+        log_error = self.log.error if self.log is not None else None
+        if log_error is not None and status == "completed":  # it failed at the very end (the last flush, closing)
+            status, message = "fault", log_error
+            if self.loop_ is not None:
+                self.loop_.stats.faults.append(log_error)
         if status == "fault" and self.exit_code == EXIT_OK:
             self.exit_code = EXIT_FAULT
         stats = self.loop_.stats if self.loop_ else LoopStats()
         telemetry = dataclasses.asdict(self.telemetry.stats) if self.telemetry is not None else {}
         capture = self.capture.summary() if self.capture is not None else {}
-        return SessionResult(status, self.exit_code, self.log_path, stats, message, telemetry, capture)
+        log_path = self.log_path if self.log_path is not None and self.log_path.is_file() else None
+        if self.log_path is not None and log_path is None and log_error is None:
+            log_error = f"{self.log_path}: the log file is gone"
+        return SessionResult(status, self.exit_code, log_path, stats, message, telemetry, capture,
+                             log_rows=self.log.rows.get("loop", 0) if self.log is not None else 0,
+                             log_error=log_error)
+
+    _ticked: TickWindDown | None = None  # lockstep and sim: the wind-down by the boards' ticks (_duration_done)
+
+    def _duration_done(self) -> None:
+        """The loop's last sample of the session (lockstep and sim: on the event loop, inside the sample's handler).
+        The wind-down then goes by ticks from the next sample (:class:`TickWindDown`), unless a hexapod driver outside
+        the emulated world swings (it moves in wall time)."""
+        loop, hexapod = self.loop_, self.hexapod
+        table = hexapod.driver if hexapod is not None and self._swing_started else None
+        if (self.lockstep and loop is not None and loop.armed and self.servo is not None
+                and (table is None or isinstance(table, ProtocolHexapod))):
+            self._ticked = TickWindDown(self, loop, self.servo, table, world_waits=self.open_link is None)
+        self.finish("completed")
 
     async def _wind_down(self) -> None:
-        """Normal end: stop the swing while still stabilizing, wait until it rests, then disarm."""
+        """Normal end: stop the swing while still stabilizing, wait until it rests, then disarm.
+
+        Lockstep and sim, with the emulated hexapod: by the boards' ticks (:class:`TickWindDown`), so the run is
+        reproducible to its last row. Otherwise in wall time, as the real hexapod moves."""
         assert self.hexapod is not None
+        if self._ticked is not None:
+            await self._ticked.wait()
+            return
         if self._swing_started:
             with contextlib.suppress(LinkError):
                 await self.hexapod.stop()
@@ -856,3 +957,130 @@ class Session:
                 "host_stalls": st.host_stalls, "clock_late": st.clock_late,
                 "drive_short_writes": st.drive_short_writes,
                 "link_errors": {n: link.decoder.counters.errors() for n, link in self.links.items()}}
+
+
+class TickWindDown:
+    """The wind-down of a lockstep or sim session, by the boards' ticks: reproducible to the last row.
+
+    A lockstep world steps when DRIVE_CMD k comes in. A frame the bench writes on another link is sure to be handled
+    before that step only if the world has answered it by then, and the bench reads the hexapod's link and the
+    servo's in either order; so no step of the wind-down may depend on when the event loop gets to it. Each is
+    taken in the loop's sample handler, at a tick fixed by the session's duration, the tick's DRIVE_CMD held until
+    the hexapod's ACK is back (the world waits for it):
+
+    - the first sample after the duration, then every :attr:`CHECK_TICKS` samples: HEXAPOD_STOP (the first stops
+      the swing; later ones change nothing). Its ACK follows every HEXAPOD_STATUS sent before it, so the table's
+      state read then is its state at that tick; the held DRIVE_CMD goes out after it;
+    - once a check finds the table at rest (or :attr:`HOME_TICKS` after the first stop), the next sample is the
+      loop's last, logged unarmed and not answered: the world waits there while the session's shutdown disables
+      the driver, stops the swing and the stream. Without a swing (``hexapod`` None) that is the first sample after
+      the duration.
+
+    The sim clock's world (``world_waits`` false) handles each frame as it is sent and delivers the replies within
+    the tick, so the same frames reach it at the same ticks; but it does not wait for an answer, so the last sample
+    is answered with SERVO_MODE IDLE, which stops it where lockstep's waits."""
+
+    CHECK_TICKS = 10  # the hexapod's POSE period
+    HOME_TICKS = round(HEXAPOD_HOME_S * 1000)
+
+    def __init__(self, session: Session, loop: ControlLoop, servo: ServoBoard, hexapod: ProtocolHexapod | None, *,
+                 world_waits: bool) -> None:
+        self.session = session
+        self.loop = loop
+        self.servo = servo
+        self.hexapod = hexapod
+        self.world_waits = world_waits
+        self.done: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
+        self.first_tick: int | None = None  # the first stop's
+        self.next_check = 0
+        self.holding = False
+        self.held: tuple[int, int, int] | None = None  # the DRIVE_CMD waiting for the hexapod's ACK
+        self.last_sample = hexapod is None  # the table rests: the next sample is the loop's last
+        self._on_sample, self._drive = loop.on_sample, loop.drive
+        loop.on_sample = self.on_sample  # type: ignore[method-assign]
+        loop.drive = self.drive
+
+    def drive(self, tick: int, az_counts: int, el_counts: int) -> None:
+        if self.holding:
+            self.held = (tick, az_counts, el_counts)
+        else:
+            self._drive(tick, az_counts, el_counts)
+
+    def on_sample(self, g: GyroSample, t_rx: int | None = None) -> None:
+        if self.done.done():
+            self._on_sample(g, t_rx)
+            return
+        self.held = None  # an ACK that did not come before the world moved on (a lockstep timeout): too late now
+        if self.last_sample:
+            self.loop.armed = False
+            self._on_sample(g, t_rx)
+            self.session._disarm_watchdog()  # no sample comes after this one
+            if not self.world_waits:
+                with contextlib.suppress(LinkError, OSError):  # else the shutdown stops it
+                    self.servo.stop_stream_now()
+            self.done.set_result(True)
+            return
+        check = self.first_tick is None or g.tick - self.next_check >= 0
+        self.holding = check
+        try:
+            self._on_sample(g, t_rx)
+        finally:
+            self.holding = False
+        if self.held is None:  # not a check, or the loop did not drive (a fault or a signal disarmed it)
+            return
+        if self.first_tick is None:
+            self.first_tick = g.tick
+        self.next_check = g.tick + self.CHECK_TICKS
+        try:
+            assert self.hexapod is not None
+            self.hexapod.stop_now(self._confirmed)
+        except (LinkError, OSError):
+            self._give_up()
+
+    def _confirmed(self) -> None:
+        """The hexapod's ACK: its state is the one at the held sample's tick."""
+        if self.held is None or self.done.done():
+            return
+        if not self.loop.armed:  # a fault or a signal since the sample: nothing more to drive
+            self._give_up()
+            return
+        assert self.hexapod is not None
+        if self.held[0] == self.first_tick:
+            self.session.event("state", state="swing stopping")
+        if not self.hexapod.running:
+            self.last_sample = True
+        elif self.held[0] - (self.first_tick or 0) >= self.HOME_TICKS:
+            self.session.event("info", hexapod=f"still {self.hexapod.state} {HEXAPOD_HOME_S:g} s after the stop")
+            self.last_sample = True
+        held, self.held = self.held, None
+        try:
+            self._drive(*held)
+        except (LinkError, OSError):
+            self._give_up()
+
+    def _give_up(self) -> None:
+        """The wind-down cannot go on by ticks: the loop drives as it did (if armed), and :meth:`wait` returns False."""
+        held, self.held = self.held, None
+        if held is not None and self.loop.armed:
+            with contextlib.suppress(LinkError, OSError):
+                self._drive(*held)
+        if not self.done.done():
+            self.done.set_result(False)
+
+    async def wait(self) -> bool:
+        """Until the loop's last sample (True), or until the loop stops driving before it (a fault, a signal) or no
+        sample comes for HEXAPOD_HOME_S (False). Wall time only keeps this from waiting forever."""
+        loop = self.loop
+        cycles, quiet_since = -1, time.monotonic()
+        while not self.done.done():
+            if not loop.armed:
+                self._give_up()
+                break
+            if loop.stats.cycles != cycles:
+                cycles, quiet_since = loop.stats.cycles, time.monotonic()
+            elif time.monotonic() - quiet_since > HEXAPOD_HOME_S:
+                self.session.event("info", hexapod=f"no sample for {HEXAPOD_HOME_S:g} s during the wind-down")
+                self._give_up()
+                break
+            await asyncio.wait((self.done,), timeout=0.1)
+        return self.done.result()

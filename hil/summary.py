@@ -10,7 +10,8 @@ controllers converge).
 On the ``lockstep`` and ``sim`` clocks the emulator waits for the bench, so the board measures no latency:
 ``board_latency_us`` then holds ``None`` and an ``na_reason``. Empty figures are NaN; ``json_safe``
 turns them into ``None`` for JSON. ``provenance`` is what the session recorded of its software, plant and
-controller (hil.log.provenance).
+controller (hil.log.provenance). Spans in which the table did not swing (``swing_gap`` events: the hexapod parked
+itself and a recovery resumed the profile) are left out of the control metrics and listed in ``swing_gaps``.
 """
 
 from __future__ import annotations
@@ -65,6 +66,22 @@ def missed_cycles(loop: dict[str, np.ndarray]) -> int:
     return int(gap.sum())
 
 
+def swing_gap_mask(t_s: np.ndarray, gaps: list[dict[str, Any]]) -> np.ndarray:
+    """Which of the board times ``t_s`` (the loop's ``t_s``, an image's ``t_exposure_s``) fall in a span the table
+    did not swing: each ``swing_gap`` event's ``from_t_s`` up to its ``to_t_s`` (to the end when None: the profile
+    was not resumed)."""
+    mask = np.zeros(np.shape(t_s), dtype=bool)
+    for gap in gaps:
+        start, end = gap.get("from_t_s"), gap.get("to_t_s")
+        if isinstance(start, int | float):
+            mask |= (t_s >= start) & (t_s < (end if isinstance(end, int | float) else np.inf))
+    return mask
+
+
+def _relative(t_s: float | None, t0: float) -> float | None:
+    return None if t_s is None else round(float(t_s) - float(t0), 3)
+
+
 def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     data = read_log(path)
     loop, image, timing, links = (data.groups.get(g, {}) for g in ("loop", "image", "timing", "links"))
@@ -75,6 +92,16 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     config = data.attrs.get("config") or {}
     run_s = float(config.get("duration_s", np.inf)) if isinstance(config, dict) else np.inf
     keep = ((t - t0) >= settle_s) & ((t - t0) < run_s)  # the run itself, not the swing's wind-down
+    events = data.groups.get("events", {})
+    kinds = [k.decode() if isinstance(k, bytes) else str(k) for k in events.get("kind", [])]
+    details = list(events.get("detail", []))
+    gaps = [_detail(d) for k, d in zip(kinds, details, strict=True) if k == "swing_gap"]
+    in_gap = swing_gap_mask(t, gaps)
+    keep &= ~in_gap  # spans where the table did not swing (the hexapod had parked itself) are not the swing's
+    if gaps:
+        out["swing_gaps"] = [{"from_s": _relative(g.get("from_t_s"), t0), "to_s": _relative(g.get("to_t_s"), t0),
+                              "reason": g.get("reason")} for g in gaps]
+        out["swing_gap_s"] = float(np.count_nonzero(in_gap) / 1000.0)
     out["cycles"] = int(t.size)
     out["duration_s"] = float(t[-1] - t0) if t.size else 0.0
     for axis in ("el", "az"):
@@ -85,6 +112,7 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     if image:
         ti = image["t_exposure_s"]
         valid = (image["track_valid"] > 0) & ((ti - t0) >= settle_s) & ((ti - t0) < run_s)
+        valid &= ~swing_gap_mask(ti, gaps)
         out["frames"] = int(ti.size)
         out["frames_valid"] = int(valid.sum())
         out["miss_x_px"] = _spread(image["miss_x_px"][valid])
@@ -101,10 +129,7 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
         cols = [f"{name}_{c}" for c in LINK_ERROR_COUNTERS]
         errors[name] = int(sum(int(links[c][-1]) for c in cols if c in links and links[c].size))
     out["link_errors"] = errors
-    events = data.groups.get("events", {})
-    kinds = [k.decode() if isinstance(k, bytes) else str(k) for k in events.get("kind", [])]
     out["faults"] = kinds.count("fault")
-    details = list(events.get("detail", []))
     out["fault_reasons"] = [_reason(d) for k, d in zip(kinds, details, strict=True) if k == "fault"]
     stalls = [_detail(d) for k, d in zip(kinds, details, strict=True) if k == "host_stall"]
     out["host_stalls"] = len(stalls)

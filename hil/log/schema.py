@@ -10,6 +10,7 @@ Rows are appended as tuples of values in the order of ``Group.channels``.
 from __future__ import annotations
 
 import json
+import re
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -225,6 +226,25 @@ ATTRS: tuple[AttrSpec, ...] = (
 )
 
 REQUIRED_ATTRS = tuple(a.name for a in ATTRS if a.source == "caller")
+
+
+IRREGULAR_RATE_HZ = 10.0  # what an "irregular" group (events) is budgeted at: a session logs far fewer
+LOG_SIZE_MARGIN = 1.5  # HDF5's chunk and metadata overhead measured ~1.0-1.2x the rows' bytes
+LOG_SIZE_FIXED_BYTES = 4 << 20  # attributes (config, provenance), the superblock, the first chunks
+
+
+def nominal_rate_hz(group: Group) -> float:
+    """A group's rows per second, as its ``rate`` says ("1 kHz", "camera rate (100 Hz)"); irregular groups are
+    budgeted at IRREGULAR_RATE_HZ."""
+    mo = re.search(r"([\d.]+)\s*(k?)Hz", group.rate)
+    return float(mo.group(1)) * (1000.0 if mo.group(2) else 1.0) if mo else IRREGULAR_RATE_HZ
+
+
+def estimated_log_bytes(duration_s: float, schema: tuple[Group, ...] = SCHEMA) -> int:
+    """An upper estimate of a log's size for ``duration_s`` of logging: every group at its nominal rate, with
+    margin for HDF5's overhead (a 10 s demo session wrote 1.5 MB; this gives 6 MB for its 10 s plus wind-down)."""
+    per_s = sum(nominal_rate_hz(g) * numpy_dtype(g).itemsize for g in schema)
+    return int(duration_s * per_s * LOG_SIZE_MARGIN) + LOG_SIZE_FIXED_BYTES
 
 
 def group_by_name(schema: tuple[Group, ...] = SCHEMA) -> dict[str, Group]:

@@ -48,7 +48,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -389,6 +389,7 @@ class H5Sink:
         """
         if self.syncer is not None and self.syncer.error:
             raise OSError(f"fsync failed: {self.syncer.error}")
+        self.check_still_there()
         t0 = time.perf_counter()
         cols = {gi: self._columns(gi, packed) for gi, packed in batches.items()}
         n_rows = sum(len(c[0]) for c in cols.values())
@@ -432,6 +433,18 @@ class H5Sink:
             "t_child1": t4,
         }
 
+    def check_still_there(self) -> None:
+        """OSError if the file being written is no longer at its path (deleted, its directory removed, or replaced):
+        the rows would go to a file nobody can open. One stat per batch."""
+        try:
+            on_disk = os.stat(self.path)
+        except FileNotFoundError:
+            gone = "its directory was removed" if not self.path.parent.exists() else "the file was deleted"
+            raise OSError(f"{gone} while the session ran") from None
+        here = os.fstat(self.fd)
+        if (on_disk.st_dev, on_disk.st_ino) != (here.st_dev, here.st_ino):
+            raise OSError("another file took its place while the session ran")
+
     def rollback(self) -> None:
         """After a failed write: shrink every dataset back to the rows known to be in the file.
 
@@ -448,7 +461,10 @@ class H5Sink:
     def close(self) -> None:
         if self.syncer is not None:
             self.syncer.stop()
-        self.f.close()  # ends SWMR: the file opens normally from now on
+        try:
+            self.check_still_there()
+        finally:
+            self.f.close()  # ends SWMR: the file opens normally from now on
         if self.fsync:
             fd = os.open(self.path, os.O_RDONLY)
             try:
@@ -579,6 +595,7 @@ class SessionLog:
             raise ValueError("flush_interval_s must be > 0")
         self._init_buffers(schema)
         self.error: str | None = None
+        self.on_error: Callable[[str], None] | None = None  # called once, from any thread, when logging stops
         self.rows: dict[str, int] = {g.name: 0 for g in schema}
         self.stats: collections.deque[dict[str, float]] = collections.deque(maxlen=100_000)
         self._lock = threading.Lock()
@@ -736,7 +753,8 @@ class SessionLog:
         return f"the writer process exited with status {rc}"
 
     def _fail(self, cause: str) -> None:
-        if self.error is None:
+        first = self.error is None
+        if first:
             self.error = f"{self.path}: logging stopped: {cause}"
             log.error("%s", self.error)
         for name in self._names:
@@ -744,6 +762,8 @@ class SessionLog:
             self._slots[name] = (pack, _Discard())
         for buf in self._bufs:
             buf.clear()
+        if first and self.on_error is not None:
+            self.on_error(self.error)  # type: ignore[arg-type]
 
     def flush(self) -> None:
         """Write everything queued so far to the file (and fsync); returns when it is on disk.

@@ -63,6 +63,29 @@ def profile_end_s(segments: Iterable[Segment]) -> float:
     return max((seg.end_s for seg in segments), default=0.0)
 
 
+RESUME_RAMP_S = 1.0  # a resumed profile ramps in over at least this long: the table starts from rest at home
+
+
+def resume_segments(segments: Sequence[Segment], t_s: float, ramp_s: float = RESUME_RAMP_S) -> list[Segment]:
+    """The rest of a profile from its time ``t_s`` on, as a profile of its own (its t = 0 is ``t_s``): what a
+    hexapod that parked mid-profile runs to go on where the swing would be now. A segment under way keeps its
+    phase (its sine continues where it would be) and ramps in again over at least ``ramp_s`` (the table is at rest
+    at home: it must not jump to the sine's value), as it ramps out; segments ended by ``t_s`` are left out."""
+    out = []
+    for seg in segments:
+        if seg.end_s <= t_s:
+            continue
+        if seg.start_s >= t_s:
+            out.append(seg._replace(start_s=seg.start_s - t_s))
+            continue
+        done_s = t_s - seg.start_s
+        left_s = seg.duration_s - done_s
+        phase_deg = (seg.phase_deg + 360.0 * seg.frequency_hz * done_s) % 360.0
+        out.append(seg._replace(start_s=0.0, duration_s=left_s, phase_deg=phase_deg,
+                                ramp_s=min(max(seg.ramp_s, ramp_s), left_s / 2)))
+    return out
+
+
 class Profile:
     """A profile ready to evaluate at 1 kHz: each segment's constants computed once (the emulated hexapod and
     the imbalance feed-forward call it every tick). ``Profile(segments)(t_s)`` is :func:`evaluate`."""
@@ -194,6 +217,7 @@ __all__ = [
     "AXIS_UNITS",
     "CHECK_STEP_S",
     "N_AXES",
+    "RESUME_RAMP_S",
     "ZERO6",
     "Envelope",
     "EnvelopeViolation",
@@ -203,6 +227,7 @@ __all__ = [
     "evaluate",
     "evaluate_batch",
     "profile_end_s",
+    "resume_segments",
     "segment_from_message",
     "segments_to_messages",
 ]

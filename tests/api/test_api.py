@@ -139,10 +139,16 @@ def test_a_session_ends_early_through_interrupt_as_ctrl_c_would(tmp_path: Path) 
     from tests.session.helpers import logged_events
 
     config = short_session(30.0)
+    interrupts: list[asyncio.Task[None]] = []
 
     async def notebook_cell() -> hil.RunResult:
         def on_session(session: object) -> None:
-            asyncio.get_running_loop().call_later(1.0, session.interrupt)  # type: ignore[attr-defined]
+            async def once_swinging() -> None:  # by the session's own progress, not a wall-clock delay
+                while getattr(session, "loop_", None) is None or session.loop_.stats.cycles < 500:  # type: ignore[attr-defined]
+                    await asyncio.sleep(0.01)
+                session.interrupt()  # type: ignore[attr-defined]
+
+            interrupts.append(asyncio.get_running_loop().create_task(once_swinging()))
 
         return await hil.run_async(config, clock="sim", out=tmp_path, on_session=on_session)
 

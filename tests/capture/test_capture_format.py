@@ -75,6 +75,9 @@ def test_records_come_back_with_their_time_link_direction_and_bytes(tmp_path: Pa
             driver.tx(d, t_ns=2_000_000 * i + 1_000)
             time.sleep(0.0001)
         worker.join()
+        give_up = time.monotonic() + 60  # the writer thread writes while the capture is open, whenever it is run
+        while not cap.stats.flushes and time.monotonic() < give_up:
+            time.sleep(0.001)
         driver.note(event="open", port="/dev/null")
     assert cap.stats.records == 601 and cap.stats.dropped == 0 and cap.stats.flushes > 1
     reader = CaptureReader(path)
@@ -160,6 +163,8 @@ for i in range(1_000_000):
     if i % 50 == 0:
         time.sleep(0.001)
     if i == 20_000:
+        while cap.stats.records <= 1000:  # flushed while it ran, however slowly the machine ran its writer
+            time.sleep(0.001)
         os.kill(os.getpid(), signal.SIGKILL)
 """
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import select
 import threading
 import time
@@ -32,6 +33,7 @@ from hil.protocol import (
     StreamMode,
 )
 from hil.replay import (
+    FIRST_SAMPLE_WAIT_S,
     SAMPLE_TIMES_KEPT,
     CapturePlayer,
     Quantiles,
@@ -145,12 +147,25 @@ def session_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_session_capture(tmp_path_factory.mktemp("playback") / "session.hilcap")
 
 
+# The fake boards run in this process, where a loaded machine may not run them for a while: a watchdog that such a
+# pause does not trip (the stream's end still comes well before the capture's), and the last replies awaited as long
+# as they take (the wait ends as soon as they are in)
+WATCHDOG_S = 0.3
+LINGER_S = 5.0
+
+
+def stopped_after_ms(stopped: str) -> float:
+    """How long the stream had been silent when the replay's watchdog stopped it, from its reason."""
+    found = re.fullmatch(r"watchdog: no GYRO_SAMPLE for (\d+) ms .*", stopped)
+    assert found, stopped
+    return float(found[1])
+
+
 @pytest.mark.parametrize("timing", ["samples", "clock"])
 def test_a_board_that_stops_streaming_stops_the_replay_which_disarms_it(session_capture: Path, timing: str) -> None:
     with FakeBoards(stream_for=200) as boards:
-        r = play_capture(session_capture, boards.ports, timing=timing)
-        time.sleep(0.05)  # the last replies and frames are in
-    assert r.stopped.startswith("watchdog: no GYRO_SAMPLE for 10"), r.stopped  # 100-109 ms: the watchdog's 100
+        r = play_capture(session_capture, boards.ports, timing=timing, watchdog_s=WATCHDOG_S, linger_s=LINGER_S)
+    assert stopped_after_ms(r.stopped) >= 1000 * WATCHDOG_S  # never before the watchdog's time; later if not run
     assert r.stream_started and r.samples == 200
     # the replay disarmed what it had armed: the driver disabled, the stream idled, both answered
     assert r.safe_end == ["DRIVE_DISABLE", "SERVO_MODE"]
@@ -160,22 +175,23 @@ def test_a_board_that_stops_streaming_stops_the_replay_which_disarms_it(session_
     assert names[-1] == "DRIVE_DISABLE" and names.count("DRIVE_DISABLE") == 1
     drive_cmds = [t for t, name in boards.driver_got if name == "DRIVE_CMD"]
     assert len(drive_cmds) == r.links["driver"].sent["DRIVE_CMD"] < SAMPLES_IN_CAPTURE
-    after = drive_cmds[-1] - boards.sent_samples[-1]
+    # the board heard the DRIVE_DISABLE no sooner than the watchdog's time after its last sample
+    assert boards.driver_got[-1][0] - boards.sent_samples[-1] >= WATCHDOG_S
     if timing == "samples":  # each DRIVE_CMD waits for its sample: not one more than the board streamed
         assert len(drive_cmds) == 200
-    else:  # on the capture's clock: DRIVE_CMD went on only until the watchdog's 100 ms ran out
-        assert 200 < len(drive_cmds) < 350 and 0.09 < after < 0.15, (len(drive_cmds), after)
+    else:  # on the capture's clock: DRIVE_CMD went on past the stream's end, until the watchdog ran out
+        assert len(drive_cmds) > 200
 
 
 def test_on_the_capture_clock_no_drive_goes_before_the_stream_starts(session_capture: Path) -> None:
     with FakeBoards(stream_for=0) as boards:  # acknowledges STREAM, streams nothing
         t0 = time.monotonic()
-        r = play_capture(session_capture, boards.ports, timing="clock")
+        r = play_capture(session_capture, boards.ports, timing="clock", linger_s=LINGER_S)
         took = time.monotonic() - t0
     assert r.stopped == "no GYRO_SAMPLE: the servo board did not start its stream"
-    assert not r.stream_started and r.links["driver"].sent["DRIVE_CMD"] == 0
+    assert not r.stream_started and r.links["driver"].sent["DRIVE_CMD"] == 0 and r.answered == r.commands
     assert [name for _, name in boards.driver_got] == ["DRIVE_ENABLE", "DRIVE_DISABLE"] and not boards.driver_enabled
-    assert 2.0 <= took < 3.5  # the 2 s wait for the first sample, then the safe end
+    assert took >= FIRST_SAMPLE_WAIT_S  # the whole wait for the first sample, then the safe end
 
 
 def test_the_sample_times_kept_stay_bounded_however_long_the_stream(session_capture: Path) -> None:
