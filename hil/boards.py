@@ -138,8 +138,9 @@ class ServoBoard(BoardClient):
         await self.command(ServoMode(StreamMode.IDLE))
 
     def stop_stream_now(self) -> None:
-        """Write SERVO_MODE IDLE at once, without waiting for the ACK: a lockstep or sim wind-down sends it in place
-        of a sample's DRIVE_CMD, so the world stops at that tick (hil.session.TickWindDown)."""
+        """Write SERVO_MODE IDLE at once, without waiting for the ACK: the sim clock's wind-down answers the loop's
+        last sample with it, so the world, which does not wait for a DRIVE_CMD, stops at that tick
+        (hil.session.TickWindDown)."""
         if self.link.transport is not None:
             self.link.send(ServoMode(StreamMode.IDLE), Board.SERVO)
 

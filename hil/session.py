@@ -1034,8 +1034,8 @@ class TickWindDown:
         try:
             assert self.hexapod is not None
             self.hexapod.stop_now(self._confirmed)
-        except (LinkError, OSError):
-            self._give_up()
+        except (LinkError, OSError) as exc:
+            self._give_up(f"HEXAPOD_STOP not sent: {exc}")
 
     def _confirmed(self) -> None:
         """The hexapod's ACK: its state is the one at the held sample's tick."""
@@ -1055,11 +1055,14 @@ class TickWindDown:
         held, self.held = self.held, None
         try:
             self._drive(*held)
-        except (LinkError, OSError):
-            self._give_up()
+        except (LinkError, OSError) as exc:
+            self._give_up(f"DRIVE_CMD not sent: {exc}")
 
-    def _give_up(self) -> None:
-        """The wind-down cannot go on by ticks: the loop drives as it did (if armed), and :meth:`wait` returns False."""
+    def _give_up(self, why: str = "") -> None:
+        """The wind-down cannot go on by ticks (``why``, logged; none when a fault or a signal disarmed the loop): the
+        loop drives as it did while it is armed, and :meth:`wait` returns False."""
+        if why and not self.done.done():
+            self.session.event("info", wind_down=why)
         held, self.held = self.held, None
         if held is not None and self.loop.armed:
             with contextlib.suppress(LinkError, OSError):
@@ -1079,8 +1082,7 @@ class TickWindDown:
             if loop.stats.cycles != cycles:
                 cycles, quiet_since = loop.stats.cycles, time.monotonic()
             elif time.monotonic() - quiet_since > HEXAPOD_HOME_S:
-                self.session.event("info", hexapod=f"no sample for {HEXAPOD_HOME_S:g} s during the wind-down")
-                self._give_up()
+                self._give_up(f"no sample for {HEXAPOD_HOME_S:g} s")
                 break
             await asyncio.wait((self.done,), timeout=0.1)
         return self.done.result()
