@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from hil.config import ConfigError, SessionConfig, load_session, require_regular_file, require_writable_dir
 from hil.log.schema import estimated_log_bytes
+from hil.ports import PortUnavailable
 
 if TYPE_CHECKING:
     from hil.campaign import CampaignConfig, CampaignResult, CellResult
@@ -196,8 +197,6 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
 
 async def _run_session(session: Session) -> SessionResult:
     """``session.run()``; a port it cannot own (missing, not a serial port, held by another bench) is bad input."""
-    from hil.ports import PortUnavailable
-
     try:
         return await session.run()
     except PortUnavailable as exc:
