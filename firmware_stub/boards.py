@@ -49,6 +49,7 @@ from hil.protocol import (
     HostAlive,
     Ident,
     IdentRequest,
+    LockstepAck,
     LoopTiming,
     MessageSpec,
     MissDistance,
@@ -119,14 +120,14 @@ class EmulatedBoard:
         self.serial_number = world.config.boards.serial_base + int(self.board_id)
         self.boot_tick = 0
         self.handlers: dict[type, Callable[[Frame, float], None]] = {
-            IdentRequest: self._on_ident_request, HostAlive: self._on_host_alive}
+            IdentRequest: self._on_ident_request, HostAlive: self._on_host_alive, LockstepAck: self._on_lockstep_ack}
         self.accepted = host_messages(self.board_id)
         timeout_ms = world.config.boards.host_timeout_ms
         self.host_timeout_ticks = max(1, round(timeout_ms)) if timeout_ms > 0 else 0  # 0: never
         self.dropped = DroppedFrames()
         self.resent_replies = 0  # resent commands answered from memory
         self.host_timeouts = 0
-        self.uncounted_rx_frames = 0  # lockstep: HOST_ALIVE frames, kept out of HEARTBEAT.rx_frames
+        self.uncounted_rx_frames = 0  # LOCKSTEP_ACK, and in lockstep HOST_ALIVE: kept out of HEARTBEAT.rx_frames
         self._count_host_alive = world.config.clock is not ClockMode.LOCKSTEP
         self.power_on()
 
@@ -175,7 +176,8 @@ class EmulatedBoard:
         command (same msg_id and seq as the last one) gets the stored reply again instead of a second
         action; any other frame is handled."""
         message = frame.message
-        if not self._count_host_alive and type(message) is HostAlive:
+        kind = type(message)
+        if kind is LockstepAck or (kind is HostAlive and not self._count_host_alive):
             self.uncounted_rx_frames += 1
         if frame.dst != self.board_id or frame.src != Board.HOST:
             self.dropped.misaddressed += 1
@@ -208,6 +210,10 @@ class EmulatedBoard:
 
     def _on_host_alive(self, frame: Frame, t_rx: float) -> None:
         """No reply, no action: receiving it restarted the host timer."""
+
+    def _on_lockstep_ack(self, frame: Frame, t_rx: float) -> None:
+        """No reply: the host has handled this board's frames up to ``seq`` (the lockstep world waits for it)."""
+        self.link.on_host_ack(frame.message.seq)
 
     # --- host liveness -------------------------------------------------------------------------------
 

@@ -85,7 +85,9 @@ class Emulator:
             LinkName.SERVO: self.servo, LinkName.DRIVER: self.driver, LinkName.IMAGE: self.image,
             LinkName.HEXAPOD: self.hexapod}
         self._link_list = tuple(self.links.values())
-        self._tick_order = (self.driver, self.hexapod, self.image, self.servo)  # the servo's GYRO_SAMPLE last
+        self._before_sample = (self.driver, self.hexapod, self.image)  # then the servo's GYRO_SAMPLE
+        self._acked_links = tuple(self.links[name] for name in (LinkName.DRIVER, LinkName.HEXAPOD, LinkName.IMAGE))
+        self.lockstep = config.clock is ClockMode.LOCKSTEP
         self.inbox: dict[LinkName, deque[tuple[Frame, float]]] = {name: deque() for name in LinkName}
         self.schedule: deque[ScheduledFault] = deque(sorted(config.faults, key=lambda f: f.at_s))
         self.awaiting: int | None = None  # lockstep: the tick whose DRIVE_CMD releases the next step
@@ -148,8 +150,11 @@ class Emulator:
         for link in self._link_list:
             if link.reconnect_at >= 0 or link.held:
                 link.on_tick(tick)
-        for board in self._tick_order:
+        for board in self._before_sample:
             board.on_tick(tick)
+        if self.lockstep:
+            self._await_host_reads()
+        self.servo.on_tick(tick)
         if tick % 100 == 0:
             self.recorder.flush()
 
@@ -247,6 +252,23 @@ class Emulator:
             elif self.servo.streaming:  # the sample did not reach the host: let real time pass
                 paced_next = paced_next + TICK_S if paced_next else time.perf_counter() + TICK_S
                 wait_until(paced_next, self.readers())
+
+    def _await_host_reads(self) -> None:
+        """Lockstep, before the tick's GYRO_SAMPLE: wait until the host has handled what the other boards sent this
+        tick (its LOCKSTEP_ACK of their last frame), so it handles them before the sample whatever order the ptys
+        deliver them in, as the sim clock does. Only on a link where the host acknowledges; one it leaves
+        unacknowledged for ``lockstep_timeout_ms`` is counted and not waited for again until it acknowledges."""
+        links = self._acked_links
+        if not (links[0].unacknowledged or links[1].unacknowledged or links[2].unacknowledged):
+            return
+        acked = wait_for(lambda: not any(link.unacknowledged for link in links),
+                         self.config.lockstep_timeout_ms / 1000, self.readers(), lambda: self.stop_requested)
+        if not acked and not self.stop_requested:
+            for link in links:
+                if link.unacknowledged:
+                    self.lockstep_timeouts += 1
+                    self.recorder.record(link.name, "ack_timeout", seq=link.sent_seq)
+                    link.forget_acks()
 
     def _judge_host_lockstep(self) -> None:
         """Lockstep, after a wait for DRIVE_CMD gave up: if no host frame came on any link for

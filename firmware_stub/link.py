@@ -138,6 +138,9 @@ class BoardLink:
         self.held = bytearray()
         self.reconnect_at = -1
         self._deferred: bytearray | None = None
+        # lockstep: the host acknowledges what it has handled (LOCKSTEP_ACK); None: nothing to wait for
+        self.host_acks = False  # the host has acknowledged on this link since it was (re)opened
+        self.sent_seq: int | None = None  # the last frame written intact, until the host acknowledges it
         self._open()
 
     # --- the pty behind the path -------------------------------------------------------------------
@@ -172,6 +175,7 @@ class BoardLink:
         self.stats.disconnects += 1
         self.reconnect_at = now_tick + max(1, duration_ticks)
         self.decoder.reset()
+        self.host_acks, self.sent_seq = False, None
         self.recorder.record(self.name, "disconnect", duration_ms=duration_ticks)
 
     # --- faults ------------------------------------------------------------------------------------
@@ -214,6 +218,23 @@ class BoardLink:
             return self.reconnect_at
         return max(self.stalled_until, self.held_until if self.held or self.held_until > 0 else -1)
 
+    # --- lockstep acknowledgements -----------------------------------------------------------------
+
+    def on_host_ack(self, seq: int) -> None:
+        """LOCKSTEP_ACK: the host has handled this link's frames up to ``seq``."""
+        self.host_acks = True
+        if seq == self.sent_seq:
+            self.sent_seq = None
+
+    @property
+    def unacknowledged(self) -> bool:
+        """Lockstep: a frame went out intact that a host which acknowledges has not acknowledged yet."""
+        return self.host_acks and self.sent_seq is not None
+
+    def forget_acks(self) -> None:
+        """The host did not acknowledge in time: wait for it again only once it acknowledges again."""
+        self.host_acks, self.sent_seq = False, None
+
     # --- traffic -----------------------------------------------------------------------------------
 
     def send(self, message: Any, dst: int, tick: int) -> bool:
@@ -246,7 +267,10 @@ class BoardLink:
         if tick < self.held_until:
             self.held += frame
             return False  # not on the wire yet
-        return self._write(frame) and intact
+        sent = self._write(frame) and intact
+        # only an intact frame is worth waiting for: the host acknowledges frames it could decode
+        self.sent_seq = int.from_bytes(frame[6:8], "little") if sent else None
+        return sent
 
     def defer(self) -> None:
         """Queue what the board sends until :meth:`flush` (realtime: computed early, written on the deadline)."""
@@ -291,4 +315,5 @@ class BoardLink:
         """A board reboot: sequence numbers restart at 0, half-received frames are forgotten."""
         self.encoder = Encoder(self.board_id)
         self.decoder.reset()
+        self.sent_seq = None
         self.stats.resets += 1

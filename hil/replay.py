@@ -64,6 +64,7 @@ from hil.protocol import (
     HexapodStop,
     Ident,
     IdentRequest,
+    LockstepAck,
     LoopTiming,
     Nack,
     ServoMode,
@@ -793,7 +794,8 @@ class _Captured:
     on and how many frames, the frames it received by link and name, a CRC-32 of each sample of the first stream
     by tick, and the header. The writes themselves are streamed again while playing (:func:`_writes`)."""
 
-    tx_frames: Counter  # link -> frames the bench sent on it
+    tx_frames: Counter  # link -> frames the bench sent on it (its LOCKSTEP_ACKs aside)
+    acknowledged: set[str]  # links the bench acknowledged in lockstep: the replay acknowledges on them too
     rx_counts: dict[str, Counter]
     samples: array
     meta: dict[str, Any]
@@ -819,12 +821,17 @@ def _scan_capture(path: Path) -> _Captured:
     tx_dec = {name: link_decoder(name, "tx") for name in reader.links}
     rx_dec = {name: link_decoder(name, "rx") for name in reader.links}
     tx_frames: Counter = Counter()
+    acknowledged: set[str] = set()
     rx_counts: dict[str, Counter] = {name: Counter() for name in reader.links}
     samples = array("q")
     streams = _Streams()
     for rec in time_ordered(reader):
         if rec.direction == "tx":
-            tx_frames[rec.link] += len(tx_dec[rec.link].feed(rec.data))
+            for f in tx_dec[rec.link].feed(rec.data):
+                if type(f.message) is LockstepAck:
+                    acknowledged.add(rec.link)
+                else:
+                    tx_frames[rec.link] += 1
         elif rec.direction == "rx":
             for f in rx_dec[rec.link].feed(rec.data):
                 msg = f.message
@@ -835,7 +842,7 @@ def _scan_capture(path: Path) -> _Captured:
                         samples.append(_sample_key(msg))
     if reader.end == "corrupt":
         raise ReplayError(f"{path}: {reader.problem}")
-    return _Captured(+tx_frames, rx_counts, samples, reader.meta)
+    return _Captured(+tx_frames, acknowledged, rx_counts, samples, reader.meta)
 
 
 def _writes(path: Path, links: set[str]) -> Iterator[_Tx]:
@@ -858,8 +865,12 @@ def _writes(path: Path, links: set[str]) -> Iterator[_Tx]:
                     if tail is None and first is not None:
                         tail = _Tx(rec.t_ns, "", b"", [], last, 0, last_t - prev_t if prev_t else 0, end=True)
         elif rec.direction == "tx" and rec.link in links:
+            # the bench's LOCKSTEP_ACKs answered the captured boards' frames: the player acknowledges its own
+            frames = [(_ID[type(f.message)], f.seq, f.message) for f in tx_dec[rec.link].feed(rec.data)
+                      if type(f.message) is not LockstepAck]
+            if not frames:  # the bench writes each frame on its own: a write of acknowledgements only
+                continue
             tail = None
-            frames = [(_ID[type(f.message)], f.seq, f.message) for f in tx_dec[rec.link].feed(rec.data)]
             if first is None:
                 first = rec.t_ns
             if last is None:
@@ -904,6 +915,8 @@ class CapturePlayer:
         self.linger_s = linger_s
         self.record_dir = record_dir
         self.captured_samples = cap.samples
+        # the bench acknowledged on these links (a lockstep world waits for it): the player does as it did
+        self._acknowledge = {name: Encoder(Board.HOST) for name in cap.acknowledged & set(self.link_names)}
         self.links = {name: LinkPlayback(captured_rx=cap.rx_counts.get(name, Counter())) for name in self.link_names}
         self._stop = threading.Event()
         self._wake_r = self._wake_w = -1
@@ -1045,8 +1058,20 @@ class CapturePlayer:
                 name = by_fd[fd]
                 if self.record is not None:
                     self.record.link(name).rx(data, t_ns)
+                last = None
                 for frame in self._decoders[name].feed(data):
                     self._on_frame(name, frame.message, t_ns)
+                    last = frame
+                if last is not None and name in self._acknowledge:
+                    self._ack(name, last.seq)
+
+    def _ack(self, link: str, seq: int) -> None:
+        """LOCKSTEP_ACK of what the player has handled on ``link`` up to ``seq`` (docs/protocol.md, "Host liveness"),
+        numbered apart from the captured frames it plays."""
+        data = self._acknowledge[link].encode(LockstepAck(seq), Board[link.upper()])
+        port = self._ports[link]
+        if port.write(data) and self.record is not None:
+            self.record.link(link).tx(data)
 
     def _play(self, ports: dict[str, _Port]) -> None:
         first: int | None = None

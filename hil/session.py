@@ -397,6 +397,8 @@ class Session:
             link = await SerialLink.open(name, port.port, port.baudrate, handler, capture=self.capture)
         if self.lockstep:  # a resend would change the bytes of a lockstep run (docs/protocol.md, 6.1)
             link.retry_interval_s = 1.0
+            # the world waits until the other boards' frames of a tick are handled before the tick's sample
+            link.acknowledge = self.open_link is None and name != "servo"
         self.links[name] = link
         link.closed.add_done_callback(lambda fut, name=name: self._link_lost(name, fut))
         if name == "hexapod":

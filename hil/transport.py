@@ -21,7 +21,7 @@ import serial
 import serial_asyncio_fast
 
 from hil.ports import open_refusal, set_exclusive
-from hil.protocol import CATALOGUE, Ack, Board, Decoder, Encoder, Frame, Nack
+from hil.protocol import CATALOGUE, Ack, Board, Decoder, Encoder, Frame, LockstepAck, Nack
 from hil.protocol.framing import frame_seq
 
 if TYPE_CHECKING:
@@ -49,7 +49,8 @@ class SerialLink(asyncio.Protocol):
     "image", "hexapod"), so its decoder delivers only what that board may send the host
     (:meth:`Decoder.for_link`); a link of another name decodes everything. ``retry_interval_s``
     and ``max_resends`` govern :meth:`request`'s resends (lockstep emulation sets a longer interval).
-    ``capture``: this link's handle on a capture file (hil.capture), None for none.
+    ``capture``: this link's handle on a capture file (hil.capture), None for none. ``acknowledge``: answer every
+    read that brought frames with LOCKSTEP_ACK (a lockstep emulator's world waits for it; docs/protocol.md).
     """
 
     def __init__(self, name: str, on_frame: Callable[[Frame], None] | None = None, src: int = Board.HOST,
@@ -68,6 +69,7 @@ class SerialLink(asyncio.Protocol):
         self._waiters: list[tuple[Callable[[Frame], bool], asyncio.Future[Frame]]] = []
         self.capture = capture
         self.write_lock = threading.Lock()  # sequence number, stamp and write of one frame, whichever thread (_write)
+        self.acknowledge = False
 
     @classmethod
     async def open(
@@ -115,8 +117,12 @@ class SerialLink(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         if self.capture is not None:
             self.capture.rx(data)
+        last = None
         for frame in self.decoder.feed(data):
             self.deliver(frame)
+            last = frame
+        if last is not None and self.acknowledge and self.transport is not None and self.board is not None:
+            self.send(LockstepAck(last.seq), self.board)  # handled, not just read: after the frames' handlers
 
     def deliver(self, frame: Frame) -> None:
         """One decoded frame to whoever waits for it, then to ``on_frame``. The realtime loop thread, which reads the

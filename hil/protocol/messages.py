@@ -159,6 +159,17 @@ class HostAlive(NamedTuple):
     uptime_ms: Annotated[int, u32("ms", "time since the host's session started (wraps after 49.7 days)")]
 
 
+@CATALOGUE.message(0x07, sender=Board.HOST, receiver=None,
+                   rate="lockstep emulation only: after each read that brought board frames")
+class LockstepAck(NamedTuple):
+    """Lockstep emulation only: the host has handled every frame this board sent on this link up to ``seq``. The
+    emulated world waits for it before the tick's GYRO_SAMPLE, so the host handles the other boards' frames of a
+    tick before its sample, whatever order the ptys deliver them in (docs/protocol.md, "Host liveness"). Never sent
+    to a real board, never answered."""
+
+    seq: Annotated[int, u16(doc="sequence number of the last frame from this board the host has handled")]
+
+
 # --- servo-control board --------------------------------------------------------------------
 
 
@@ -361,6 +372,7 @@ __all__ = [
     "HostAlive",
     "Ident",
     "IdentRequest",
+    "LockstepAck",
     "LoopTiming",
     "MissDistance",
     "Nack",

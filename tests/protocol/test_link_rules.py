@@ -132,7 +132,7 @@ def test_link_messages_follow_the_catalogue_directions() -> None:
         return {names[i] for i in link_message_ids(board, side)}  # type: ignore[arg-type]
 
     common_up = {"IDENT", "HEARTBEAT", "ACK", "NACK"}
-    common_down = {"IDENT_REQ", "HOST_ALIVE"}
+    common_down = {"IDENT_REQ", "HOST_ALIVE", "LOCKSTEP_ACK"}
     assert named(Board.SERVO, "host") == common_up | {"GYRO_SAMPLE", "LOOP_TIMING", "CLOCK_LATE"}
     assert named(Board.SERVO, "board") == common_down | {"SERVO_CONFIG", "SERVO_MODE"}
     assert named(Board.DRIVER, "host") == common_up | {"DRIVE_STATUS"}

@@ -19,15 +19,12 @@ import pytest
 from hil.config import PROFILES
 from hil.log.reader import read_log
 from hil.sim import run_sim_session
-from tests.session.helpers import ARRIVAL, HOST_CLOCK, Run, run_session, session_config
+from tests.session.helpers import HOST_CLOCK, Run, run_session, session_config
 
 DURATION_S = 1.5  # then the wind-down: the default emulator ramps the swing home over 1 s
 TICKS = round(DURATION_S * 1000)
 SEED = 6
 SUMMARY_WALL_CLOCK = {"late", "latency_us_p50", "latency_us_p99", "host_stalls"}  # the host's clock in the summary
-# the links group's counters of the links the loop does not read are taken at a sample: whether that link's frames
-# of the same tick are in yet depends on the order the host reads the ptys, as for /image/loop_tick
-LINKS_ARRIVAL = {"driver_frames_ok", "image_frames_ok", "hexapod_frames_ok"}
 
 
 def _config(profile: str = "swing-1deg-1hz") -> Any:
@@ -56,9 +53,9 @@ def _events(log: Any) -> list[tuple[int, str, dict[str, Any]]]:
 
 
 def assert_same_logs(a: Path, b: Path) -> dict[str, int]:
-    """Every group of two logs: the same number of rows, every value equal but the host's clock, and what depends
-    on the order the host reads its ptys in within one tick (/image/loop_tick, the links' frame counters). Returns
-    each group's row count."""
+    """Every group of two logs: the same number of rows, every value equal but the host's clock (the frames of the
+    other boards are handled before the tick's sample in lockstep as in sim: LOCKSTEP_ACK). Returns each group's
+    row count."""
     la, lb = read_log(a), read_log(b)
     assert set(la.groups) == set(lb.groups)
     rows = {}
@@ -73,11 +70,7 @@ def assert_same_logs(a: Path, b: Path) -> dict[str, int]:
             continue
         for channel in sorted(set(ga) - HOST_CLOCK):
             x, y = np.asarray(ga[channel]), np.asarray(gb[channel])
-            if (group, channel) in ARRIVAL or (group == "links" and channel in LINKS_ARRIVAL):
-                diff = np.abs(x.astype(np.int64) - y.astype(np.int64))
-                assert diff.max(initial=0) <= (1 if group == "image" else 3), (group, channel, diff.max())
-            else:
-                np.testing.assert_array_equal(x, y, err_msg=f"/{group}/{channel}")
+            np.testing.assert_array_equal(x, y, err_msg=f"/{group}/{channel}")
     return rows
 
 
