@@ -40,11 +40,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil import host  # noqa: E402
 from hil.config import PROFILES, PortConfig, SessionConfig, load_session  # noqa: E402
 from hil.log import read_log  # noqa: E402
-from hil.loopback import EmulatorProcess  # noqa: E402
-from hil.session import Session  # noqa: E402
+from hil.session import EmulatorProcess, Session  # noqa: E402
+from hil.session import _host as host  # noqa: E402
 from hil.telemetry import MqttConfig  # noqa: E402
 from tests.telemetry.broker import MqttBroker  # noqa: E402
 

@@ -32,9 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hil.config import PROFILES, PortConfig, SessionConfig, load_session
 from hil.log.reader import read_log
-from hil.loopback import EmulatorProcess
-from hil.session import Session
-from hil.sim import run_sim_session
+from hil.session import EmulatorProcess, Session, run_sim_session
 
 
 def loop_seconds(log: Path, ticks: int) -> float:

@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from hil.campaign.metrics import compute_metrics
 from hil.config import PROFILES, SessionConfig, load_session
 from hil.log.reader import read_log
-from hil.sim import run_sim_session
+from hil.session import run_sim_session
 
 PLANTS = PROFILES / "plant"
 # variant -> (what it shows, patch over rigid.yaml). "typical" patches take default.yaml's section; the others

@@ -156,7 +156,7 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
     hook = on_session or (lambda _s: None)
     if clock_name == "sim":
         from firmware_stub.config import ConfigError as EmulatorConfigError
-        from hil.sim import run_sim_session
+        from hil.session import run_sim_session
 
         try:
             result, emulator = await run_sim_session(config, out_dir, progress=progress, on_session=hook)
@@ -171,7 +171,7 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
                           log_attrs={"loopback": False, "clock": "hardware"}, **_capture(capture_dir))
         hook(session)
         return _result(await _run_session(session), "hardware", {})
-    from hil.loopback import EmulatorProcess
+    from hil.session import EmulatorProcess
     from hil.transport import LinkError
 
     emulator = EmulatorProcess(config.emulator.config, clock=clock_name, seed=config.seed,

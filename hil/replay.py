@@ -1398,7 +1398,7 @@ def replay_capture(capture: Path | str, *, ports: Mapping[str, str] | Iterable[s
             raise ReplayError("--clock and --seed start a fresh emulator: not with --port or --ports-file")
         return play_capture(path, named, **options)
     settings = emulator_settings(CaptureReader(path).meta, clock=clock, seed=seed, config=emulator_config)
-    from hil.loopback import EmulatorProcess
+    from hil.session import EmulatorProcess
     from hil.transport import LinkError
 
     emulator = EmulatorProcess(settings.config, clock=settings.clock, seed=settings.seed)

@@ -10,8 +10,7 @@ import pytest
 
 from hil.capture import find_capture
 from hil.config import PortConfig, SessionConfig
-from hil.loopback import EmulatorProcess
-from hil.session import Session, SessionResult
+from hil.session import EmulatorProcess, Session, SessionResult
 from tests.session.helpers import session_config
 
 DURATION_S = 1.5

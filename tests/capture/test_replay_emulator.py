@@ -13,9 +13,9 @@ from typer.testing import CliRunner
 
 from hil.capture import RECORD_OVERHEAD, CaptureReader, decode_capture, link_decoder
 from hil.cli import app
-from hil.loopback import EmulatorProcess
 from hil.protocol import CATALOGUE, DriveCmd, GyroSample, HexapodStop
 from hil.replay import CapturePlayer, PlaybackResult, ReplayError, play_capture
+from hil.session import EmulatorProcess
 from tests.capture.conftest import CapturedRun
 
 runner = CliRunner()

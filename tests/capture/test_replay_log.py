@@ -15,7 +15,7 @@ from hil.config import PROFILES, SwingProfile, load_model
 from hil.control.registry import ControllerConfigError
 from hil.log import read_log
 from hil.replay import ReplayError, replay_log, write_outputs, xcorr_lag
-from hil.sim import run_sim_session
+from hil.session import run_sim_session
 from tests.capture.conftest import CapturedRun
 from tests.session.helpers import session_config
 

@@ -16,8 +16,7 @@ from hil.config import PortConfig
 from hil.log import read_log
 from hil.ports import PortUnavailable
 from hil.protocol import CATALOGUE, Ack, DriveCmd, GyroSample, LinkCounters
-from hil.session import Session
-from hil.sim import SimLab, run_sim_session, sim_ports
+from hil.session import Session, SimLab, run_sim_session, sim_ports
 from tests.capture.conftest import CapturedRun
 from tests.session.helpers import session_config
 

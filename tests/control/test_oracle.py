@@ -140,7 +140,7 @@ def test_plant_truth_counts_are_the_rate_loop_models_disturbance():
     """On the rigid plant at rest under a constant drive, the load's acceleration over each tick is
     k_m (u + d) with d from PlantTruth (friction, imbalance, back-EMF) averaged over the tick's two ends."""
     from firmware_stub.plant import RIGID_PLANT_CONFIG, CarrierMotion, Plant, load_plant_config
-    from hil.sim import PlantTruth
+    from hil.session import PlantTruth
 
     plant = Plant(load_plant_config(RIGID_PLANT_CONFIG), seed=1)
     truth = PlantTruth(plant)
@@ -164,7 +164,7 @@ def test_plant_truth_adds_every_torque_on_the_axis():
     """Exact numbers for a made-up truth on the default plant: friction + cable + imbalance + ripple in counts
     (R / (K_t V_count) per N m), minus the back-EMF of the motor side's rate relative to the carrier."""
     from firmware_stub.plant import DEFAULT_PLANT_CONFIG, Plant, load_plant_config
-    from hil.sim import PlantTruth
+    from hil.session import PlantTruth
 
     plant = Plant(load_plant_config(DEFAULT_PLANT_CONFIG), seed=1)
     truth = dict.fromkeys(plant.truth(), 0.0)
@@ -197,7 +197,7 @@ def _session(controller: dict, seed: int):  # type: ignore[no-untyped-def]
 def swing_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, int], Path]:
     """ESO+KF and the oracle with the same (default) parameters, 4 s of the 1 deg / 1 Hz swing, seeds 1-3; and the
     oracle with its drive limited to 16000 counts (seed 1; unlimited, its elevation drive peaks at 17924)."""
-    from hil.sim import run_sim_session
+    from hil.session import run_sim_session
 
     out = tmp_path_factory.mktemp("oracle")
     logs = {}

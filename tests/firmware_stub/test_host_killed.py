@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from hil.loopback import EmulatorProcess
+from hil.session import EmulatorProcess
 
 REPO = Path(__file__).resolve().parents[2]
 HOST_TIMEOUT_S = 0.5  # the documented default (profiles/emulator/default.yaml)

@@ -17,8 +17,7 @@ from hil.config import SessionConfig
 from hil.log.reader import read_log
 from hil.protocol import HexAxis
 from hil.protocol.swing import Segment
-from hil.session import Session, SessionResult
-from hil.sim import SimLab, sim_ports
+from hil.session import Session, SessionResult, SimLab, sim_ports
 from hil.transport import LinkError
 from tests.hexapod.drivers import RecordingHexapod, RecordingOptions
 from tests.session.helpers import logged_events, run_session, session_config

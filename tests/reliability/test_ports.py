@@ -16,8 +16,8 @@ import pytest
 import yaml
 
 from hil.config import PROFILES
-from hil.loopback import EmulatorProcess
 from hil.ports import Holder, PortUnavailable, claim_ports, is_exclusive
+from hil.session import EmulatorProcess
 from hil.transport import SerialLink
 from tests.reliability.helpers import bad_input, session_data, write_yaml
 

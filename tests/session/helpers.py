@@ -13,8 +13,7 @@ import numpy as np
 
 from hil.config import PROFILES, PortConfig, SessionConfig, load_session
 from hil.log.reader import read_log
-from hil.loopback import EmulatorProcess
-from hil.session import Session, SessionResult
+from hil.session import EmulatorProcess, Session, SessionResult
 
 BASE_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
 

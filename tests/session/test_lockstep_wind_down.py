@@ -18,7 +18,7 @@ import pytest
 
 from hil.config import PROFILES
 from hil.log.reader import read_log
-from hil.sim import run_sim_session
+from hil.session import run_sim_session
 from tests.session.helpers import HOST_CLOCK, Run, run_session, session_config
 
 DURATION_S = 1.5  # then the wind-down: the default emulator ramps the swing home over 1 s

@@ -12,8 +12,7 @@ import threading
 import pytest
 
 from firmware_stub.control import ControlClient
-from hil.loopback import EmulatorProcess
-from hil.session import Session
+from hil.session import EmulatorProcess, Session
 from tests.session.helpers import logged_events, run_session, session_config
 
 

@@ -8,10 +8,9 @@ import os
 
 import pytest
 
-from hil import host
 from hil.log import read_log
-from hil.loopback import EmulatorProcess
-from hil.session import Session
+from hil.session import EmulatorProcess, Session
+from hil.session import _host as host
 from tests.session.helpers import run_session, session_config, wait_cycles
 
 

@@ -14,8 +14,7 @@ import pytest
 
 from firmware_stub.control import ControlClient
 from hil.log import read_log
-from hil.loopback import EmulatorProcess
-from hil.session import Session
+from hil.session import EmulatorProcess, Session
 from hil.summary import summarize_log
 from tests.session.helpers import run_session, session_config, wait_cycles
 

@@ -7,7 +7,7 @@ import asyncio
 import threading
 import time
 
-from hil.watchdog import EventLoopWatchdog, Watchdog
+from hil.session import EventLoopWatchdog, Watchdog
 
 
 class HostClock:

@@ -15,7 +15,7 @@ import yaml
 
 from firmware_stub.control import ControlClient
 from hil.config import PROFILES
-from hil.loopback import EmulatorProcess
+from hil.session import EmulatorProcess
 from tests.session.helpers import logged_events, run_session, session_config
 
 DURATION_S = 0.6

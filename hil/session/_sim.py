@@ -31,7 +31,7 @@ from hil.transport import LinkError, SerialLink
 
 if TYPE_CHECKING:
     from firmware_stub.plant import Plant
-    from hil.session import Session, SessionResult
+    from hil.session._session import Session, SessionResult
 
 TICKS_PER_YIELD = 20  # world ticks between two yields to the event loop (a sim tick is ~20-40 us)
 CAPTURE_REFUSED = ("--capture: the sim clock's links pass messages, not bytes, so there is nothing to capture; "
@@ -301,7 +301,7 @@ async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Cal
     gets the Session once it exists (hil.api: to interrupt it from another thread). The session gets the lab's
     :class:`PlantTruth`, which only the ``oracle`` controller reads, and its :class:`TruthLog`, written beside the
     log as its truth file (hil.log.truth: the true LOS rates per loop row), even when the session faults."""
-    from hil.session import Session
+    from hil.session._session import Session
 
     if capture_dir is not None:
         raise ValueError(CAPTURE_REFUSED)

@@ -37,12 +37,12 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from hil import host
 from hil.capture import RX, TX
 from hil.protocol import AxisMask, Board, ClockLate, DriveCmd, DriveDisable, Frame, GyroSample
 from hil.protocol.framing import FramePacker
+from hil.session import _host as host
+from hil.session._watchdog import Watchdog
 from hil.transport import LinkError, SerialLink
-from hil.watchdog import Watchdog
 
 READ_SIZE = 4096
 GIL_SWITCH_S = 50e-6  # sys.setswitchinterval while a loop thread runs (see the module docstring)

@@ -32,7 +32,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from hil import __version__, host
+from hil import __version__
 from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, InterlockClosed, ProtocolHexapod, ServoBoard
 from hil.capture import Capture
 from hil.config import ConfigError, PortConfig, SessionConfig
@@ -42,7 +42,6 @@ from hil.control.loops import TrackingLoop
 from hil.control.oracle import TruthSource, bind_truth, truth_refusal
 from hil.control.registry import build_controller, needs_truth
 from hil.log import SessionLog
-from hil.loop_thread import DriveWriter, LoopThread, link_fd
 from hil.ports import PortClaims, claim_ports
 from hil.protocol import (
     NO_LATENCY_US,
@@ -55,9 +54,11 @@ from hil.protocol import (
     MissDistance,
 )
 from hil.protocol.swing import profile_end_s, resume_segments
+from hil.session import _host as host
+from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
+from hil.session._watchdog import EventLoopWatchdog, Watchdog
 from hil.telemetry import Telemetry, TelemetryProcess, schema_units
 from hil.transport import LinkError, SerialLink
-from hil.watchdog import EventLoopWatchdog, Watchdog
 
 _log = logging.getLogger("hil.session")
 LINKS = ("servo", "driver", "image", "hexapod")

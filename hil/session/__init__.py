@@ -1,0 +1,49 @@
+"""One run of the bench: the session, its 1 kHz control loop and the clocks it runs on (docs/architecture.md).
+
+- :class:`Session` (``_session``): connect to the four boards, configure, arm, run the loop for the session's
+  duration, wind down safely, log every channel; :class:`ControlLoop` is the per-sample step it runs.
+- The realtime clock's loop thread (``_loop_thread``: :class:`LoopThread`, :class:`DriveWriter`) with its
+  :class:`Watchdog` (``_watchdog``) and the loop's CPU placement (``_host``).
+- The emulated lab: :class:`EmulatorProcess` (``_loopback``, the emulator in its own process on ptys, realtime or
+  lockstep) and the ``sim`` clock in this process (``_sim``: :func:`run_sim_session`, :class:`PlantTruth`).
+
+Import from here; the underscored modules are this package's own.
+"""
+
+from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
+from hil.session._loopback import EmulatorProcess
+from hil.session._session import (
+    HOST_ALIVE_S,
+    LATE_NS,
+    LINKS,
+    ControlLoop,
+    LoopStats,
+    Session,
+    SessionResult,
+    TickWindDown,
+)
+from hil.session._sim import PlantTruth, SimLab, SimLink, TruthLog, run_sim_session, sim_ports
+from hil.session._watchdog import EventLoopWatchdog, Watchdog
+
+__all__ = [
+    "HOST_ALIVE_S",
+    "LATE_NS",
+    "LINKS",
+    "ControlLoop",
+    "DriveWriter",
+    "EmulatorProcess",
+    "EventLoopWatchdog",
+    "LoopStats",
+    "LoopThread",
+    "PlantTruth",
+    "Session",
+    "SessionResult",
+    "SimLab",
+    "SimLink",
+    "TickWindDown",
+    "TruthLog",
+    "Watchdog",
+    "link_fd",
+    "run_sim_session",
+    "sim_ports",
+]
