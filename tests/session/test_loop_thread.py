@@ -114,10 +114,13 @@ def test_with_a_grace_an_emulator_the_host_did_not_run_is_a_stall_not_a_fault(tm
                       during=_freeze_emulator(3, 40), emulated=True)
     assert run.result.status == "completed", run.result.message
     assert run.result.stats.faults == []
-    stalls = [d for k, d in logged_events(run.result.log_path) if k == "host_stall" and d["late_by"] == "emulator"]
-    frozen = [d for d in stalls if d["late_ms"] >= 35]  # a loaded machine adds shorter ones of its own
+    stalls = [d for k, d in logged_events(run.result.log_path) if k == "host_stall"]
+    # each freeze is one stall of 40 ms or so; a loaded machine adds shorter ones of its own, and where the bench's
+    # own thread was not run either the watchdog notices it first (late_by "bench" instead of "emulator")
+    frozen = [d for d in stalls if d["silent_ms"] >= 35]
     assert len(frozen) >= 3 and run.result.stats.host_stalls >= 3, stalls
-    assert all(d["late_ms"] <= 1000 and d["silent_ms"] >= 35 for d in frozen), frozen
+    assert all(d["late_ms"] <= 1000 for d in frozen), frozen
+    assert any(d["late_by"] == "emulator" and d["late_ms"] >= 35 for d in frozen), frozen
     assert run.result.stats.clock_late >= 3  # the emulator said so itself, before each late sample
 
 
