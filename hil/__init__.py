@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-__version__ = "0.1.0"
+from hil._version import __version__
 
 __all__ = ["CampaignRun", "ConfigError", "IdentRun", "RunResult", "SessionConfig", "__version__", "check_file",
            "load_campaign", "load_session", "read_log", "replay_capture", "replay_log", "report", "run", "run_async",

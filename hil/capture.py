@@ -38,12 +38,9 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 from hil.protocol import CATALOGUE, Board, Decoder, Frame, LinkCounters
-
-if TYPE_CHECKING:
-    from hil.config import SessionConfig
 
 MAGIC = b"HILCAP\x1a\n"  # 8 bytes; \x1a\n catch a text-mode transfer, as PNG's signature does
 VERSION = 1
@@ -163,21 +160,6 @@ class Capture:
             except FileExistsError:
                 continue
         raise FileExistsError(f"{directory}: no free capture name for {stem}")
-
-    @classmethod
-    def for_session(cls, directory: Path, config: SessionConfig, *, lockstep: bool, emulated: bool = False) -> Capture:
-        """The capture of one session (hil.session.Session's ``capture_dir``): its name, seed and controller in the
-        header, and ``session_clock`` lockstep (an emulator in lockstep) or realtime (the lab, or the emulator
-        paced). For a session against the emulator (``emulated``, or ``lockstep``, which only the emulator runs) also
-        the emulator it ran against: ``emulator_config`` (the config file), ``emulator_clock`` and ``emulator_seed``,
-        which a playback's fresh emulator is started with (hil.replay.replay_capture)."""
-        meta: dict[str, Any] = {"session": config.name, "seed": config.seed, "controller": config.controller.name,
-                                "session_clock": "lockstep" if lockstep else "realtime"}
-        if lockstep or emulated:
-            meta["emulator_config"] = str(config.emulator.config)
-            meta["emulator_clock"] = "lockstep" if lockstep else "realtime"
-            meta["emulator_seed"] = config.seed
-        return cls.create(directory, config.name, meta=meta)
 
     def summary(self) -> dict[str, Any]:
         """What the capture wrote, for a session's result: ``path``, ``records``, ``bytes`` (the file's size),

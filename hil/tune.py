@@ -31,7 +31,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from hil.config import ConfigError, require_writable_dir
+from hil.config import ConfigError
+from hil.files import require_writable_dir
 
 if TYPE_CHECKING:
     import optuna
@@ -496,12 +497,14 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     without ``resume``."""
     import optuna
 
-    from hil.api import load_campaign
-    from hil.campaign import CampaignError
+    from hil.campaign import CampaignError, load_campaign
     from hil.campaign.metrics import METRICS
     from hil.campaign.runner import cell_sessions, run_campaign
 
-    config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore
+    try:
+        config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore
+    except CampaignError as exc:
+        raise ConfigError(str(exc)) from None
     if objective not in METRICS:
         raise ConfigError(f"--objective: unknown metric {objective!r} (metrics: {', '.join(METRICS)})")
     if not 1 <= trials <= 100_000:

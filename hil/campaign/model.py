@@ -18,7 +18,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from hil.campaign.metrics import METRICS, default_primary
-from hil.config import MAX_SESSION_S, NAME_PATTERN, Seed, Strict, _resolve
+from hil.config import MAX_SESSION_S, NAME_PATTERN, Seed, Strict
+from hil.files import resolve_relative
 
 _SLUG = re.compile(r"[^A-Za-z0-9]+")
 MAX_AXIS_ENTRIES = 100  # profiles, controllers, seeds: each at most this many
@@ -34,7 +35,7 @@ class ProfileEntry(Strict):
     label: str = Field(min_length=1, max_length=64, description="row/section name in the tables, e.g. '1 deg / 1 Hz'")
     path: Path = Field(description="a hexapod swing profile YAML (relative to the campaign file)")
 
-    _rel = field_validator("path", mode="before")(_resolve)
+    _rel = field_validator("path", mode="before")(resolve_relative)
 
 
 class ControllerEntry(Strict):
@@ -118,7 +119,7 @@ class CampaignConfig(Strict):
     paper: dict[str, dict[str, dict[str, float]]] = Field(
         default_factory=dict, description="profile label -> controller label -> metric -> the paper's value")
 
-    _rel = field_validator("session", mode="before")(_resolve)
+    _rel = field_validator("session", mode="before")(resolve_relative)
 
     @field_validator("metrics", "primary_metrics")
     @classmethod

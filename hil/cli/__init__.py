@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from hil import __version__
+from hil._version import __version__
 from hil.cli._common import Verbosity, app, console, err_console, fail
 
 

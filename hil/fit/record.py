@@ -15,8 +15,10 @@ from typing import Any
 
 import yaml
 
+from hil.campaign import load_campaign, run_campaign
 from hil.config import PROFILES, SessionConfig, load_session
 from hil.ident import SweptSine
+from hil.session import run
 
 SWING_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
 
@@ -63,8 +65,6 @@ def record_platform_logs(plant: str | Path, out_dir: str | Path, *, seed: int = 
 
     The sweep is the session ``hil ident`` runs (docs/ident.md) around a rate offset (no friction reversal), kept
     short (``offset_dps * (sweep_s + 1 s)`` = 21 deg by default) because a cable harness restrains the travel."""
-    from hil import api
-
     out = Path(out_dir)
     logs: list[Path] = []
 
@@ -75,19 +75,19 @@ def record_platform_logs(plant: str | Path, out_dir: str | Path, *, seed: int = 
     say("static session")
     static = session_on_plant(plant, out, name="fit-static", swing=None, controller="eso_kf", seconds=static_s,
                               seed=seed)
-    logs.append(api.run(static, clock="sim").log_path)
+    logs.append(run(static, clock="sim").log_path)
     for axis in axes:
         say(f"ident sweep, {axis}")
         sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s, amplitude_dps=amplitude_dps,
                           axis=axis, offset_dps=offset_dps)  # type: ignore[arg-type]
         cfg = session_on_plant(plant, out, name=f"fit-ident-{axis}", swing=None, controller="eso",
                                seconds=sweep.total_s + 0.5, seed=seed)
-        logs.append(api.run(cfg.model_copy(update={"excitation": sweep}), clock="sim").log_path)
+        logs.append(run(cfg.model_copy(update={"excitation": sweep}), clock="sim").log_path)
     for swing, controller in swings:
         say(f"swing session, {swing}, {controller}")
         cfg = session_on_plant(plant, out, name=f"fit-{swing}-{controller.replace('_', '-')}", swing=swing,
                                controller=controller, seconds=swing_s, seed=seed, tracking=True)
-        logs.append(api.run(cfg, clock="sim").log_path)
+        logs.append(run(cfg, clock="sim").log_path)
     return logs
 
 
@@ -98,17 +98,15 @@ def campaign_on_plant(plant: str | Path, out_dir: str | Path, *, seeds: tuple[in
                       duration_s: float = 10.0, jobs: int = 1) -> dict[tuple[str, str, str], float]:
     """The fit's acceptance campaign (ESO, ESO+KF, high-gain ESO+KF at 1 and 3 deg / 1 Hz, tracking on: the shipped
     swing-miss-distance campaign) on ``plant``: (profile, controller, metric) -> the mean over ``seeds``."""
-    from hil import api
-
     out = Path(out_dir)
-    base = api.load_campaign(ACCEPTANCE_CAMPAIGN)
+    base = load_campaign(ACCEPTANCE_CAMPAIGN)
     overrides = {**base.overrides, "emulator": {"config": str(emulator_for_plant(plant, out))}}
     cfg = base.model_copy(update={"overrides": overrides, "seeds": list(seeds), "duration_s": duration_s,
                                   "name": f"fit-check-{Path(plant).stem}"})
-    run = api.run_campaign(cfg, out=out / "campaign", jobs=jobs, clock="sim", write_report=False)
+    result = run_campaign(cfg, out / "campaign", jobs=jobs)
     means: dict[tuple[str, str, str], float] = {}
     for p in cfg.profiles:
         for c in cfg.controllers:
             for m in cfg.metrics:
-                means[(p.label, c.label, m)] = run.result.mean(p.label, c.label, m)
+                means[(p.label, c.label, m)] = result.mean(p.label, c.label, m)
     return means

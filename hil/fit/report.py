@@ -13,6 +13,7 @@ import numpy as np
 
 from hil.fit.logs import FitLog
 from hil.fit.twin import TwinFit
+from hil.session import run as run_session
 
 SETTLE_S = 1.0
 
@@ -56,7 +57,6 @@ UNITS = {"rate_err_el_std_dps": "deg/s", "rate_err_az_std_dps": "deg/s", "drive_
 def rerun_on_twin(fit: TwinFit, plant_path: Path, work_dir: Path) -> tuple[list[TwinCheck], dict[str, Any]]:
     """Each static and swing log's session, re-run on the twin (``sim`` clock, the log's own config and seed; the
     emulator's plant replaced): its metrics beside the log's. Ident logs are checked by their FRF instead."""
-    from hil import api
     from hil.config import SessionConfig
     from hil.fit.record import emulator_for_plant
     from hil.log import read_log
@@ -73,7 +73,7 @@ def rerun_on_twin(fit: TwinFit, plant_path: Path, work_dir: Path) -> tuple[list[
         data.pop("ports", None)
         try:
             cfg = SessionConfig.model_validate(data)
-            run = api.run(cfg, clock="sim")
+            run = run_session(cfg, clock="sim")
         except Exception as exc:  # a session that cannot be re-run is reported, not fatal to the fit
             fit.notes.append(f"{lg.name}: not re-run on the twin: {exc}")
             continue

@@ -5,7 +5,7 @@ A targets file (:class:`TargetsConfig`, e.g. ``profiles/targets/seed-000.yaml``)
 the campaign cell that measures it (campaign file, profile label, controller label, metric). A trial of the search
 draws the plant parameters of :data:`hil.fit.ranges.PLAUSIBLE` (and the controller parameters the file names), runs
 every measuring cell in this process on the ``sim`` clock (the campaign's own session, overrides and metrics: its
-:func:`hil.campaign.runner.cell_session`, :func:`hil.api.run`, :func:`hil.campaign.metrics.compute_metrics`), and
+:func:`hil.campaign.runner.cell_session`, :func:`hil.session.run`, :func:`hil.campaign.metrics.compute_metrics`), and
 scores the weighted sum of squared log ratios ``sum w_i log(fitted_i / paper_i)^2``. A ratio is clipped to
 ``[1/10, 10]``: a missing metric (a session that faulted) or a non-positive one (a lead where the paper has a lag)
 counts as a factor 10 off, so the sampler still learns from it. Each trial also stores the paper's premises
@@ -31,6 +31,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from hil.files import resolve_relative
 from hil.fit import ranges
 
 __all__ = [
@@ -59,13 +60,6 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
-def _resolve(value: Any, info: Any) -> Any:
-    base = (info.context or {}).get("base_dir")
-    if isinstance(value, str | Path) and base is not None and not Path(value).is_absolute():
-        return (Path(base) / value).resolve()
-    return value
-
-
 class Cell(_Strict):
     """A campaign cell: which campaign, which profile and controller (labels as the campaign names them)."""
 
@@ -73,7 +67,7 @@ class Cell(_Strict):
     profile: str = Field(min_length=1, description="the campaign's profile label")
     controller: str = Field(min_length=1, description="the campaign's controller label")
 
-    _rel = field_validator("campaign", mode="before")(_resolve)
+    _rel = field_validator("campaign", mode="before")(resolve_relative)
 
 
 class Target(Cell):
@@ -168,7 +162,7 @@ class TargetsConfig(_Strict):
     measurements: list[Measurement] = Field(default_factory=list)
     targets: list[Target] = Field(min_length=1)
 
-    _rel = field_validator("plant", mode="before")(_resolve)
+    _rel = field_validator("plant", mode="before")(resolve_relative)
 
     @model_validator(mode="after")
     def _check(self) -> TargetsConfig:
@@ -280,12 +274,12 @@ def _emulator_file(session: Mapping[str, Any], plant_path: Path, work: Path) -> 
 def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str, Any], plant_path: Path,
               work: Path) -> tuple[dict[str, float], str]:
     """One cell in this process on the sim clock: (its metrics, '' or why it is unstable)."""
-    from hil.api import run
     from hil.campaign.metrics import compute_metrics
     from hil.campaign.model import ControllerEntry
     from hil.campaign.runner import cell_session
     from hil.config import SessionConfig
     from hil.control.registry import effective_params
+    from hil.session import run
     from hil.tune import TRACK_VALID_MIN_FRAC, _log_health
 
     camp = _campaign(cell.campaign)

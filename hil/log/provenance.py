@@ -21,6 +21,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hil._version import __version__
+
 if TYPE_CHECKING:
     from hil.config import SessionConfig
 
@@ -42,8 +44,6 @@ def collect_provenance(config: SessionConfig, *, emulated: bool | None = None) -
     ``emulated``: whether the boards are the emulator of ``config.emulator`` (``--loopback``). ``None``
     guesses from the config: a session without ``ports`` can only run against the emulator.
     """
-    from hil import __version__
-
     out: dict[str, Any] = {"hil_version": str(__version__), "git_commit": git_commit()}
     out["python"] = platform.python_version()
     for name in _PACKAGES:

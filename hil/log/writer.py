@@ -54,6 +54,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from hil._version import __version__
 from hil.ipc import helper_argv, recv, send, send_bytes, spawn_helper
 from hil.log.schema import (
     DETAIL_LEN,
@@ -171,12 +172,7 @@ def prepare_attrs(attrs: dict[str, Any]) -> tuple[dict[str, str | int | float], 
 
 
 def _software_version() -> str:
-    try:
-        from hil import __version__
-
-        return str(__version__)
-    except ImportError:  # pragma: no cover
-        return "unknown"
+    return str(__version__)
 
 
 # --- the HDF5 side (runs in the writer child; the benchmark also runs it in a thread) ---------

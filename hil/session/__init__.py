@@ -4,6 +4,8 @@
   duration, wind down safely, log every channel; :class:`ControlLoop` is the per-sample step it runs.
 - The realtime clock's loop thread (``_loop_thread``: :class:`LoopThread`, :class:`DriveWriter`) with its
   :class:`Watchdog` (``_watchdog``) and the loop's CPU placement (``_host``).
+- :func:`run` / :func:`run_async` (``_run``): one session as ``hil run`` runs it, the emulated lab started if asked,
+  returning a :class:`RunResult`; campaigns, tuning and fitting run their sessions through it.
 - The emulated lab: :class:`EmulatorProcess` (``_loopback``, the emulator in its own process on ptys, realtime or
   lockstep) and the ``sim`` clock in this process (``_sim``: :func:`run_sim_session`, :class:`PlantTruth`).
 
@@ -12,6 +14,19 @@ Import from here; the underscored modules are this package's own.
 
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._loopback import EmulatorProcess
+from hil.session._run import (
+    CLOCKS,
+    Clock,
+    Progress,
+    RunResult,
+    as_session_config,
+    prepare_run,
+    read_log,
+    require_log_room,
+    run,
+    run_async,
+    run_coroutine,
+)
 from hil.session._session import (
     HOST_ALIVE_S,
     LATE_NS,
@@ -21,14 +36,17 @@ from hil.session._session import (
     Session,
     SessionResult,
     TickWindDown,
+    capture_for_session,
 )
 from hil.session._sim import PlantTruth, SimLab, SimLink, TruthLog, run_sim_session, sim_ports
 from hil.session._watchdog import EventLoopWatchdog, Watchdog
 
 __all__ = [
+    "CLOCKS",
     "HOST_ALIVE_S",
     "LATE_NS",
     "LINKS",
+    "Clock",
     "ControlLoop",
     "DriveWriter",
     "EmulatorProcess",
@@ -36,6 +54,8 @@ __all__ = [
     "LoopStats",
     "LoopThread",
     "PlantTruth",
+    "Progress",
+    "RunResult",
     "Session",
     "SessionResult",
     "SimLab",
@@ -43,7 +63,15 @@ __all__ = [
     "TickWindDown",
     "TruthLog",
     "Watchdog",
+    "as_session_config",
+    "capture_for_session",
     "link_fd",
+    "prepare_run",
+    "read_log",
+    "require_log_room",
+    "run",
+    "run_async",
+    "run_coroutine",
     "run_sim_session",
     "sim_ports",
 ]

@@ -32,7 +32,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from hil import __version__
+from hil._version import __version__
 from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, InterlockClosed, ProtocolHexapod, ServoBoard
 from hil.capture import Capture
 from hil.config import ConfigError, PortConfig, SessionConfig
@@ -251,6 +251,21 @@ class SessionResult:
     log_error: str | None = None  # why logging stopped early (the session then ended as a fault); None: it did not
 
 
+def capture_for_session(directory: Path, config: SessionConfig, *, lockstep: bool, emulated: bool = False) -> Capture:
+    """The capture of one session (:class:`Session`'s ``capture_dir``): its name, seed and controller in the
+    header, and ``session_clock`` lockstep (an emulator in lockstep) or realtime (the lab, or the emulator
+    paced). For a session against the emulator (``emulated``, or ``lockstep``, which only the emulator runs) also
+    the emulator it ran against: ``emulator_config`` (the config file), ``emulator_clock`` and ``emulator_seed``,
+    which a playback's fresh emulator is started with (hil.replay.replay_capture)."""
+    meta: dict[str, Any] = {"session": config.name, "seed": config.seed, "controller": config.controller.name,
+                            "session_clock": "lockstep" if lockstep else "realtime"}
+    if lockstep or emulated:
+        meta["emulator_config"] = str(config.emulator.config)
+        meta["emulator_clock"] = "lockstep" if lockstep else "realtime"
+        meta["emulator_seed"] = config.seed
+    return Capture.create(directory, config.name, meta=meta)
+
+
 class Session:
     """One run of a session config against the boards' serial ports (real or emulated) and its hexapod driver
     (``config.hexapod``: the protocol one on the fourth port, or a driver package's; docs/hexapod-drivers.md)."""
@@ -393,7 +408,7 @@ class Session:
             link = await self.open_link(name, port, handler)
         else:
             if self.capture_dir is not None and self.capture is None:
-                self.capture = Capture.for_session(self.capture_dir, self.config, lockstep=self.lockstep,
+                self.capture = capture_for_session(self.capture_dir, self.config, lockstep=self.lockstep,
                                                    emulated=self.emulated)
             link = await SerialLink.open(name, port.port, port.baudrate, handler, capture=self.capture)
         if self.lockstep:  # a resend would change the bytes of a lockstep run (docs/protocol.md, 6.1)

@@ -26,6 +26,7 @@ from hil.capture import (
     is_capture,
 )
 from hil.protocol import Board, DriveCmd, DriveStatus, Encoder, GyroSample
+from hil.session import capture_for_session
 from tests.session.helpers import session_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -225,7 +226,7 @@ def test_a_session_capture_records_the_emulator_it_ran_against(tmp_path: Path, l
                                                                emulator: str | None) -> None:
     config = session_config(seed=11)
     kwargs = {"emulated": True} if emulated else {}
-    with Capture.for_session(tmp_path, config, lockstep=lockstep, **kwargs) as cap:
+    with capture_for_session(tmp_path, config, lockstep=lockstep, **kwargs) as cap:
         pass
     meta = CaptureReader(cap.path).meta
     assert cap.path.parent == tmp_path and cap.path.name.startswith(f"{config.name}-")
