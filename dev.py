@@ -5,7 +5,7 @@ Creates `.venv` beside this file on first use (and again whenever pyproject.toml
 installs the project into it, then runs the command. Needs only python3 >= 3.11; no root.
 
     python3 dev.py demo            the loopback demo (README's main command)
-    python3 dev.py test [ARGS]     mosquitto if possible, ruff, then the whole test suite (ARGS go to pytest)
+    python3 dev.py test [ARGS]     mosquitto if possible, ruff, lint-imports, then the whole test suite (ARGS go to pytest)
     python3 dev.py bench           the benchmarks in benchmarks/ (results: docs/performance.md)
     python3 dev.py hil ARGS        any `hil` command inside the environment
 """
@@ -114,6 +114,10 @@ def main(argv: list[str]) -> int:
     say("ruff check")
     if run([PY, "-m", "ruff", "check", "."]) != 0:
         say("ruff found problems (above); `.venv/bin/ruff check --fix .` fixes most")
+        return 1
+    say("lint-imports (the layers in pyproject.toml, docs/architecture.md)")
+    if run([BIN / "lint-imports"]) != 0:
+        say("an import breaks the bench's layers (above): move the code to the layer it belongs to")
         return 1
     return run([PY, "-m", "pytest", *rest])
 
