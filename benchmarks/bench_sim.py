@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/bench_sim.py [--seconds 20] [--repeat 3] [--session FILE] [--json PATH]
 
 Each repeat runs the session once with ``--clock lockstep`` (the emulator in its own process, the full protocol
-over ptys) and once with ``--clock sim`` (hil.sim: boards and plant in the bench's process), both with logging.
+over ptys) and once with ``--clock sim`` (hil.session._sim: boards and plant in the bench's process), both with logging.
 The loop time of a run is read from its own log: the host's clock (``/loop/t_host_ns``) from the first sample
 to the last sample of the session's duration, so interpreter start, handshake, log creation and the wind-down
 are left out of both. The whole call (``run_sim_session`` / emulator start to stop) is reported beside it.

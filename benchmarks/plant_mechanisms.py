@@ -6,7 +6,7 @@
 Starts from profiles/plant/rigid.yaml and switches on one mechanism at a time, with the values of
 profiles/plant/default.yaml and, for most, once more at the stressed end of its plausible range (then all of
 them: default.yaml itself). Each variant runs the shipped swing session (tracking on) at 1 deg and 3 deg / 1 Hz
-with the plain ESO, and at 1 deg with ESO+KF at the same observer gain, on the ``sim`` clock (hil.sim), and
+with the plain ESO, and at 1 deg with ESO+KF at the same observer gain, on the ``sim`` clock (hil.session._sim), and
 reports per variant (median over the seeds):
 
 - miss std at 1 and 3 deg and their ratio (a torque-authority limit makes the miss grow with the swing);

@@ -68,7 +68,7 @@ class CaptureError(ValueError):
 
 class LinkCapture:
     """One link's handle on a :class:`Capture`. ``rx(data)``/``tx(data)`` stamp and queue bytes; the hot path can
-    bind ``append`` and ``id`` and queue ``(t_ns, id, RX or TX, data)`` tuples itself (hil.loop_thread does)."""
+    bind ``append`` and ``id`` and queue ``(t_ns, id, RX or TX, data)`` tuples itself (the loop thread does)."""
 
     __slots__ = ("append", "capture", "id", "name")
 

@@ -126,7 +126,7 @@ class SerialLink(asyncio.Protocol):
 
     def deliver(self, frame: Frame) -> None:
         """One decoded frame to whoever waits for it, then to ``on_frame``. The realtime loop thread, which reads the
-        servo link itself while it runs (hil.loop_thread), hands every frame but GYRO_SAMPLE here on the event loop."""
+        servo link itself while it runs (LoopThread), hands every frame but GYRO_SAMPLE here on the event loop."""
         if self._waiters:
             self._wake_waiters(frame)
         if self.on_frame is not None:

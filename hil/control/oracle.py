@@ -8,7 +8,7 @@ error, the disturbance subtracted, rounded and saturated to ``u_max_counts``), w
 an estimate and the true disturbance cancelled instead of an estimated one; the session then applies the same
 safety clip and slew limit and sends the drive as the same DRIVE_CMD, so it has the same loop delay.
 
-Only the ``sim`` clock has the truth (the plant runs in the bench's process: :class:`hil.sim.PlantTruth`); on any
+Only the ``sim`` clock has the truth (the plant runs in the bench's process: :class:`hil.session.PlantTruth`); on any
 other clock a session refuses the oracle before it starts (docs/control.md, "The oracle").
 
 A truth source is a callable returning, for the current tick, ``{"az": AxisTruth, "el": AxisTruth}``:

@@ -14,7 +14,7 @@ host stall, a lost link and the end of the run. No lock is taken on the hot path
 atomic operations (an ``itertools.count`` for sequence numbers, appends to a bytearray and a deque, single writes
 of whole frames, which the tty layer does not interleave).
 
-The watchdog (hil.watchdog) is the read timeout: the thread looks when its wait runs out, and also whenever it wakes
+The watchdog (_watchdog) is the read timeout: the thread looks when its wait runs out, and also whenever it wakes
 after that moment (a wait the host stretched: a stopped process restarts ``select`` with the time it had left, so
 the silence must be judged on waking, whatever woke it). A silence past the timeout, seen on time, zeroes the drive
 from this thread at once (DRIVE_DISABLE on the driver fd), disarms, and asks the session for the fault and any
@@ -118,7 +118,7 @@ class LoopThread:
     whether it drives, and the thread clears it on a trip or an error. The event loop hears of a trip through
     ``on_trip(silent_s)``, of a stall through the watchdog's ``on_host_stall``, of a lost servo link through
     ``servo.lost(exc)``, of an exception in the loop (the drive is disabled first) through ``on_error(reason)``.
-    ``cpu``/``rt_priority``: the placement this thread takes for itself (hil.host); what it could not take is
+    ``cpu``/``rt_priority``: the placement this thread takes for itself (hil.session._host); what it could not take is
     reported through ``on_info``."""
 
     def __init__(self, servo: SerialLink, writer: DriveWriter, dog: Watchdog, loop: ControlLoopLike, *,

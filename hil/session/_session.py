@@ -3,12 +3,12 @@
 The 1 kHz loop is driven by the servo board's GYRO_SAMPLE stream: :meth:`ControlLoop.on_sample` runs
 on each sample and writes DRIVE_CMD k before it returns, so the board's clock is the loop's clock and
 no asyncio timer paces anything. On the realtime clock (real boards, or the emulator in real time) it
-runs in a thread of its own that reads the servo link itself (hil.loop_thread); in lockstep and sim it
+runs in a thread of its own that reads the servo link itself (hil.session._loop_thread); in lockstep and sim it
 runs inside the servo link's ``data_received`` on the event loop, where the world waits for it anyway.
 The same ControlLoop code runs either way. Camera frames update the tracking loop when they arrive;
 poses, board timing reports and link counters are logged as they come.
 
-Safety: the watchdog (no GYRO_SAMPLE for ``watchdog_ms``; hil.watchdog), a lost link or a driver fault
+Safety: the watchdog (no GYRO_SAMPLE for ``watchdog_ms``; hil.session._watchdog), a lost link or a driver fault
 zero the drive and DISABLE the driver at once, log a fault event, then stop or recover per config.
 SIGINT and SIGTERM disable the driver first, stop the hexapod, close the log and end with 130 / 143.
 """
@@ -79,7 +79,7 @@ class LoopStats:
     recoveries: int = 0
     host_stalls: int = 0  # silences the host caused, not the board: the watchdog woke late, or the emulator's clock
     clock_late: int = 0  # CLOCK_LATE frames: the emulator's clock fired late (its host did not run it in time)
-    drive_short_writes: int = 0  # realtime: DRIVE_CMDs the driver's fd did not take whole (hil.loop_thread)
+    drive_short_writes: int = 0  # realtime: DRIVE_CMDs the driver's fd did not take whole (hil.session._loop_thread)
 
 
 class ControlLoop:
@@ -90,8 +90,8 @@ class ControlLoop:
                  truth: TruthSource | None = None, record_truth: Callable[[int], None] | None = None) -> None:
         """``drive(tick, az_counts, el_counts)`` sends DRIVE_CMD; ``on_done`` is called once, at the last tick of
         the run (from the loop's own thread: it must hand over to the event loop itself if it needs it). ``truth``:
-        the plant's true state (the sim clock's hil.sim.PlantTruth), which only the ``oracle`` controller reads.
-        ``record_truth(tick)``: called with each loop row's sample counter (the sim clock's hil.sim.TruthLog)."""
+        the plant's true state (the sim clock's hil.session.PlantTruth), which only the ``oracle`` controller reads.
+        ``record_truth(tick)``: called with each loop row's sample counter (the sim clock's hil.session.TruthLog)."""
         self.config = config
         self.truth = truth
         self.record_truth = record_truth
@@ -281,16 +281,16 @@ class Session:
         emulator judges host liveness by the lockstep itself (docs/protocol.md, "Host liveness").
 
         ``open_link(name, port, on_frame)`` opens each board's link (default: :meth:`SerialLink.open` on the
-        port); the ``sim`` clock passes one that connects to an in-process world (hil.sim). ``watchdog``: run
+        port); the ``sim`` clock passes one that connects to an in-process world (hil.session._sim). ``watchdog``: run
         the sample watchdog (off only in ``sim``, where the world advances with the loop and wall time means
         nothing). ``emulated``: the boards are the emulator on this host, so ``safety.emulator_stall_grace_ms`` applies
-        (hil.watchdog); ignored otherwise. ``capture_dir``: record every link's bytes, both directions, in a capture
+        (_watchdog); ignored otherwise. ``capture_dir``: record every link's bytes, both directions, in a capture
         file there (hil.capture, docs/capture.md); ValueError with ``open_link`` (the sim clock's links carry no bytes).
-        ``truth``: the plant's true state, which only the sim clock has (hil.sim.PlantTruth); a controller that needs
+        ``truth``: the plant's true state, which only the sim clock has (PlantTruth); a controller that needs
         it (``oracle``) without it is refused here, ConfigError naming ``controller.name``, before anything starts.
         ``record_truth``: called with each loop row's sample counter (the sim clock's truth file, hil.log.truth).
 
-        The loop runs in its own thread (hil.loop_thread) unless ``lockstep`` or ``open_link`` is given: lockstep and
+        The loop runs in its own thread (_loop_thread) unless ``lockstep`` or ``open_link`` is given: lockstep and
         sim keep it on the event loop, where the boards wait for it and a run's bytes are reproducible."""
         if truth is None and needs_truth(config.controller.name):
             clock = "lockstep" if lockstep else "realtime" if emulated else "hardware"
@@ -459,7 +459,7 @@ class Session:
         self.finish("fault", reason)  # also while a recovery is under way (fault() leaves that one be)
 
     def _place(self) -> None:
-        """The loop's CPU and scheduling class from ``config.host`` (hil.host); the helpers are already running
+        """The loop's CPU and scheduling class from ``config.host`` (hil.session._host); the helpers are already running
         and are moved off the loop's CPU. With a loop thread, the event loop goes with the helpers and the loop
         thread takes the CPU and the priority itself when it starts. Refusals are logged, never fatal."""
         host_cfg = self.config.host
@@ -542,7 +542,7 @@ class Session:
             self.finish("fault", reason)
 
     def _on_host_stall(self, late_s: float, silent_s: float, by: str = "bench") -> None:
-        """A silence of ``silent_s`` the host caused (hil.watchdog): the bench's watchdog looked ``late_s`` late
+        """A silence of ``silent_s`` the host caused (_watchdog): the bench's watchdog looked ``late_s`` late
         (``by="bench"``), or the emulator's clock fired ``late_s`` late (``by="emulator"``, CLOCK_LATE)."""
         if self.loop_ is not None:
             self.loop_.stats.host_stalls += 1

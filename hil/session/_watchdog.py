@@ -2,7 +2,7 @@
 
 :class:`Watchdog` is the judgement alone, with no thread of its own. Two things drive it:
 
-- the realtime loop thread (hil.loop_thread): the watchdog is the timeout of its blocking read of the servo link,
+- the realtime loop thread (_loop_thread): the watchdog is the timeout of its blocking read of the servo link,
   so nothing else in the process wakes up at 1 kHz or competes for the GIL on the hot path;
 - :class:`EventLoopWatchdog` for the lockstep clock, where the loop runs in the event loop (the emulator's world
   waits for the bench, so only a dead or frozen emulator goes silent): an asyncio timer looks now and then.

@@ -65,7 +65,7 @@ def test_records_come_back_with_their_time_link_direction_and_bytes(tmp_path: Pa
     with Capture(path, meta={"session": "unit", "seed": 7}, flush_interval_s=0.005) as cap:
         servo, driver = cap.link("servo"), cap.link("driver")
 
-        def loop_thread() -> None:  # what hil.loop_thread queues: (t_ns, link id, direction, bytes)
+        def loop_thread() -> None:  # what hil.session._loop_thread queues: (t_ns, link id, direction, bytes)
             for i, g in enumerate(gyro):
                 cap.append((2_000_000 * i, servo.id, RX, g))
                 time.sleep(0.0001)

@@ -27,7 +27,7 @@ SEGMENT = Segment(HexAxis.PITCH, 0.0, 10.0, 1.0, 1.0)
 
 def sim_session(config: SessionConfig, out: Path, *, hooks: dict[str, Any] | None = None,
                 ports_without_hexapod: bool = True) -> tuple[Session, SessionResult]:
-    """A ``sim`` session (hil.sim) whose Session object the test keeps; ``hooks(session)`` fills the driver's."""
+    """A ``sim`` session whose Session object the test keeps; ``hooks(session)`` fills the driver's."""
     ports = sim_ports()
     if ports_without_hexapod:
         del ports["hexapod"]  # a driver without the bench's link needs no hexapod port at all

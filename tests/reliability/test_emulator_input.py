@@ -218,7 +218,7 @@ def test_hil_run_loopback_with_a_bad_emulator_plant_is_one_line(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, private_tmp: Path,
 ) -> None:
     """The bench starts the emulator, which refuses its plant before it makes anything: the bench relays that one
-    line (hil.loopback), and no log, run directory or process is left."""
+    line (hil.session._loopback), and no log, run directory or process is left."""
     config = bad_plant(tmp_path, "delay_s: 0.5e-3", "delay_s: .nan")
     data = session_data()
     data["emulator"]["config"] = str(config)

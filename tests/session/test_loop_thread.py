@@ -1,4 +1,4 @@
-"""The realtime loop thread (hil.loop_thread): the watchdog is its read timeout, recoveries restart it any number of
+"""The realtime loop thread (LoopThread): the watchdog is its read timeout, recoveries restart it any number of
 times, it takes the loop's CPU itself, and with emulated boards a stall of the shared host is told from a board fault
 by the emulator's own CLOCK_LATE."""
 

@@ -1,4 +1,4 @@
-"""CPU placement (hil.host, host.loop_cpu, emulator.cpu): the loop and what it ping-pongs with share a CPU,
+"""CPU placement (hil.session._host, host.loop_cpu, emulator.cpu): the loop and what it ping-pongs with share a CPU,
 the helpers are kept off it, and the thread is given back when the session ends."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The ``sim`` clock (hil.sim): the same Session, boards and plant in one process, logs identical to lockstep's."""
+"""The ``sim`` clock: the same Session, boards and plant in one process, logs identical to lockstep's."""
 
 from __future__ import annotations
 
