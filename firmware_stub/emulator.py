@@ -118,9 +118,11 @@ class Emulator:
 
     def _on_readable(self, name: LinkName, t_rx: float) -> None:
         self.inbox[name].extend((frame, t_rx) for frame in self.links[name].receive())
-        self._drain(name)
+        self.drain(name)
 
-    def _drain(self, name: LinkName) -> None:
+    def drain(self, name: LinkName) -> None:
+        """Hand the frames waiting from ``name`` to its board (lockstep: the driver's stop after the awaited
+        DRIVE_CMD; the rest wait for the step)."""
         box, board = self.inbox[name], self.boards[name]
         while box and not (name is LinkName.DRIVER and self.released):
             frame, t_rx = box.popleft()
@@ -203,7 +205,7 @@ class Emulator:
         while not self._done(end):
             self.deadline = t0 + (self.tick - base + 1) * TICK_S
             self.awaiting = self.servo.last_delivered
-            self._drain(LinkName.DRIVER)
+            self.drain(LinkName.DRIVER)
             if self.awaiting is not None and not self.released:
                 wait_for(lambda: self.released, self.deadline - prep_s - time.perf_counter(), self.readers(),
                          lambda: self.stop_requested)
@@ -222,7 +224,7 @@ class Emulator:
             self.links[LinkName.SERVO].flush()
             self.servo.on_written(time.perf_counter())
             self.released = False
-            self._drain(LinkName.DRIVER)
+            self.drain(LinkName.DRIVER)
 
     def _run_lockstep(self, end: int | None) -> None:
         self.deadline = None
@@ -240,7 +242,7 @@ class Emulator:
             if k is not None:
                 paced_next = 0.0
                 self.awaiting = k
-                self._drain(LinkName.DRIVER)
+                self.drain(LinkName.DRIVER)
                 answered = wait_for(lambda: self.released or not self.servo.streaming, timeout_s,
                                     self.readers(), lambda: self.stop_requested)
                 if not answered and self.servo.streaming:
@@ -248,7 +250,7 @@ class Emulator:
                     self._judge_host_lockstep()
                 self.awaiting = None
                 self.released = False
-                self._drain(LinkName.DRIVER)
+                self.drain(LinkName.DRIVER)
             elif self.servo.streaming:  # the sample did not reach the host: let real time pass
                 paced_next = paced_next + TICK_S if paced_next else time.perf_counter() + TICK_S
                 wait_until(paced_next, self.readers())

@@ -94,14 +94,14 @@ class SimWorld:
         """A frame from the host, handled as the emulator handles what it reads from a pty."""
         emu = self.emu
         emu.inbox[link].append((frame, time.perf_counter()))
-        emu._drain(link)
+        emu.drain(link)
 
     def from_host_bytes(self, link: LinkName, data: bytes) -> None:
         """Encoded frames from the host (commands with replies), decoded by the board link's own decoder."""
         emu = self.emu
         t_rx = time.perf_counter()
         emu.inbox[link].extend((frame, t_rx) for frame in emu.links[link].decoder.feed(data))
-        emu._drain(link)
+        emu.drain(link)
 
     def deliver(self) -> None:
         """Hand every frame the boards have sent to the host, in the order they sent them (replies the host's
@@ -128,14 +128,14 @@ class SimWorld:
         k = servo.last_delivered
         emu.awaiting = k
         if held:
-            emu._drain(LinkName.DRIVER)
+            emu.drain(LinkName.DRIVER)
         self.deliver()
         if k is not None and not emu.released and servo.streaming:
             self.unanswered += 1
         emu.awaiting = None
         emu.released = False
         if held:
-            emu._drain(LinkName.DRIVER)
+            emu.drain(LinkName.DRIVER)
         return True
 
     def summary(self) -> dict[str, Any]:

@@ -287,13 +287,13 @@ def plant_response(
     for 1 ms), so ``T_d`` stays the continuous delay (gyro + transport) without the hold's half sample.
     """
     w = TWO_PI * np.atleast_1d(np.asarray(freq_hz, dtype=float))
-    return k_m_dps2_per_count * _Shapes(w, dt_s).shape(bandwidth_hz, delay_s)
+    return k_m_dps2_per_count * SweepShapes(w, dt_s).shape(bandwidth_hz, delay_s)
 
 
 _ALIASES = 16  # alias terms each side: with the lag they fall off as 1/k^3 (tail < 1e-5 below Nyquist)
 
 
-class _Shapes:
+class SweepShapes:
     """The model with k_m = 1 on fixed frequencies; per bandwidth, the delay-free alias terms are cached."""
 
     def __init__(self, w: np.ndarray, dt_s: float | None) -> None:
@@ -366,7 +366,7 @@ class _Lin:
     res_ph: np.ndarray
 
 
-def _fit_linear(shapes: _Shapes, p: np.ndarray, wt: np.ndarray, bandwidth_hz: float | None) -> _Lin:
+def _fit_linear(shapes: SweepShapes, p: np.ndarray, wt: np.ndarray, bandwidth_hz: float | None) -> _Lin:
     """For a fixed bandwidth: ln k_m = weighted mean of ln|P/shape|, T_d from the LS slope (through 0) of the phase
     residual; the sampled shape depends weakly on T_d beyond e^{-j w T_d}, so a few fixed-point passes."""
     w = shapes.w
@@ -424,7 +424,7 @@ def fit_plant(
     f_hi = float(fs.max())
 
     best_bw: float | None = None
-    shapes = _Shapes(w, dt)
+    shapes = SweepShapes(w, dt)
     best = _fit_linear(shapes, p, wt, None)
     if lag:
         from scipy.optimize import minimize_scalar
@@ -538,7 +538,7 @@ def _uniform(tick: np.ndarray, *cols: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(np.interp(grid, t, c) for c in cols)
 
 
-def _sweep_start(r: np.ndarray, sweep: SweptSine, dt_s: float) -> int:
+def sweep_start(r: np.ndarray, sweep: SweptSine, dt_s: float) -> int:
     """Index where the excitation starts: the peak of the cross-correlation of the command with the sweep."""
     tpl = np.array([sweep.rate_dps(k * dt_s) for k in range(round(sweep.total_s / dt_s))])
     x = r - r.mean()
@@ -584,7 +584,7 @@ def identify_log(
     if "tick" in loop:
         r, u, y = _uniform(np.asarray(loop["tick"]), r, u, y)
     if sweep is not None:
-        k0 = _sweep_start(r, sweep, dt)
+        k0 = sweep_start(r, sweep, dt)
         pad = 0.5 * sweep.settle_s
         a, b = k0 + round((sweep.window_s[0] - pad) / dt), k0 + round((sweep.window_s[1] + pad) / dt)
         f_lo, f_hi = min(sweep.f_start_hz, sweep.f_stop_hz), max(sweep.f_start_hz, sweep.f_stop_hz)

@@ -293,7 +293,7 @@ def trial_campaign(config: CampaignConfig, entry: ControllerEntry, params: dict[
     return config.model_copy(update={"controllers": [merged], "baseline": None, "acceptance": [], "paper": {}})
 
 
-def _log_health(path: Path, settle_s: float, u_max: float) -> tuple[float, float | None]:
+def log_health(path: Path, settle_s: float, u_max: float) -> tuple[float, float | None]:
     """(fraction of the samples with either drive at its limit, fraction of valid tracking frames or None when the
     session did not track) after ``settle_s``."""
     import numpy as np
@@ -345,7 +345,7 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
             if c.log is None:
                 raise ValueError(f"cell {c.cell_id}: no log")
             log = Path(c.log) if Path(c.log).is_absolute() else out_dir / c.log
-            sat, valid = _log_health(log, config.settle_s, u_max)
+            sat, valid = log_health(log, config.settle_s, u_max)
             sats.append(sat)
             if sat > SATURATION_MAX_FRAC:
                 raise ValueError(f"cell {c.cell_id}: unstable: the drive sat at its limit {100 * sat:.0f} % of the "
@@ -381,7 +381,7 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
 # --- the study -------------------------------------------------------------------------------
 
 
-def _storage_url(storage: str | None, out_dir: Path) -> str:
+def storage_url(storage: str | None, out_dir: Path) -> str:
     if storage is None:
         return f"sqlite:///{(out_dir / 'tune.db').absolute()}"
     if "://" not in storage:
@@ -390,7 +390,7 @@ def _storage_url(storage: str | None, out_dir: Path) -> str:
     return storage
 
 
-def _rdb(url: str) -> Any:
+def rdb_storage(url: str) -> Any:
     import optuna
     import sqlalchemy.exc
 
@@ -532,8 +532,8 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     kwargs = _engine_options(engine, scheduler, shared_dir)
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    url = _storage_url(storage, out_dir)
-    rdb = _rdb(url)
+    url = storage_url(storage, out_dir)
+    rdb = rdb_storage(url)
     exists = study_name in optuna.study.get_all_study_names(rdb)
     if exists and not resume:
         raise ConfigError(f"--study {study_name}: already in {url}; pass --resume to continue it, or choose another "
@@ -596,7 +596,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     t0 = time.monotonic()
     cluster = _start_cluster(kwargs, workers) if todo else None
     try:
-        with _quiet_nan_warnings():
+        with quiet_nan_warnings():
             if todo:
                 st.optimize(objective_fn, n_trials=todo, n_jobs=workers, callbacks=[callback])
     finally:
@@ -631,7 +631,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
 
 
 @contextlib.contextmanager
-def _quiet_nan_warnings() -> Any:
+def quiet_nan_warnings() -> Any:
     """Optuna logs a warning for every trial that returns NaN; the failed trials are reported here instead."""
     import logging
 
@@ -649,12 +649,12 @@ def _quiet_nan_warnings() -> Any:
 
 
 def _plot_history(result: TuneResult, path: Path) -> Path | None:
-    from hil.campaign.report import _figure, _legend_below, _save
+    from hil.campaign.report import legend_below, new_figure, save_figure
 
     done = [t for t in result.trials if t.state == "COMPLETE" and t.value is not None]
     if not done:
         return None
-    fig, ax = _figure()
+    fig, ax = new_figure()
     a = ax[0, 0]
     ok = [t for t in done if t.feasible]
     bad = [t for t in done if not t.feasible]
@@ -679,8 +679,8 @@ def _plot_history(result: TuneResult, path: Path) -> Path | None:
     if all(t.value > 0 for t in done):
         a.set_yscale("log")
     a.grid(alpha=0.3)
-    _legend_below(fig, a)
-    return _save(fig, path)
+    legend_below(fig, a)
+    return save_figure(fig, path)
 
 
 MIN_IMPORTANCE_TRIALS = 4  # complete trials below which importances are not computed
@@ -706,16 +706,16 @@ def _importances(study: optuna.Study) -> tuple[dict[str, float], str]:
 
 
 def _plot_importances(imp: dict[str, float], path: Path) -> Path | None:
-    from hil.campaign.report import _figure, _save
+    from hil.campaign.report import new_figure, save_figure
 
     if not imp:
         return None
-    fig, ax = _figure(height=0.5 + 0.45 * len(imp))
+    fig, ax = new_figure(height=0.5 + 0.45 * len(imp))
     names = list(imp)[::-1]
     ax[0, 0].barh(names, [imp[n] for n in names], color="C0")
     ax[0, 0].set(title="parameter importances (Optuna's default evaluator, complete trials)", xlabel="importance")
     ax[0, 0].grid(alpha=0.3, axis="x")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def open_study(rdb: Any, study_name: str, sampler: Any, direction: str, *, meta: dict[str, Any],
@@ -751,20 +751,20 @@ def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> 
         ReportFiles,
         Table,
         Text,
-        _num,
+        format_number,
         profile_table,
         render_html,
         render_markdown,
     )
 
     if study is None:
-        study = optuna.load_study(study_name=result.study, storage=_rdb(result.storage))
+        study = optuna.load_study(study_name=result.study, storage=rdb_storage(result.storage))
     out = result.out_dir
     out.mkdir(parents=True, exist_ok=True)
     pngs: list[Path] = []
     doc: list[Any] = [Heading(1, f"Tuning {result.controller_label} ({result.controller}) on {result.campaign}")]
     feasible = result.best_trial is not None
-    head = (f"trial {result.best_trial}: {result.objective} {_num(result.best_value or math.nan)}" if feasible
+    head = (f"trial {result.best_trial}: {result.objective} {format_number(result.best_value or math.nan)}" if feasible
             else "no feasible trial")
     doc.append(Banner(head, f"{len(result.trials)} trials: {result.n_complete} complete "
                             f"({result.n_infeasible} infeasible), {result.n_failed} failed (unstable); objective: "
@@ -820,7 +820,7 @@ def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> 
     for t in ranked[:20]:
         state = t.state if t.state != "COMPLETE" else ("feasible" if t.feasible else "infeasible")
         rows.append([Cell(str(t.number)), Cell(state, status="pass" if t.feasible else "fail"),
-                     Cell(_num(t.value) if t.value is not None else "—"),
+                     Cell(format_number(t.value) if t.value is not None else "—"),
                      Cell(", ".join(f"{k}={v:.4g}" for k, v in t.params.items())),
                      Cell(t.failure or ", ".join(f"{k}: {c:+.3g}" for k, c in t.constraints.items()))])
     doc.append(Text(f"The best 20 of {len(result.trials)} (feasible first, then infeasible, then failed)."))

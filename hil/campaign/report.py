@@ -126,7 +126,7 @@ def _stat(result: CampaignResult, profile: str, controller: str, metric: str) ->
     return Stat(float(np.mean(v)), min(v), max(v), len(v))
 
 
-def _num(x: float) -> str:
+def format_number(x: float) -> str:
     """Three significant digits (all of them from 1000 up), never an exponent: 0.281, 6.02, 15.6, 1234; 9.996
     rounds to 10.0 (not 10.00)."""
     if not math.isfinite(x):
@@ -140,7 +140,7 @@ def _num(x: float) -> str:
     return f"{x:.{digits}f}"
 
 
-def _value(metric: str, x: float, fmt: Callable[[float], str] = _num) -> str:
+def _value(metric: str, x: float, fmt: Callable[[float], str] = format_number) -> str:
     """As the paper writes it: '+-0.72' for a range (half peak-to-peak), '0.32' for a std."""
     return f"+-{fmt(x)}" if "_range_" in metric and math.isfinite(x) else fmt(x)
 
@@ -153,8 +153,8 @@ def format_values(values: list[float], *, metric: str | None = None) -> str:
     v = [float(x) for x in values if math.isfinite(x)]
     if not v:
         return "n/a"
-    mean = _value(metric, float(np.mean(v))) if metric is not None else _num(float(np.mean(v)))
-    return mean + (f" ({_num(min(v))}–{_num(max(v))})" if len(v) > 1 else "")
+    mean = _value(metric, float(np.mean(v))) if metric is not None else format_number(float(np.mean(v)))
+    return mean + (f" ({format_number(min(v))}–{format_number(max(v))})" if len(v) > 1 else "")
 
 
 def _pct(x: float) -> str:
@@ -694,7 +694,7 @@ def _read_trace(result: CampaignResult, campaign_dir: Path, profile: str, contro
 # --- plots -----------------------------------------------------------------------------------
 
 
-def _figure(rows: int = 1, cols: int = 1, height: float = 3.6) -> tuple[Any, Any]:
+def new_figure(rows: int = 1, cols: int = 1, height: float = 3.6) -> tuple[Any, Any]:
     from matplotlib.figure import Figure as MplFigure  # lazy, and no pyplot: no global state, no GUI backend
 
     fig = MplFigure(figsize=(9.0, height * rows), layout="constrained")
@@ -705,12 +705,12 @@ def _color(result: CampaignResult, controller: str) -> str:
     return f"C{_labels(result).index(controller) % 10}"
 
 
-def _save(fig: Any, path: Path) -> Path:
+def save_figure(fig: Any, path: Path) -> Path:
     fig.savefig(path, dpi=DPI, format="png")
     return path
 
 
-def _legend_below(fig: Any, ax: Any) -> None:
+def legend_below(fig: Any, ax: Any) -> None:
     """The legend of ``ax``'s lines under the axes, outside them (constrained layout makes room): never over data."""
     handles, labels = ax.get_legend_handles_labels()
     if handles:
@@ -718,16 +718,16 @@ def _legend_below(fig: Any, ax: Any) -> None:
 
 
 def plot_rate_error(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
-    fig, ax = _figure()
+    fig, ax = new_figure()
     for tr in traces:
         keep = tr.window(WINDOW_S)
         ax[0, 0].plot(tr.t[keep], tr.loop["rate_err_el_dps"][keep], lw=0.8, color=_color(result, tr.controller),
                       label=f"{tr.controller} (seed {tr.seed})")
     ax[0, 0].set(title=f"{profile}: elevation rate error (command - gyro)", xlabel="time [s]",
                  ylabel="rate error [deg/s]")
-    _legend_below(fig, ax[0, 0])
+    legend_below(fig, ax[0, 0])
     ax[0, 0].grid(alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _valid_frames(tr: Trace) -> np.ndarray:
@@ -739,7 +739,7 @@ def plot_miss(result: CampaignResult, profile: str, traces: list[Trace], path: P
     with_frames = [tr for tr in traces if _valid_frames(tr).any()]
     if not with_frames:
         return None
-    fig, ax = _figure(2, 1, height=2.8)
+    fig, ax = new_figure(2, 1, height=2.8)
     for tr in with_frames:
         t = tr.image["t_exposure_s"] - float(tr.loop["t_s"][0])
         keep = _valid_frames(tr) & (t >= min(SETTLE_S, float(t.max()))) & (t < tr.end())
@@ -751,21 +751,21 @@ def plot_miss(result: CampaignResult, profile: str, traces: list[Trace], path: P
         a.grid(alpha=0.3)
     ax[0, 0].set(title=f"{profile}: miss distance (valid frames)")
     ax[1, 0].set(xlabel="time [s]")
-    _legend_below(fig, ax[0, 0])
-    return _save(fig, path)
+    legend_below(fig, ax[0, 0])
+    return save_figure(fig, path)
 
 
 def plot_psd(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
-    fig, ax = _figure()
+    fig, ax = new_figure()
     for tr in traces:
         f, p = welch(tr.loop["rate_err_el_dps"][tr.settled()], tr.fs)
         if f.size > 1:  # DC left out: no place on a log axis
             ax[0, 0].loglog(f[1:], p[1:], lw=0.9, color=_color(result, tr.controller), label=tr.controller)
     ax[0, 0].set(title=f"{profile}: PSD of the elevation rate error (Welch)", xlabel="frequency [Hz]",
                  ylabel="PSD [(deg/s)²/Hz]")
-    _legend_below(fig, ax[0, 0])
+    legend_below(fig, ax[0, 0])
     ax[0, 0].grid(alpha=0.3, which="both")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _bars(ax: Any, result: CampaignResult, profile: str, metric: str) -> bool:
@@ -790,14 +790,14 @@ def plot_metrics(result: CampaignResult, profile: str, traces: list[Trace], path
     metrics = result.config.metrics
     cols = min(3, len(metrics))
     rows = -(-len(metrics) // cols)
-    fig, ax = _figure(rows, cols, height=3.4)
+    fig, ax = new_figure(rows, cols, height=3.4)
     with_paper = [a for a, metric in zip(ax.flat, metrics, strict=False) if _bars(a, result, profile, metric)]
     for a in list(ax.flat)[len(metrics) :]:
         a.set_visible(False)
     fig.suptitle(f"{profile}: mean over seeds (error bars: min–max)")
     if with_paper:  # one legend for every panel, below them
-        _legend_below(fig, with_paper[0])
-    return _save(fig, path)
+        legend_below(fig, with_paper[0])
+    return save_figure(fig, path)
 
 
 def _filter_window_s(result: CampaignResult, tr: Trace) -> float:
@@ -810,7 +810,7 @@ def _filter_window_s(result: CampaignResult, tr: Trace) -> float:
 
 def plot_filters(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:
     """Seed 000 Figs. 12/13: the raw elevation gyro, the 150 Hz low-pass of it and the KF estimate."""
-    fig, ax = _figure(len(traces), 1, height=2.8)
+    fig, ax = new_figure(len(traces), 1, height=2.8)
     for a, tr in zip(ax[:, 0], traces, strict=True):
         raw = tr.loop["gyro_y_dps"].astype(float)
         keep = tr.window(_filter_window_s(result, tr))
@@ -822,8 +822,8 @@ def plot_filters(result: CampaignResult, profile: str, traces: list[Trace], path
         a.set(title=f"{profile}, {tr.controller} (seed {tr.seed})", ylabel="EL rate [deg/s]")
         a.grid(alpha=0.3)
     ax[-1, 0].set(xlabel="time [s]")
-    _legend_below(fig, ax[0, 0])
-    return _save(fig, path)
+    legend_below(fig, ax[0, 0])
+    return save_figure(fig, path)
 
 
 Plotter = Callable[[CampaignResult, str, list[Trace], Path], Path | None]

@@ -91,12 +91,12 @@ def rerun_on_twin(fit: TwinFit, plant_path: Path, work_dir: Path) -> tuple[list[
 
 
 def _plot_psd(fit: TwinFit, path: Path) -> Path | None:
-    from hil.campaign.report import _figure, _legend_below, _save
+    from hil.campaign.report import legend_below, new_figure, save_figure
 
     psd = fit.noise.get("psd") or {}
     if not psd:
         return None
-    fig, axes = _figure(1, len(psd), height=3.2)
+    fig, axes = new_figure(1, len(psd), height=3.2)
     for ax, (name, d) in zip(axes[0], psd.items(), strict=False):
         ax.loglog(d["f_hz"], d["psd"], color="0.5", lw=0.8, label="logged (static)")
         ax.loglog(d["f_hz"], d["model"], color="C3", lw=1.5, label="fitted model")
@@ -104,16 +104,16 @@ def _plot_psd(fit: TwinFit, path: Path) -> Path | None:
         ax.set_xlabel("frequency (Hz)")
         ax.set_ylabel("PSD ((deg/s)^2/Hz)")
         ax.grid(True, which="both", alpha=0.3)
-    _legend_below(fig, axes[0][0])
-    return _save(fig, path)
+    legend_below(fig, axes[0][0])
+    return save_figure(fig, path)
 
 
 def _plot_frf(fit: TwinFit, path: Path) -> Path | None:
-    from hil.campaign.report import _figure, _legend_below, _save
+    from hil.campaign.report import legend_below, new_figure, save_figure
 
     if not fit.frf:
         return None
-    fig, axes = _figure(2, len(fit.frf), height=2.8)
+    fig, axes = new_figure(2, len(fit.frf), height=2.8)
     for j, f in enumerate(fit.frf):
         frf = f.frf
         good = frf.coherence >= 0.8
@@ -130,17 +130,17 @@ def _plot_frf(fit: TwinFit, path: Path) -> Path | None:
         ph.set_xlabel("frequency (Hz)")
         for a in (mag, ph):
             a.grid(True, which="both", alpha=0.3)
-    _legend_below(fig, axes[0][0])
-    return _save(fig, path)
+    legend_below(fig, axes[0][0])
+    return save_figure(fig, path)
 
 
 def _plot_torque(fit: TwinFit, path: Path) -> Path | None:
-    from hil.campaign.report import _figure, _legend_below, _save
+    from hil.campaign.report import legend_below, new_figure, save_figure
 
     rows = [(axis, name, tr) for axis, mf in fit.mechanics.items() for name, tr in mf.traces.items()]
     if not rows:
         return None
-    fig, axes = _figure(len(rows), 1, height=1.9)
+    fig, axes = new_figure(len(rows), 1, height=1.9)
     for ax, (axis, name, tr) in zip(axes[:, 0], rows, strict=False):
         t = tr["t_s"]
         a = int(np.searchsorted(t, t[0] + 3.0))
@@ -156,16 +156,16 @@ def _plot_torque(fit: TwinFit, path: Path) -> Path | None:
         ax.set_ylabel("N m")
         ax.grid(True, alpha=0.3)
     axes[-1][0].set_xlabel("board time (s)")
-    _legend_below(fig, axes[0][0])
-    return _save(fig, path)
+    legend_below(fig, axes[0][0])
+    return save_figure(fig, path)
 
 
 def _plot_rerun(traces: dict[str, Any], path: Path) -> Path | None:
-    from hil.campaign.report import _figure, _legend_below, _save
+    from hil.campaign.report import legend_below, new_figure, save_figure
 
     if not traces:
         return None
-    fig, axes = _figure(len(traces), 1, height=2.0)
+    fig, axes = new_figure(len(traces), 1, height=2.0)
     for ax, (name, (orig, sim)) in zip(axes[:, 0], traces.items(), strict=False):
         t = np.asarray(orig["t_s"])
         a = int(np.searchsorted(t, t[0] + 3.0))
@@ -177,17 +177,17 @@ def _plot_rerun(traces: dict[str, Any], path: Path) -> Path | None:
         ax.set_ylabel("deg/s")
         ax.grid(True, alpha=0.3)
     axes[-1][0].set_xlabel("board time (s)")
-    _legend_below(fig, axes[0][0])
-    return _save(fig, path)
+    legend_below(fig, axes[0][0])
+    return save_figure(fig, path)
 
 
 def _fmt(x: float | None, sig: float | None = None) -> str:
-    from hil.campaign.report import _num
+    from hil.campaign.report import format_number
 
     if x is None:
         return "-"
-    text = _num(x)
-    return text if sig is None else f"{text} +- {_num(sig)}"
+    text = format_number(x)
+    return text if sig is None else f"{text} +- {format_number(sig)}"
 
 
 def write_fit_report(fit: TwinFit, plant_path: Path, out_dir: Path, *, rerun: bool = True,

@@ -280,7 +280,7 @@ def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str
     from hil.config import SessionConfig
     from hil.control.registry import effective_params
     from hil.session import run
-    from hil.tune import TRACK_VALID_MIN_FRAC, _log_health
+    from hil.tune import TRACK_VALID_MIN_FRAC, log_health
 
     camp = _campaign(cell.campaign)
     if duration is not None and camp.duration_s is not None:
@@ -303,7 +303,7 @@ def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str
         metrics = compute_metrics(result.log_path, camp.analysis, camp.settle_s)
         u_max = float(effective_params({"name": spec.controller.name, "params": spec.controller.params})
                       ["u_max_counts"])
-        sat, valid = _log_health(Path(result.log_path), camp.settle_s, u_max)
+        sat, valid = log_health(Path(result.log_path), camp.settle_s, u_max)
     except (ValueError, KeyError, OSError) as exc:
         return {}, f"metrics: {' '.join(str(exc).split())[:200]}"
     finally:
@@ -564,7 +564,7 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
     targets file, an unknown target kind or metric, an existing study without ``resume``)."""
     import optuna
 
-    from hil.tune import _quiet_nan_warnings, _rdb, _storage_url, open_study
+    from hil.tune import open_study, quiet_nan_warnings, rdb_storage, storage_url
 
     config = load_targets(targets_path)
     if not 1 <= trials <= 100_000:
@@ -577,8 +577,8 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
         raise ValueError(f"--out {out_plant}: is a directory (give the plant YAML's path)")
     out = Path(out_dir) if out_dir is not None else FIT_DIR / study_name
     out.mkdir(parents=True, exist_ok=True)
-    url = f"sqlite:///{(out / 'targets.db').absolute()}" if storage is None else _storage_url(storage, out)
-    rdb = _rdb(url)
+    url = f"sqlite:///{(out / 'targets.db').absolute()}" if storage is None else storage_url(storage, out)
+    rdb = rdb_storage(url)
     exists = study_name in optuna.study.get_all_study_names(rdb)
     if exists and not resume:
         raise ValueError(f"--study {study_name}: already in {url}; pass --resume to continue it, or choose another "
@@ -650,7 +650,7 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
 
     t0 = time.monotonic()
     if todo:
-        with _quiet_nan_warnings():
+        with quiet_nan_warnings():
             st.optimize(objective_fn, n_trials=todo, timeout=timeout_s, callbacks=[callback])
     wall = time.monotonic() - t0
     all_trials = st.get_trials(deepcopy=False)

@@ -343,7 +343,7 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     fit of ``hil.ident`` starts it; the mode's frequency starts from a grid over the band."""
     from scipy.optimize import least_squares
 
-    from hil.ident import Frf, SweptSine, _Shapes, _sweep_start, estimate_frf, fit_plant
+    from hil.ident import Frf, SweepShapes, SweptSine, estimate_frf, fit_plant, sweep_start
 
     ax = log.axis or "el"
     sweep = SweptSine(**log.excitation) if log.excitation else None
@@ -351,7 +351,7 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     dt = log.dt_s
     if sweep is None:
         raise FitInputError(f"{log.path}: an ident log without its sweep (config 'excitation')")
-    k0 = _sweep_start(r, sweep, dt)
+    k0 = sweep_start(r, sweep, dt)
     pad = 0.5 * sweep.settle_s
     a, b = max(0, k0 + round((sweep.window_s[0] - pad) / dt)), min(r.size, k0 + round((sweep.window_s[1] + pad) / dt))
     f_lo, f_hi = sorted((sweep.f_start_hz, sweep.f_stop_hz))
@@ -379,7 +379,7 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     s = 1j * w
     g = np.minimum(frf.coherence[sel], 0.99)
     wt = np.sqrt(g / (1.0 - g) / fs)
-    shapes = _Shapes(w, dt)
+    shapes = SweepShapes(w, dt)
     f_top = float(fs.max())
 
     def model(x: np.ndarray, with_mode: bool) -> np.ndarray:

@@ -355,13 +355,13 @@ def test_logs_without_provenance_say_not_recorded(full, monkeypatch):
 def _figures(campaign_dir: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
     """Write the report and keep each PNG's matplotlib figure, laid out as saved."""
     figures: dict[str, Any] = {}
-    save = report._save
+    save = report.save_figure
 
     def spy(fig: Any, path: Path) -> Path:
         figures[path.name] = fig
         return save(fig, path)
 
-    monkeypatch.setattr(report, "_save", spy)
+    monkeypatch.setattr(report, "save_figure", spy)
     write_report(campaign_dir, campaign_dir / "spied")
     for fig in figures.values():
         fig.draw_without_rendering()
