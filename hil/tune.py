@@ -322,6 +322,17 @@ def log_health(path: Path, settle_s: float, u_max: float) -> tuple[float, float 
     return sat, valid
 
 
+def unstable_reason(saturated_frac: float, valid_frac: float | None) -> str:
+    """Why a session with this :func:`log_health` counts as unstable, "" if it does not: the one rule of tuning and of
+    the paper-targets fit. A drive at its limit more than SATURATION_MAX_FRAC of the time, or (a tracking session)
+    fewer than TRACK_VALID_MIN_FRAC of the frames valid."""
+    if saturated_frac > SATURATION_MAX_FRAC:
+        return f"unstable: the drive sat at its limit {100 * saturated_frac:.0f} % of the time"
+    if valid_frac is not None and valid_frac < TRACK_VALID_MIN_FRAC:
+        return f"lost the target: {100 * valid_frac:.0f} % valid frames"
+    return ""
+
+
 def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints: Sequence[Constraint],
              *, check_logs: bool = True) -> tuple[float, list[float], dict[str, Any]]:
     """A trial's campaign result -> (objective, constraint values, attributes). ValueError (one line) when the
@@ -347,13 +358,11 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
             log = Path(c.log) if Path(c.log).is_absolute() else out_dir / c.log
             sat, valid = log_health(log, config.settle_s, u_max)
             sats.append(sat)
-            if sat > SATURATION_MAX_FRAC:
-                raise ValueError(f"cell {c.cell_id}: unstable: the drive sat at its limit {100 * sat:.0f} % of the "
-                                 "time")
             if valid is not None:
                 valids.append(valid)
-                if valid < TRACK_VALID_MIN_FRAC:
-                    raise ValueError(f"cell {c.cell_id}: lost the target: {100 * valid:.0f} % valid frames")
+            why = unstable_reason(sat, valid)
+            if why:
+                raise ValueError(f"cell {c.cell_id}: {why}")
         attrs["saturated_frac"] = max(sats)
         if valids:
             attrs["track_valid_frac"] = min(valids)

@@ -53,7 +53,6 @@ __all__ = [
 
 FIT_DIR = Path("runs") / "fit" / "targets"
 RATIO_CLIP = 10.0  # a target off by more than this factor (or missing) scores as this factor
-UNSTABLE_SAT_FRAC = 0.05  # hil.tune's rule: a drive at its limit longer than this after settling is unstable
 
 
 class _Strict(BaseModel):
@@ -280,7 +279,7 @@ def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str
     from hil.config import SessionConfig
     from hil.control.registry import effective_params
     from hil.session import run
-    from hil.tune import TRACK_VALID_MIN_FRAC, log_health
+    from hil.tune import log_health, unstable_reason
 
     camp = _campaign(cell.campaign)
     if duration is not None and camp.duration_s is not None:
@@ -311,10 +310,8 @@ def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str
     why = ""
     if result.status != "completed":
         why = f"session {result.status}: {result.message}".rstrip(": ")
-    elif sat > UNSTABLE_SAT_FRAC:
-        why = f"drive at its limit {100 * sat:.0f} % of the time"
-    elif valid is not None and valid < TRACK_VALID_MIN_FRAC:
-        why = f"lost the target ({100 * valid:.0f} % valid frames)"
+    else:
+        why = unstable_reason(sat, valid)
     return {k: float(v) for k, v in metrics.items()}, why
 
 
