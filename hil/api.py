@@ -24,6 +24,7 @@ from hil.session import (
     Progress,
     RunResult,
     as_session_config,
+    emulator_for_plant,
     prepare_run,
     read_log,
     run,
@@ -118,7 +119,6 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
 def _on_plant(config: CampaignConfig, plant: Path, out_dir: Path) -> CampaignConfig:
     """The campaign with every cell's emulator on ``plant`` (an emulator file written into ``out_dir``)."""
     from firmware_stub.plant import PlantConfigError, load_plant_config
-    from hil.fit.record import emulator_for_plant
 
     try:
         load_plant_config(plant)

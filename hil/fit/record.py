@@ -13,27 +13,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from hil.campaign import load_campaign, run_campaign
 from hil.config import PROFILES, SessionConfig, load_session
 from hil.ident import SweptSine
-from hil.session import run
+from hil.session import emulator_for_plant, run
 
 SWING_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
-
-
-def emulator_for_plant(plant: str | Path, out_dir: str | Path, seed: int = 0) -> Path:
-    """An emulator YAML (the shipped default's settings) whose plant is ``plant``; written into ``out_dir``."""
-    from firmware_stub.config import read_yaml_mapping
-
-    base = read_yaml_mapping(PROFILES / "emulator" / "default.yaml")
-    base["plant"] = str(Path(plant).resolve())
-    base["seed"] = seed
-    out = Path(out_dir) / f"emulator-{Path(plant).stem}.yaml"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(yaml.safe_dump(base, sort_keys=False), encoding="utf-8")
-    return out
 
 
 def session_on_plant(plant: str | Path, work_dir: str | Path, *, name: str, swing: str | None,
@@ -47,7 +32,7 @@ def session_on_plant(plant: str | Path, work_dir: str | Path, *, name: str, swin
         controller=str(PROFILES / "controllers" / f"{controller}.yaml"),
         profile=str(PROFILES / "swing" / f"{swing or 'static'}.yaml"),
         tracking={**data.get("tracking", {}), "enabled": tracking},
-        emulator={**data["emulator"], "config": str(emulator_for_plant(plant, work_dir, seed)), "clock": "sim"},
+        emulator={**data["emulator"], "config": str(emulator_for_plant(plant, work_dir, seed=seed)), "clock": "sim"},
         logging={**data.get("logging", {}), "dir": str(Path(work_dir) / "runs")},
         mqtt=base.mqtt, hexapod=base.hexapod,
     )

@@ -13,6 +13,7 @@ import numpy as np
 
 from hil.fit.logs import FitLog
 from hil.fit.twin import TwinFit
+from hil.session import emulator_for_plant
 from hil.session import run as run_session
 
 SETTLE_S = 1.0
@@ -58,7 +59,6 @@ def rerun_on_twin(fit: TwinFit, plant_path: Path, work_dir: Path) -> tuple[list[
     """Each static and swing log's session, re-run on the twin (``sim`` clock, the log's own config and seed; the
     emulator's plant replaced): its metrics beside the log's. Ident logs are checked by their FRF instead."""
     from hil.config import SessionConfig
-    from hil.fit.record import emulator_for_plant
     from hil.log import read_log
 
     checks: list[TwinCheck] = []
@@ -68,7 +68,8 @@ def rerun_on_twin(fit: TwinFit, plant_path: Path, work_dir: Path) -> tuple[list[
             continue
         data = dict(lg.config)
         emu = dict(data.get("emulator") or {})
-        emu.update(config=str(emulator_for_plant(plant_path, work_dir, int(data.get("seed", 0)))), clock="sim")
+        emulator = emulator_for_plant(plant_path, work_dir, seed=int(data.get("seed", 0)))
+        emu.update(config=str(emulator), clock="sim")
         data.update(emulator=emu, logging={**(data.get("logging") or {}), "dir": str(work_dir / "runs")})
         data.pop("ports", None)
         try:

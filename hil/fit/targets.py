@@ -256,20 +256,6 @@ def proposed_controllers(config: TargetsConfig, values: Mapping[str, float]) -> 
     return {c: controller_overrides(config, values, c) for c in names}
 
 
-def _emulator_file(session: Mapping[str, Any], plant_path: Path, work: Path) -> Path:
-    from firmware_stub.config import read_yaml_mapping
-
-    src = Path(session["emulator"]["config"])
-    emu = read_yaml_mapping(src)
-    emu["plant"] = str(plant_path.resolve())
-    out = work / f"emulator-{src.stem}.yaml"
-    if not out.exists():
-        import yaml
-
-        out.write_text(yaml.safe_dump(emu, sort_keys=False))
-    return out
-
-
 def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str, Any], plant_path: Path,
               work: Path) -> tuple[dict[str, float], str]:
     """One cell in this process on the sim clock: (its metrics, '' or why it is unstable)."""
@@ -278,7 +264,7 @@ def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str
     from hil.campaign.runner import cell_session
     from hil.config import SessionConfig
     from hil.control.registry import effective_params
-    from hil.session import run
+    from hil.session import emulator_for_plant, run
     from hil.tune import log_health, unstable_reason
 
     camp = _campaign(cell.campaign)
@@ -291,7 +277,8 @@ def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str
                                                                  params={**entry.params, **params})})
     cell_dir = work / "cells" / f"{spec.cell_id}-{abs(hash((str(cell.campaign), tuple(params.items())))):x}"
     data = cell_session(camp, spec, cell_dir)
-    data["emulator"] = {**data["emulator"], "config": str(_emulator_file(data, plant_path, work))}
+    emulator = emulator_for_plant(plant_path, work, base=data["emulator"]["config"])
+    data["emulator"] = {**data["emulator"], "config": str(emulator)}
     try:
         result = run(SessionConfig.model_validate(data), clock="sim")
     except Exception as exc:  # a session that cannot run on this plant: no metrics, reported as unstable

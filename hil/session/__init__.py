@@ -13,7 +13,7 @@ Import from here; the underscored modules are this package's own.
 """
 
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
-from hil.session._loopback import EmulatorProcess
+from hil.session._loopback import DEFAULT_EMULATOR, EmulatorProcess, emulator_for_plant
 from hil.session._run import (
     CLOCKS,
     Clock,
@@ -43,6 +43,7 @@ from hil.session._watchdog import EventLoopWatchdog, Watchdog
 
 __all__ = [
     "CLOCKS",
+    "DEFAULT_EMULATOR",
     "HOST_ALIVE_S",
     "LATE_NS",
     "LINKS",
@@ -65,6 +66,7 @@ __all__ = [
     "Watchdog",
     "as_session_config",
     "capture_for_session",
+    "emulator_for_plant",
     "link_fd",
     "prepare_run",
     "read_log",

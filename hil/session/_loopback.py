@@ -1,15 +1,41 @@
-"""The emulated lab as a child process (`python -m firmware_stub`), for `hil run --loopback`, `hil demo` and tests."""
+"""The emulated lab as a child process (`python -m firmware_stub`), for `hil run --loopback`, `hil demo` and tests;
+and an emulator config pointed at another plant (a fitted twin, a drawn hidden plant)."""
 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
+import yaml
+
+from firmware_stub.config import read_yaml_mapping
+from hil.config import PROFILES
 from hil.transport import LinkError
+
+DEFAULT_EMULATOR = PROFILES / "emulator" / "default.yaml"
+
+
+def emulator_for_plant(plant: str | Path, out_dir: str | Path, *, base: str | Path = DEFAULT_EMULATOR,
+                       seed: int | None = None) -> Path:
+    """An emulator YAML with ``base``'s settings (the shipped default unless given) and ``plant`` as its plant
+    (``seed`` too, if given), written into ``out_dir`` as ``emulator-BASE-PLANT.yaml``; its path. Written whole
+    and renamed into place, so processes that share ``out_dir`` never read half a file."""
+    base, plant = Path(base), Path(plant)
+    data = read_yaml_mapping(base)
+    data["plant"] = str(plant.resolve())
+    if seed is not None:
+        data["seed"] = seed
+    out = Path(out_dir) / f"emulator-{base.stem}-{plant.stem}.yaml"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    tmp.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    tmp.replace(out)
+    return out
 
 
 def _die_with_parent() -> None:
