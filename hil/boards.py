@@ -1,4 +1,4 @@
-"""The boards as the session sees them: one small client per board over a :class:`~hil.transport.SerialLink`.
+"""The boards as the session sees them: one small client per board over a :class:`~hil.transport.Link`.
 
 A real board on /dev/ttyUSB0 and an emulated one on a pty are the same thing here: a serial port
 speaking the protocol, so the session never knows which it has. The hexapod sits behind its own
@@ -44,7 +44,7 @@ from hil.protocol import (
     TrackMode,
 )
 from hil.protocol.swing import Segment, segments_to_messages
-from hil.transport import LinkError, SerialLink
+from hil.transport import Link, LinkError
 
 
 class FingerprintMismatch(LinkError):
@@ -83,7 +83,7 @@ class BoardClient:
 
     board_id: Board
 
-    def __init__(self, link: SerialLink, interlock: Interlock | None = None) -> None:
+    def __init__(self, link: Link, interlock: Interlock | None = None) -> None:
         self.link = link
         self.ident: Ident | None = None
         self.interlock = interlock or Interlock()
@@ -112,7 +112,7 @@ class BoardClient:
 
     def alive(self, uptime_ms: int) -> None:
         """HOST_ALIVE: keeps the board's host timer from expiring (docs/protocol.md, "Host liveness")."""
-        if self.link.transport is not None:
+        if self.link.is_open:
             self.link.send(HostAlive(uptime_ms & 0xFFFFFFFF), self.board_id)
 
     def ident_dict(self) -> dict[str, Any]:
@@ -141,7 +141,7 @@ class ServoBoard(BoardClient):
         """Write SERVO_MODE IDLE at once, without waiting for the ACK: the sim clock's wind-down answers the loop's
         last sample with it, so the world, which does not wait for a DRIVE_CMD, stops at that tick
         (hil.session.TickWindDown)."""
-        if self.link.transport is not None:
+        if self.link.is_open:
             self.link.send(ServoMode(StreamMode.IDLE), Board.SERVO)
 
 
@@ -157,7 +157,7 @@ class DriverBoard(BoardClient):
 
     def disable_now(self) -> None:
         """Write DRIVE_DISABLE at once, without waiting for the ACK (watchdog and signal paths)."""
-        if self.link.transport is not None:
+        if self.link.is_open:
             self.link.send(DriveDisable(AxisMask.BOTH), Board.DRIVER)
 
     def drive(self, tick: int, az_counts: int, el_counts: int) -> None:
@@ -206,7 +206,7 @@ class HexapodDriver(abc.ABC):
     on_fault: Callable[[str], None] | None = None
 
     @classmethod
-    def create(cls, options: HexapodOptions, link: SerialLink | None, interlock: Interlock) -> HexapodDriver:
+    def create(cls, options: HexapodOptions, link: Link | None, interlock: Interlock) -> HexapodDriver:
         """The driver of one session. ``options``: an instance of :attr:`Options`. ``link``: the bench's hexapod
         link, opened, if :attr:`uses_link` (else None). ``interlock``: the session's (it is enforced on ``load``
         and ``start`` whatever the driver does). Default: ``cls(options)``."""
@@ -291,14 +291,14 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
     board_id = Board.HEXAPOD
     uses_link = True
 
-    def __init__(self, link: SerialLink, interlock: Interlock | None = None) -> None:
+    def __init__(self, link: Link, interlock: Interlock | None = None) -> None:
         super().__init__(link, interlock)
         self.hex_state: int = HexapodState.IDLE  # the last HEXAPOD_STATUS
         self._changed = asyncio.Event()
         self._confirm: tuple[int, Callable[[], None]] | None = None  # stop_now: (its frame's seq, what to call)
 
     @classmethod
-    def create(cls, options: HexapodOptions, link: SerialLink | None, interlock: Interlock) -> ProtocolHexapod:
+    def create(cls, options: HexapodOptions, link: Link | None, interlock: Interlock) -> ProtocolHexapod:
         if link is None:
             raise LinkError("hexapod: the protocol driver needs the bench's hexapod link")
         return cls(link, interlock)
@@ -338,7 +338,7 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
 
     @property
     def connected(self) -> bool:
-        return self.link.transport is not None
+        return self.link.is_open
 
     async def _next_state(self, left_s: float) -> None:
         """Until the next HEXAPOD_STATUS (checked at least every 0.1 s)."""

@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -42,8 +43,14 @@ def board_of(name: str) -> Board | None:
     return None if board is None or board is Board.HOST else board
 
 
-class SerialLink(asyncio.Protocol):
-    """One board's link. Open with :meth:`open`; frames go to ``on_frame`` as they decode.
+class Link(ABC):
+    """One board's link, whatever carries its frames (as python-can's ``BusABC`` is any CAN interface): the codec,
+    each decoded frame handed to whoever waits for it and then to ``on_frame``, requests with resends, the closing.
+
+    A backend implements :meth:`_write` (one encoded frame out), :meth:`close` and :attr:`is_open`; it hands what
+    it reads to :meth:`feed` (bytes) or :meth:`deliver` (decoded frames) and calls :meth:`_closed_with` once when
+    the link is gone. :class:`SerialLink` is the serial port's (real boards, the emulator's ptys);
+    ``hil.session.SimLink`` the in-process lab's of the ``sim`` clock. The session does not know which it has.
 
     The link knows its board (``board``, by default from the link name: "servo", "driver",
     "image", "hexapod"), so its decoder delivers only what that board may send the host
@@ -62,7 +69,6 @@ class SerialLink(asyncio.Protocol):
         self.decoder = Decoder() if self.board is None else Decoder.for_link(self.board, "host")
         self.retry_interval_s = RETRY_INTERVAL_S
         self.max_resends = MAX_RESENDS
-        self.transport: asyncio.Transport | None = None
         self.port = ""
         self.closed = asyncio.get_running_loop().create_future()
         self._lost_exc: Exception | None = None
@@ -71,57 +77,29 @@ class SerialLink(asyncio.Protocol):
         self.write_lock = threading.Lock()  # sequence number, stamp and write of one frame, whichever thread (_write)
         self.acknowledge = False
 
-    @classmethod
-    async def open(
-        cls, name: str, port: str, baudrate: int = DEFAULT_BAUD, on_frame: Callable[[Frame], None] | None = None,
-        *, board: int | None = None, capture: Capture | None = None,
-    ) -> SerialLink:
-        """Open ``port`` (a device such as /dev/ttyUSB0, or an emulator's pty) to ``board``
-        (default: the board the link name designates). With ``capture``, the link's bytes go to that capture
-        file under the link's name, from the moment it is open.
+    # what a backend provides --------------------------------------------------------------------
+    @property
+    @abstractmethod
+    def is_open(self) -> bool:
+        """Frames can be sent: opened and not closed or lost."""
 
-        The port is opened for this link alone (hil.ports): pyserial's advisory lock on the device, then the tty's
-        exclusive-use flag (TIOCEXCL), cleared again by :meth:`close`. Claim it first (hil.ports.claim_ports) to
-        refuse a second bench by name before anything is opened."""
-        loop = asyncio.get_running_loop()
-        handle = None if capture is None else capture.link(name)
-        try:
-            _, link = await serial_asyncio_fast.create_serial_connection(
-                loop, lambda: cls(name, on_frame, board=board, capture=handle), port, baudrate=baudrate,
-                exclusive=True)
-        except serial.SerialException as exc:
-            cause = open_refusal(exc) if isinstance(exc.errno, int) else str(exc)
-            raise LinkError(f"{name}: cannot open {port}: {cause}") from None
-        except OSError as exc:
-            raise LinkError(f"{name}: cannot open {port}: {open_refusal(exc)}") from None
-        await asyncio.sleep(0)  # let connection_made run
-        link.port = port
-        ser = getattr(link.transport, "serial", None)
-        if ser is not None:
-            try:
-                set_exclusive(ser.fd, True)
-            except OSError as exc:
-                link.close()
-                raise LinkError(f"{name}: {port}: cannot take it for exclusive use: {exc.strerror or exc}") from None
-            ser.reset_input_buffer()  # bytes the board sent while nobody listened are stale: drop them
-        return link
+    @abstractmethod
+    def _write(self, data: bytes) -> None:
+        """Write one encoded frame (the link is open); called with :attr:`write_lock` held."""
 
-    # asyncio.Protocol ------------------------------------------------------------------------
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
-        if self.capture is not None:  # before any byte: a decoder of the capture starts afresh here
-            ser = getattr(transport, "serial", None)
-            self.capture.note(event="open", port=getattr(ser, "port", None), baudrate=getattr(ser, "baudrate", None))
+    @abstractmethod
+    def close(self) -> None:
+        """Close the link; :meth:`_closed_with` follows (at once or from the event loop)."""
 
-    def data_received(self, data: bytes) -> None:
-        if self.capture is not None:
-            self.capture.rx(data)
+    # receiving ----------------------------------------------------------------------------------
+    def feed(self, data: bytes) -> None:
+        """Bytes read from the board: each frame decoded and delivered, then (``acknowledge``) LOCKSTEP_ACK of the
+        last one, once its handlers have run."""
         last = None
         for frame in self.decoder.feed(data):
             self.deliver(frame)
             last = frame
-        if last is not None and self.acknowledge and self.transport is not None and self.board is not None:
+        if last is not None and self.acknowledge and self.is_open and self.board is not None:
             self.send(LockstepAck(last.seq), self.board)  # handled, not just read: after the frames' handlers
 
     def deliver(self, frame: Frame) -> None:
@@ -138,9 +116,9 @@ class SerialLink(asyncio.Protocol):
         self._lost_exc = exc
         self.close()
 
-    def connection_lost(self, exc: Exception | None) -> None:
+    def _closed_with(self, exc: Exception | None) -> None:
+        """The link is gone (``exc``: why, None for a plain close): ``closed`` completes, waiters fail."""
         exc = exc or self._lost_exc
-        self.transport = None
         if self.capture is not None:
             self.capture.note(event="close", reason=str(exc) if exc is not None else "")
         if not self.closed.done():
@@ -153,26 +131,12 @@ class SerialLink(asyncio.Protocol):
     # sending -------------------------------------------------------------------------------------
     def send(self, message: Any, dst: int) -> int:
         """Encode and write one message; returns the sequence number it went out with."""
-        if self.transport is None:
+        if not self.is_open:
             raise LinkError(f"{self.name}: link is closed")
         with self.write_lock:
             data = self.encoder.encode(message, dst)
             self._write(data)
         return frame_seq(data)
-
-    def _write(self, data: bytes) -> None:
-        """Write ``data`` (the transport is open), and capture it, stamped before the write. Call with
-        :attr:`write_lock` held: two threads write the driver link (the realtime loop thread its DRIVE_CMDs), and
-        the lock keeps each frame's sequence number, stamp and write together, so the frames go out in the order of
-        their sequence numbers and the capture's stamps in the order of the bytes."""
-        assert self.transport is not None
-        capture = self.capture
-        if capture is None:
-            self.transport.write(data)
-            return
-        t_ns = time.monotonic_ns()
-        self.transport.write(data)
-        capture.tx(data, t_ns)
 
     def _wake_waiters(self, frame: Frame) -> None:
         keep = []
@@ -215,7 +179,7 @@ class SerialLink(asyncio.Protocol):
         error code, axis, value and limit.
         """
         spec = CATALOGUE.spec(message)
-        if self.transport is None:
+        if not self.is_open:
             raise LinkError(f"{self.name}: link is closed")
         seq = -1  # set just before the first write (a link that answers within the write is answered to it)
 
@@ -240,7 +204,7 @@ class SerialLink(asyncio.Protocol):
                 if k:  # a resend: the same frame again
                     if fut.done():
                         break
-                    if self.transport is None:
+                    if not self.is_open:
                         raise LinkError(f"{self.name}: link is closed")
                     with self.write_lock:
                         self._write(data)
@@ -269,6 +233,94 @@ class SerialLink(asyncio.Protocol):
             return ""
         return (f"; meanwhile {n} frame(s) from node {last[0]:#04x} to node {last[1]:#04x} were dropped as "
                 f"misaddressed: is the right board on {self.port or 'this port'}?")
+
+
+class SerialLink(Link, asyncio.Protocol):
+    """A link over a serial port (pyserial-asyncio-fast): a real board's RS422 adapter, or an emulator's pty.
+    Open with :meth:`open`; incoming bytes are decoded in ``data_received``, so a reaction (DRIVE_CMD k for
+    GYRO_SAMPLE k) is written within the same event-loop callback that read the sample."""
+
+    def __init__(self, name: str, on_frame: Callable[[Frame], None] | None = None, src: int = Board.HOST,
+                 board: int | None = None, *, capture: LinkCapture | None = None) -> None:
+        super().__init__(name, on_frame, src, board, capture=capture)
+        self.transport: asyncio.Transport | None = None
+
+    @classmethod
+    async def open(
+        cls, name: str, port: str, baudrate: int = DEFAULT_BAUD, on_frame: Callable[[Frame], None] | None = None,
+        *, board: int | None = None, capture: Capture | None = None,
+    ) -> SerialLink:
+        """Open ``port`` (a device such as /dev/ttyUSB0, or an emulator's pty) to ``board``
+        (default: the board the link name designates). With ``capture``, the link's bytes go to that capture
+        file under the link's name, from the moment it is open.
+
+        The port is opened for this link alone (hil.ports): pyserial's advisory lock on the device, then the tty's
+        exclusive-use flag (TIOCEXCL), cleared again by :meth:`close`. Claim it first (hil.ports.claim_ports) to
+        refuse a second bench by name before anything is opened."""
+        loop = asyncio.get_running_loop()
+        handle = None if capture is None else capture.link(name)
+        try:
+            _, link = await serial_asyncio_fast.create_serial_connection(
+                loop, lambda: cls(name, on_frame, board=board, capture=handle), port, baudrate=baudrate,
+                exclusive=True)
+        except serial.SerialException as exc:
+            cause = open_refusal(exc) if isinstance(exc.errno, int) else str(exc)
+            raise LinkError(f"{name}: cannot open {port}: {cause}") from None
+        except OSError as exc:
+            raise LinkError(f"{name}: cannot open {port}: {open_refusal(exc)}") from None
+        await asyncio.sleep(0)  # let connection_made run
+        link.port = port
+        ser = getattr(link.transport, "serial", None)
+        if ser is not None:
+            try:
+                set_exclusive(ser.fd, True)
+            except OSError as exc:
+                link.close()
+                raise LinkError(f"{name}: {port}: cannot take it for exclusive use: {exc.strerror or exc}") from None
+            ser.reset_input_buffer()  # bytes the board sent while nobody listened are stale: drop them
+        return link
+
+    @property
+    def is_open(self) -> bool:
+        return self.transport is not None
+
+    @property
+    def fd(self) -> int | None:
+        """The port's file descriptor (the realtime loop thread reads and writes it itself), None once closed."""
+        ser = getattr(self.transport, "serial", None)
+        fd = getattr(ser, "fd", None)
+        return fd if isinstance(fd, int) and fd >= 0 else None
+
+    # asyncio.Protocol ------------------------------------------------------------------------
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        if self.capture is not None:  # before any byte: a decoder of the capture starts afresh here
+            ser = getattr(transport, "serial", None)
+            self.capture.note(event="open", port=getattr(ser, "port", None), baudrate=getattr(ser, "baudrate", None))
+
+    def data_received(self, data: bytes) -> None:
+        if self.capture is not None:
+            self.capture.rx(data)
+        self.feed(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.transport = None
+        self._closed_with(exc)
+
+    def _write(self, data: bytes) -> None:
+        """Write ``data`` (the transport is open), and capture it, stamped before the write. Call with
+        :attr:`write_lock` held: two threads write the driver link (the realtime loop thread its DRIVE_CMDs), and
+        the lock keeps each frame's sequence number, stamp and write together, so the frames go out in the order of
+        their sequence numbers and the capture's stamps in the order of the bytes."""
+        assert self.transport is not None
+        capture = self.capture
+        if capture is None:
+            self.transport.write(data)
+            return
+        t_ns = time.monotonic_ns()
+        self.transport.write(data)
+        capture.tx(data, t_ns)
 
     def close(self) -> None:
         """Close the port, its exclusive-use flag cleared first (an emulator's pty outlives the link)."""

@@ -42,17 +42,15 @@ from hil.protocol import AxisMask, Board, ClockLate, DriveCmd, DriveDisable, Fra
 from hil.protocol.framing import FramePacker
 from hil.session import _host as host
 from hil.session._watchdog import Watchdog
-from hil.transport import LinkError, SerialLink
+from hil.transport import Link, LinkError, SerialLink
 
 READ_SIZE = 4096
 GIL_SWITCH_S = 50e-6  # sys.setswitchinterval while a loop thread runs (see the module docstring)
 
 
-def link_fd(link: SerialLink) -> int | None:
-    """The file descriptor under a serial link's transport, None for a link without one (the sim clock's)."""
-    ser = getattr(link.transport, "serial", None)
-    fd = getattr(ser, "fd", None)
-    return fd if isinstance(fd, int) and fd >= 0 else None
+def link_fd(link: Link) -> int | None:
+    """The file descriptor under a link, None for a link without one (the sim clock's) or a closed one."""
+    return link.fd if isinstance(link, SerialLink) else None
 
 
 def clock_late_s(frames: list[Frame], tick: int) -> float:

@@ -58,11 +58,11 @@ from hil.session import _host as host
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._watchdog import EventLoopWatchdog, Watchdog
 from hil.telemetry import Telemetry, TelemetryProcess, schema_units
-from hil.transport import LinkError, SerialLink
+from hil.transport import Link, LinkError, SerialLink
 
 _log = logging.getLogger("hil.session")
 LINKS = ("servo", "driver", "image", "hexapod")
-LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[SerialLink]]
+LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[Link]]
 LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
 HOST_ALIVE_S = 0.1  # HOST_ALIVE on every link this often (docs/protocol.md, "Host liveness")
 EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
@@ -303,7 +303,7 @@ class Session:
         self.watchdog_s = (watchdog_ms or config.safety.watchdog_ms) / 1000
         self.progress = progress
         self.extra_attrs = log_attrs or {}
-        self.links: dict[str, SerialLink] = {}
+        self.links: dict[str, Link] = {}
         self.servo: ServoBoard | None = None
         self.driver: DriverBoard | None = None
         self.image: ImageBoard | None = None
@@ -390,7 +390,7 @@ class Session:
         """The links this session opens: the hexapod's only if its driver talks over it."""
         return LINKS if self.hexapod_uses_link else tuple(n for n in LINKS if n != "hexapod")
 
-    def _hexapod_driver(self, link: SerialLink | None) -> GuardedHexapod:
+    def _hexapod_driver(self, link: Link | None) -> GuardedHexapod:
         """The session's hexapod driver, built from ``config.hexapod`` (on ``link`` if it uses the bench's link). A
         recovery that reopened the link builds a new one in place of the old, with the same callbacks."""
         cfg = self.config.hexapod
@@ -611,7 +611,7 @@ class Session:
             reopened = set()
             for name in self._bench_links():
                 link = self.links.get(name)
-                if link is None or link.transport is None:
+                if link is None or not link.is_open:
                     reopened.add(name)
                     for _ in range(50):
                         self.interlock.check(f"reopening {name}")
@@ -945,7 +945,7 @@ class Session:
                 host.restore_placement(self._placement_before)
 
     async def _disarm(self) -> str:
-        if self.driver is None or self.driver.link.transport is None:
+        if self.driver is None or not self.driver.link.is_open:
             return "no link" if self.driver is not None else "never connected"
         self.driver.disable_now()
         await self.driver.disable()
@@ -961,7 +961,7 @@ class Session:
         return "stopped"
 
     async def _stop_stream(self) -> str:
-        if self.servo is None or self.servo.link.transport is None:
+        if self.servo is None or not self.servo.link.is_open:
             return "no link" if self.servo is not None else "never connected"
         await self.servo.stop_stream()
         return "idle"

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 from hil.config import PortConfig, SessionConfig
 from hil.control.oracle import AxisTruth
 from hil.protocol import CATALOGUE, Frame
-from hil.transport import LinkError, SerialLink
+from hil.transport import Link, LinkError
 
 if TYPE_CHECKING:
     from firmware_stub.plant import Plant
@@ -38,30 +38,11 @@ CAPTURE_REFUSED = ("--capture: the sim clock's links pass messages, not bytes, s
                    "use --clock lockstep (the same run over ptys)")
 
 
-class _SimTransport(asyncio.Transport):
-    """What ``SerialLink.request`` writes to: encoded frames, handed to the board's decoder."""
-
-    def __init__(self, link: SimLink) -> None:
-        super().__init__()
-        self._link = link
-        self._closing = False
-
-    def write(self, data: bytes | bytearray | memoryview) -> None:
-        self._link.lab.from_host_bytes(self._link.name, bytes(data))
-
-    def close(self) -> None:
-        if not self._closing:
-            self._closing = True
-            self._link.connection_lost(None)
-
-    def is_closing(self) -> bool:
-        return self._closing
-
-
-class SimLink(SerialLink):
+class SimLink(Link):
     """A link to a board of an in-process :class:`SimLab`. The hot path (:meth:`send`) passes the message as an
-    object through its wire round trip; :meth:`request` (inherited) writes encoded bytes. Frames from the board
-    arrive through :meth:`deliver`, counted in the decoder's counters as frames received."""
+    object through its wire round trip; :meth:`request` (inherited) writes encoded bytes, which the board's own
+    decoder reads. Frames from the board arrive through :meth:`deliver`, counted in the decoder's counters as
+    frames received."""
 
     def __init__(self, name: str, lab: SimLab, on_frame: Callable[[Frame], None] | None) -> None:
         super().__init__(name, on_frame)
@@ -69,10 +50,22 @@ class SimLink(SerialLink):
         self.port = f"sim:{name}"
         self._roundtrip = CATALOGUE.roundtrips()
         self._to_board = lab.to_board(name)
-        self.connection_made(_SimTransport(self))
+        self._open = True
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def _write(self, data: bytes) -> None:
+        self.lab.from_host_bytes(self.name, bytes(data))
+
+    def close(self) -> None:
+        if self._open:
+            self._open = False
+            self._closed_with(None)
 
     def send(self, message: Any, dst: int) -> int:
-        if self.transport is None:
+        if not self._open:
             raise LinkError(f"{self.name}: link is closed")
         enc = self.encoder
         seq = enc.take_seq()
@@ -197,7 +190,7 @@ class SimLab:
 
     # --- links --------------------------------------------------------------------------------------
 
-    async def open_link(self, name: str, port: PortConfig, on_frame: Callable[[Frame], None]) -> SerialLink:
+    async def open_link(self, name: str, port: PortConfig, on_frame: Callable[[Frame], None]) -> Link:
         """The Session's ``open_link``: a SimLink to the board ``name`` (the port is not used)."""
         link = SimLink(name, self, on_frame)
         self.links[name] = link
@@ -205,7 +198,7 @@ class SimLab:
 
     def _to_host(self, link: Any, frame: Frame) -> None:
         host = self.links.get(link)  # a LinkName is a str: it finds the link by its name
-        if host is not None and host.transport is not None:
+        if host is not None and host.is_open:
             host.deliver(frame)
 
     def to_board(self, name: str) -> Callable[[Frame], None]:

@@ -13,9 +13,9 @@ from hil.protocol import CATALOGUE, Ack
 
 
 class RecordingLink:
-    """Stands in for a SerialLink: records what would have been written, ACKs every command."""
+    """Stands in for a link (hil.transport.Link): records what would have been written, ACKs every command."""
 
-    name, port, transport = "fake", "/dev/null", object()
+    name, port, is_open = "fake", "/dev/null", True
 
     def __init__(self) -> None:
         self.sent: list[Any] = []
