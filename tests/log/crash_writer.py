@@ -2,7 +2,8 @@
 
     python -m tests.log.crash_writer PATH SECONDS
 
-Prints ``writer_pid N`` then ``started`` on stdout. The pattern (``pattern_row``) is a function of
+Prints ``writer_pid N`` then ``started`` on stdout, then ``flushed N`` whenever the writer has acknowledged more
+loop rows as flushed (those must survive any kill). The pattern (``pattern_row``) is a function of
 the group and the row index only, except ``t_host_ns``, which is the real monotonic time, so the
 test can tell how close to the kill the surviving rows reach.
 """
@@ -71,11 +72,15 @@ def main() -> None:
     print(f"writer_pid {log.writer_pid}", flush=True)
     print("started", flush=True)
     deadline = time.perf_counter()
+    flushed = 0
     for k in range(int(seconds * 1000)):
         while (rem := deadline - time.perf_counter()) > 0:
             if rem > 3e-4:
                 time.sleep(rem - 2e-4)
         log_tick(log, k)
+        if log.rows.get("loop", 0) != flushed:
+            flushed = log.rows["loop"]
+            print(f"flushed {flushed}", flush=True)
         deadline += 1e-3
     log.close()
     print("done", flush=True)

@@ -153,7 +153,9 @@ def test_disconnect_mid_session_is_recovered(tmp_path) -> None:
     assert sum("servo link lost" in f for f in faults) == 1, faults
     assert all("servo link lost" in f or "watchdog" in f for f in faults), faults
     assert run.result.stats.recoveries == len(faults)
-    servo = [k for k in run.kinds("servo") if k != "servo_stream"]  # (the stream's on/off records aside)
+    # the stream's on/off records aside, and a host timeout of the board's own: on a loaded machine the bench may
+    # fall silent for its host timeout, the board then protects itself and the watchdog trips (recovered too)
+    servo = [k for k in run.kinds("servo") if k not in ("servo_stream", "host_timeout")]
     assert servo[:2] == ["disconnect", "reconnect"], servo
     events = read_log(run.result.log_path).groups["events"]
     kinds = [str(k) for k in events["kind"]]
