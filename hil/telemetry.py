@@ -446,6 +446,7 @@ class Telemetry:
         if self._state_payload is not None:  # the broker may have restarted and lost the retained state
             self._state_dirty = False
             await client.publish(self.topic_state, self._state_payload, EVENT_QOS, True)
+            self.stats.published += 1  # counted as the pump counts it: a state set while connecting goes out here
         loop = asyncio.get_running_loop()
         pump = loop.create_task(self._pump(client), name=f"{self.TASK_NAME}-pump")
         watchdog = loop.create_task(self._wait_lost(client), name=f"{self.TASK_NAME}-watchdog")

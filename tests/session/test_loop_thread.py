@@ -115,10 +115,11 @@ def test_with_a_grace_an_emulator_the_host_did_not_run_is_a_stall_not_a_fault(tm
     assert run.result.status == "completed", run.result.message
     assert run.result.stats.faults == []
     stalls = [d for k, d in logged_events(run.result.log_path) if k == "host_stall"]
-    # each freeze is one stall of 40 ms or so; a loaded machine adds shorter ones of its own, and where the bench's
-    # own thread was not run either the watchdog notices it first (late_by "bench" instead of "emulator")
+    # each freeze is one stall of 40 ms or so, less what the bench still had to read when it began; a loaded machine
+    # adds shorter ones of its own, and where the bench's own thread was not run either the watchdog notices it first
+    # (late_by "bench" instead of "emulator")
+    assert run.result.stats.host_stalls >= 3, stalls
     frozen = [d for d in stalls if d["silent_ms"] >= 35]
-    assert len(frozen) >= 3 and run.result.stats.host_stalls >= 3, stalls
     assert all(d["late_ms"] <= 1000 for d in frozen), frozen
     assert any(d["late_by"] == "emulator" and d["late_ms"] >= 35 for d in frozen), frozen
     assert run.result.stats.clock_late >= 3  # the emulator said so itself, before each late sample
