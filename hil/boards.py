@@ -1,4 +1,4 @@
-"""The boards as the session sees them: one small client per board over a :class:`~hil.transport.Link`.
+"""The boards as the session sees them: one small client per board over a :class:`~hil.link.Link`.
 
 A real board on /dev/ttyUSB0 and an emulated one on a pty are the same thing here: a serial port
 speaking the protocol, so the session never knows which it has. The hexapod sits behind its own
@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
+from hil.link import Link, LinkError
 from hil.protocol import (
     CATALOGUE,
     Ack,
@@ -44,7 +45,6 @@ from hil.protocol import (
     TrackMode,
 )
 from hil.protocol.swing import Segment, segments_to_messages
-from hil.transport import Link, LinkError
 
 
 class FingerprintMismatch(LinkError):

@@ -13,7 +13,7 @@ inputs are rebuilt bit for bit (the log's float32 gyro and miss-distance values 
 exactly up to 16 deg/s and 16 000 px; the command is recomputed in float64 and checked against its float32 copy).
 
 **Capture playback** (:func:`replay_capture`, ``hil replay CAPTURE --to-emulator``; :func:`play_capture` to given
-ports): the frames the bench sent in a capture (hil.capture), written again, byte for byte, to a board's or an
+ports): the frames the bench sent in a capture (hil.link), written again, byte for byte, to a board's or an
 emulator's ports with their original timing, by one thread that sleeps in select() (reading what comes in), then
 spins, to each write's time. What comes back is decoded and counted: commands answered (ACK, NACK, IDENT), samples,
 the board's timing reports. The stream starts only when the replayed SERVO_MODE STREAM asks for it; a write that
@@ -47,8 +47,17 @@ from typing import Any
 
 import numpy as np
 
-from hil.capture import LINKS, Capture, CaptureReader, link_decoder, time_ordered
-from hil.ports import PortClaims, PortUnavailable, claim_ports, set_exclusive
+from hil.link import (
+    LINKS,
+    Capture,
+    CaptureReader,
+    PortClaims,
+    PortUnavailable,
+    claim_ports,
+    link_decoder,
+    set_exclusive,
+    time_ordered,
+)
 from hil.protocol import (
     CATALOGUE,
     NO_LATENCY_US,
@@ -892,7 +901,7 @@ class CapturePlayer:
     def __init__(self, capture: Path, ports: Mapping[str, str], *, baudrate: int = 921_600,
                  timing: Timing = "samples", watchdog_s: float = WATCHDOG_S, linger_s: float = LINGER_S,
                  record_dir: Path | None = None, links: set[str] | None = None) -> None:
-        from hil.capture import find_capture
+        from hil.link import find_capture
 
         if timing not in ("samples", "clock"):
             raise ReplayError(f"timing {timing!r}: samples or clock")
@@ -1378,7 +1387,7 @@ def replay_capture(capture: Path | str, *, ports: Mapping[str, str] | Iterable[s
     (:func:`emulator_settings`; the result's ``emulator`` says which). ``timing``, ``record_dir`` (where the replay's
     own capture goes), ``links`` (only these) and the other keywords as :func:`play_capture`. Bad input raises
     ReplayError or CaptureError (ValueErrors, one line naming the option) before anything is sent."""
-    from hil.capture import find_capture
+    from hil.link import find_capture
 
     if timing not in TIMINGS:
         raise ReplayError(f"--timing: {timing!r} is not {' or '.join(TIMINGS)}")
@@ -1398,8 +1407,8 @@ def replay_capture(capture: Path | str, *, ports: Mapping[str, str] | Iterable[s
             raise ReplayError("--clock and --seed start a fresh emulator: not with --port or --ports-file")
         return play_capture(path, named, **options)
     settings = emulator_settings(CaptureReader(path).meta, clock=clock, seed=seed, config=emulator_config)
+    from hil.link import LinkError
     from hil.session import EmulatorProcess
-    from hil.transport import LinkError
 
     emulator = EmulatorProcess(settings.config, clock=settings.clock, seed=settings.seed)
     try:

@@ -9,9 +9,8 @@ import pytest
 from typer.testing import CliRunner
 
 from hil.cli import app, main
+from hil.link import LinkError, SerialLink, main_sync
 from hil.protocol import CATALOGUE
-from hil.selftest import main_sync
-from hil.transport import LinkError, SerialLink
 
 
 def test_every_uncorrupted_frame_arrives_once_in_order_under_heavy_faults():

@@ -1,5 +1,5 @@
 """`hil protocol docs` and `hil protocol decode`: the catalogue's docs tables, and decoding what a link carried (a
-capture of every link, hil.capture, or raw bytes of one)."""
+capture of every link, hil.link, or raw bytes of one)."""
 
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ def protocol_decode(  # noqa: PLR0917 (typer maps parameters to options)
 ) -> None:
     """Decode what a link carried: a capture's frames with their times (every link, both directions), or a raw
     capture of one link; then the link counters. Streams: memory stays bounded."""
-    from hil.capture import CaptureError, find_capture, is_capture
+    from hil.link import CaptureError, find_capture, is_capture
 
     path = Path(capture)
     if capture != "-" and not hex_input and (path.is_dir() or is_capture(path)):
@@ -99,7 +99,7 @@ def _frame_json(frame: Any) -> dict[str, Any]:
 
 
 def _decode_capture(path: Path, limit: int, link: str | None, direction: str | None, json_out: bool) -> None:
-    from hil.capture import CaptureDecode, CaptureError, CaptureReader, TimedFrame, decode_capture
+    from hil.link import CaptureDecode, CaptureError, CaptureReader, TimedFrame, decode_capture
 
     try:
         result = CaptureDecode(CaptureReader(path))
@@ -158,8 +158,8 @@ def _decode_raw(capture: str, hex_input: bool, limit: int, link: str | None, *, 
     import re
     from collections.abc import Iterator
 
+    from hil.link import board_of
     from hil.protocol import Decoder, Frame
-    from hil.transport import board_of
 
     chunk_bytes = 1 << 16
     if link is None:

@@ -44,7 +44,7 @@ def replay(  # noqa: PLR0917 (typer maps parameters to options)
 ) -> None:
     """Replay a session log through an estimator/controller offline and compare it with the logged one; or, with
     --to-emulator, play a capture's frames back at a board or the emulator and count what came back."""
-    from hil.capture import is_capture
+    from hil.link import is_capture
 
     finite("--settle", settle)
     if out is not None:

@@ -264,7 +264,7 @@ def selftest(
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from hil.selftest import main_sync
+    from hil.link import main_sync
 
     with Progress(TextColumn("[bold]selftest[/] GYRO_SAMPLE -> DRIVE_CMD"), BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), console=err_console, transient=True, disable=no_progress(json_out)) as bar:

@@ -5,7 +5,7 @@ While it runs, :class:`LoopThread` owns the hot direction of two links: it reads
 Per sample: ``select`` on the servo fd with the watchdog's remaining time as the timeout, ``os.read``, the decoder's
 fixed-layout GYRO_SAMPLE path (:meth:`Decoder.fast_feed`), :meth:`ControlLoop.on_sample`, and DRIVE_CMD as one
 precompiled ``pack`` plus CRC (:class:`FramePacker`) and one ``os.write``. The log row and the telemetry sample are
-handed on without blocking (a bytearray append; a non-blocking pipe write). With a capture on the links (hil.capture),
+handed on without blocking (a bytearray append; a non-blocking pipe write). With a capture on the links (hil.link),
 each read and each DRIVE_CMD written is queued for it as one tuple on a deque (its writer thread formats and writes).
 
 Everything else stays on the event loop: every other servo frame (ACKs, LOOP_TIMING, IDENT, CLOCK_LATE) is handed
@@ -37,12 +37,11 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from hil.capture import RX, TX
+from hil.link import RX, TX, Link, LinkError, SerialLink
 from hil.protocol import AxisMask, Board, ClockLate, DriveCmd, DriveDisable, Frame, GyroSample
 from hil.protocol.framing import FramePacker
 from hil.session import _host as host
 from hil.session._watchdog import Watchdog
-from hil.transport import Link, LinkError, SerialLink
 
 READ_SIZE = 4096
 GIL_SWITCH_S = 50e-6  # sys.setswitchinterval while a loop thread runs (see the module docstring)

@@ -15,7 +15,7 @@ import yaml
 
 from firmware_stub.config import read_yaml_mapping
 from hil.config import PROFILES
-from hil.transport import LinkError
+from hil.link import LinkError
 
 DEFAULT_EMULATOR = PROFILES / "emulator" / "default.yaml"
 

@@ -23,15 +23,14 @@ from firmware_stub.config import ConfigError as EmulatorConfigError
 from hil.config import ConfigError, PortConfig, SessionConfig, load_session
 from hil.control.registry import ControllerConfigError, require_sim_clock
 from hil.files import require_regular_file, require_writable_dir
+from hil.link import LinkError, PortUnavailable
 from hil.log import LogError
 from hil.log.frames import read_log_frames
 from hil.log.schema import estimated_log_bytes
-from hil.ports import PortUnavailable
 from hil.session._loopback import EmulatorProcess
 from hil.session._session import Session, SessionResult
 from hil.session._sim import run_sim_session
 from hil.summary import summarize_log
-from hil.transport import LinkError
 
 if TYPE_CHECKING:
     from hil.log.frames import LogFrames

@@ -34,15 +34,14 @@ from typing import Any
 
 from hil._version import __version__
 from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, InterlockClosed, ProtocolHexapod, ServoBoard
-from hil.capture import Capture
 from hil.config import ConfigError, PortConfig, SessionConfig
 from hil.control.controller import RateController
 from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
 from hil.control.loops import TrackingLoop
 from hil.control.oracle import TruthSource, bind_truth, truth_refusal
 from hil.control.registry import build_controller, needs_truth
+from hil.link import Capture, Link, LinkError, PortClaims, SerialLink, claim_ports
 from hil.log import SessionLog
-from hil.ports import PortClaims, claim_ports
 from hil.protocol import (
     NO_LATENCY_US,
     ClockLate,
@@ -58,7 +57,6 @@ from hil.session import _host as host
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._watchdog import EventLoopWatchdog, Watchdog
 from hil.telemetry import Telemetry, TelemetryProcess, schema_units
-from hil.transport import Link, LinkError, SerialLink
 
 _log = logging.getLogger("hil.session")
 LINKS = ("servo", "driver", "image", "hexapod")
@@ -285,7 +283,7 @@ class Session:
         the sample watchdog (off only in ``sim``, where the world advances with the loop and wall time means
         nothing). ``emulated``: the boards are the emulator on this host, so ``safety.emulator_stall_grace_ms`` applies
         (_watchdog); ignored otherwise. ``capture_dir``: record every link's bytes, both directions, in a capture
-        file there (hil.capture, docs/capture.md); ValueError with ``open_link`` (the sim clock's links carry no bytes).
+        file there (hil.link, docs/capture.md); ValueError with ``open_link`` (the sim clock's links carry no bytes).
         ``truth``: the plant's true state, which only the sim clock has (PlantTruth); a controller that needs
         it (``oracle``) without it is refused here, ConfigError naming ``controller.name``, before anything starts.
         ``record_truth``: called with each loop row's sample counter (the sim clock's truth file, hil.log.truth).
@@ -739,7 +737,7 @@ class Session:
             await asyncio.sleep(0.1)
 
     def claim_ports(self) -> None:
-        """Claim every port this session opens (hil.ports), before any is opened: PortUnavailable (bad input, one
+        """Claim every port this session opens (hil.link), before any is opened: PortUnavailable (bad input, one
         line naming the port and its holder) if one is missing, not a serial port, or held by another bench. The
         sim clock's links open no port."""
         if self.open_link is not None or self.claims is not None:

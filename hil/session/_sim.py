@@ -26,8 +26,8 @@ from typing import TYPE_CHECKING, Any
 
 from hil.config import PortConfig, SessionConfig
 from hil.control.oracle import AxisTruth
+from hil.link import Link, LinkError
 from hil.protocol import CATALOGUE, Frame
-from hil.transport import Link, LinkError
 
 if TYPE_CHECKING:
     from firmware_stub.plant import Plant

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from hil.capture import find_capture
 from hil.config import PortConfig, SessionConfig
+from hil.link import find_capture
 from hil.session import EmulatorProcess, Session, SessionResult
 from tests.session.helpers import session_config
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.capture import (
+from hil.link import (
     MAGIC,
     RECORD_OVERHEAD,
     RX,
@@ -156,7 +156,7 @@ def test_a_damaged_record_stops_the_reading_there_and_says_so(tmp_path: Path) ->
 KILLED_WRITER = """
 import os, signal, sys, time
 from pathlib import Path
-from hil.capture import Capture
+from hil.link import Capture
 cap = Capture(Path(sys.argv[1]), flush_interval_s=0.01)
 servo = cap.link("servo")
 for i in range(1_000_000):

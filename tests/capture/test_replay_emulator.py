@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from hil.capture import RECORD_OVERHEAD, CaptureReader, decode_capture, link_decoder
 from hil.cli import app
+from hil.link import RECORD_OVERHEAD, CaptureReader, decode_capture, link_decoder
 from hil.protocol import CATALOGUE, DriveCmd, GyroSample, HexapodStop
 from hil.replay import CapturePlayer, PlaybackResult, ReplayError, play_capture
 from hil.session import EmulatorProcess

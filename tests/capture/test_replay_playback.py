@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from hil.capture import Capture, CaptureError
+from hil.link import Capture, CaptureError
 from hil.protocol import (
     CATALOGUE,
     Ack,

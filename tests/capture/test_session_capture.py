@@ -11,10 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil.capture import CaptureDecode, CaptureReader, decode_capture
 from hil.config import PortConfig
+from hil.link import CaptureDecode, CaptureReader, PortUnavailable, decode_capture
 from hil.log import read_log
-from hil.ports import PortUnavailable
 from hil.protocol import CATALOGUE, Ack, DriveCmd, GyroSample, LinkCounters
 from hil.session import Session, SimLab, run_sim_session, sim_ports
 from tests.capture.conftest import CapturedRun

@@ -1,6 +1,6 @@
 """A minimal synchronous host for emulator tests: raw fds on the board ports, the protocol's codec.
 
-Deliberately not the bench's transport (hil.transport): these tests check the emulator against the
+Deliberately not the bench's transport (hil.link._transport): these tests check the emulator against the
 protocol alone. Every byte received is kept per link, so two runs can be compared byte for byte.
 """
 

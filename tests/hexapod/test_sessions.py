@@ -14,11 +14,11 @@ import pytest
 
 from hil.boards import GuardedHexapod, Interlock, InterlockClosed
 from hil.config import SessionConfig
+from hil.link import LinkError
 from hil.log.reader import read_log
 from hil.protocol import HexAxis
 from hil.protocol.swing import Segment
 from hil.session import Session, SessionResult, SimLab, sim_ports
-from hil.transport import LinkError
 from tests.hexapod.drivers import RecordingHexapod, RecordingOptions
 from tests.session.helpers import logged_events, run_session, session_config
 

@@ -87,7 +87,7 @@ def test_a_50_mb_capture_decodes_in_bounded_memory(tmp_path: Path) -> None:
 
 def write_capture(path: Path, n: int) -> Path:
     """A capture of ``n`` servo samples (rx) each answered by a DRIVE_CMD (tx) 50 us later, 1 ms apart."""
-    from hil.capture import Capture
+    from hil.link import Capture
     from hil.protocol import DriveCmd
 
     driver = Encoder(Board.HOST)

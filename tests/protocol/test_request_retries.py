@@ -13,9 +13,9 @@ from typing import Any
 
 import pytest
 
+from hil.link import LinkError, SerialLink
 from hil.protocol import Ack, Board, Decoder, Encoder, Ident, IdentRequest, Nack, ServoMode, StreamMode
 from hil.protocol.messages import ErrorCode
-from hil.transport import LinkError, SerialLink
 
 
 class MemoryBoard(asyncio.Transport):

@@ -81,8 +81,8 @@ def no_board_contact(monkeypatch: pytest.MonkeyPatch) -> None:
     def touched(*_args: Any, **_kwargs: Any) -> None:
         raise AssertionError("bad input reached the boards")
 
-    import hil.transport
+    import hil.link._transport
 
     monkeypatch.setattr(hil.session.EmulatorProcess, "start", touched)
-    monkeypatch.setattr(hil.transport.SerialLink, "open", touched)
+    monkeypatch.setattr(hil.link._transport.SerialLink, "open", touched)
     monkeypatch.setattr(hil.session.Session, "__init__", touched)

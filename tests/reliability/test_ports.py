@@ -1,5 +1,5 @@
 """A bench owns its ports: a second bench on the same ports is refused by name before it sends a byte, a port that
-cannot be opened is bad input, and a lock left by a dead bench is taken over (hil.ports, docs/reliability.md)."""
+cannot be opened is bad input, and a lock left by a dead bench is taken over (hil.link._ports, docs/reliability.md)."""
 
 from __future__ import annotations
 
@@ -16,9 +16,8 @@ import pytest
 import yaml
 
 from hil.config import PROFILES
-from hil.ports import Holder, PortUnavailable, claim_ports, is_exclusive
+from hil.link import Holder, PortUnavailable, SerialLink, claim_ports, is_exclusive
 from hil.session import EmulatorProcess
-from hil.transport import SerialLink
 from tests.reliability.helpers import bad_input, session_data, write_yaml
 
 REPO = Path(__file__).resolve().parents[2]
@@ -93,7 +92,7 @@ def test_a_port_claim_names_its_holder_and_a_dead_holder_is_taken_over(tmp_path:
     try:
         port = os.ttyname(sub_fd)
         holder = subprocess.Popen(  # another bench: it claims the port, says so, and waits to be killed
-            [sys.executable, "-c", "import sys, time; from hil.ports import claim_ports; "
+            [sys.executable, "-c", "import sys, time; from hil.link import claim_ports; "
              f"c = claim_ports({{'servo': {port!r}}}, 'other-session'); print('held', flush=True); time.sleep(60)"],
             cwd=REPO, stdout=subprocess.PIPE, text=True)
         try:

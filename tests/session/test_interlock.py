@@ -13,7 +13,7 @@ from hil.protocol import CATALOGUE, Ack
 
 
 class RecordingLink:
-    """Stands in for a link (hil.transport.Link): records what would have been written, ACKs every command."""
+    """Stands in for a link (hil.link._transport.Link): records what would have been written, ACKs every command."""
 
     name, port, is_open = "fake", "/dev/null", True
 

@@ -19,8 +19,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from hil.link._transport import LinkError, SerialLink
 from hil.protocol import CATALOGUE, Ack, Board, DriveCmd, Frame, GyroSample, Ident, IdentRequest, ServoMode, StreamMode
-from hil.transport import LinkError, SerialLink
 
 
 @dataclass

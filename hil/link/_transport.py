@@ -4,7 +4,7 @@ Incoming bytes are decoded chunk by chunk in ``data_received`` and each frame is
 link's ``on_frame`` callback right there, so a reaction (such as DRIVE_CMD k for GYRO_SAMPLE k)
 is written within the same event-loop callback that read the sample: no timer is involved.
 
-A link given a capture (hil.capture: ``SerialLink.open(..., capture=...)``) records every chunk it reads and every
+A link given a capture (hil.link: ``SerialLink.open(..., capture=...)``) records every chunk it reads and every
 frame it writes, with its time; the realtime loop thread records what it reads and writes on the link's behalf.
 """
 
@@ -21,12 +21,12 @@ from typing import TYPE_CHECKING, Any
 import serial
 import serial_asyncio_fast
 
-from hil.ports import open_refusal, set_exclusive
+from hil.link._ports import open_refusal, set_exclusive
 from hil.protocol import CATALOGUE, Ack, Board, Decoder, Encoder, Frame, LockstepAck, Nack
 from hil.protocol.framing import frame_seq
 
 if TYPE_CHECKING:
-    from hil.capture import Capture, LinkCapture
+    from hil.link._capture import Capture, LinkCapture
 
 DEFAULT_BAUD = 921_600
 RETRY_INTERVAL_S = 0.05  # docs/protocol.md section 6: resend after 50 ms without a reply ...
@@ -56,7 +56,7 @@ class Link(ABC):
     "image", "hexapod"), so its decoder delivers only what that board may send the host
     (:meth:`Decoder.for_link`); a link of another name decodes everything. ``retry_interval_s``
     and ``max_resends`` govern :meth:`request`'s resends (lockstep emulation sets a longer interval).
-    ``capture``: this link's handle on a capture file (hil.capture), None for none. ``acknowledge``: answer every
+    ``capture``: this link's handle on a capture file (hil.link), None for none. ``acknowledge``: answer every
     read that brought frames with LOCKSTEP_ACK (a lockstep emulator's world waits for it; docs/protocol.md).
     """
 
@@ -254,8 +254,8 @@ class SerialLink(Link, asyncio.Protocol):
         (default: the board the link name designates). With ``capture``, the link's bytes go to that capture
         file under the link's name, from the moment it is open.
 
-        The port is opened for this link alone (hil.ports): pyserial's advisory lock on the device, then the tty's
-        exclusive-use flag (TIOCEXCL), cleared again by :meth:`close`. Claim it first (hil.ports.claim_ports) to
+        The port is opened for this link alone (hil.link): pyserial's advisory lock on the device, then the tty's
+        exclusive-use flag (TIOCEXCL), cleared again by :meth:`close`. Claim it first (hil.link.claim_ports) to
         refuse a second bench by name before anything is opened."""
         loop = asyncio.get_running_loop()
         handle = None if capture is None else capture.link(name)
