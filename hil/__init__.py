@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     )
     from hil.config import ConfigError, SessionConfig, load_session
 
-# hil.api.ident is not here: `hil.ident` is the identification module (hil/ident.py)
+# hil.api.ident is not here: identification itself is hil.analysis (hil/analysis/_ident.py)
 _FROM = {"CampaignRun": "hil.api", "IdentRun": "hil.api", "replay_capture": "hil.api", "replay_log": "hil.api",
          "RunResult": "hil.api", "check_file": "hil.api", "load_campaign": "hil.api",
          "read_log": "hil.api", "report": "hil.api", "run": "hil.api", "run_async": "hil.api",

@@ -186,9 +186,9 @@ def report(path: str | Path, *, settle_s: float = 1.0) -> Any:
             return CampaignRun(result=load_results(path), out_dir=path, report=write_report(path))
         except CampaignError as exc:
             raise ConfigError(str(exc)) from None
+    from hil.analysis import summarize_log
     from hil.log import LogError
     from hil.log.reader import NotASessionLog
-    from hil.summary import summarize_log
 
     try:
         require_regular_file(path)
@@ -233,9 +233,9 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
 
     from pydantic import ValidationError
 
+    from hil.analysis import SweptSine, bode_plot, identify_log
     from hil.config import one_line
     from hil.control.registry import K_M_DEFAULT
-    from hil.ident import SweptSine, bode_plot, identify_log
     from hil.log import read_log as read_arrays
 
     if axis not in ("el", "az"):

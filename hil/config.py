@@ -34,13 +34,13 @@ from pydantic import (
     model_validator,
 )
 
+from hil.analysis import SweptSine
 from hil.control.registry import ControllerConfigError, controller_params
 from hil.files import (
     ConfigError,
     read_yaml_mapping,
     resolve_relative,
 )
-from hil.ident import SweptSine
 from hil.mqtt_config import MqttConfig
 from hil.protocol import HexAxis
 from hil.protocol.swing import Envelope, Segment, check_envelope

@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from hil.analysis import drive_ripple, json_safe
 from hil.link import (
     LINKS,
     Capture,
@@ -79,7 +80,6 @@ from hil.protocol import (
     ServoMode,
     StreamMode,
 )
-from hil.summary import drive_ripple, json_safe
 
 AXES = ("el", "az")
 GYRO = {"el": "gyro_y_dps", "az": "gyro_z_dps"}  # the rate each axis's controller feeds back
@@ -105,7 +105,7 @@ class ControllerSpec:
 @dataclass
 class AxisReplay:
     """One axis's comparison, over the metric window. Noise: std of the estimate minus its 20 ms moving mean (the
-    session report's drive-ripple definition, :func:`hil.summary.drive_ripple`, applied to the rate). Lag: where the
+    session report's drive-ripple definition, :func:`hil.analysis.drive_ripple`, applied to the rate). Lag: where the
     cross-correlation of the estimate with the logged gyro peaks (positive: the estimate lags), both low-passed
     below LAG_BAND_HZ with zero phase, parabola-interpolated between 1 ms lags (:func:`xcorr_lag`)."""
 

@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Self
 import aiomqtt
 import paho.mqtt.client as paho
 
-from hil import ipc
+from hil.log import ipc
 from hil.mqtt_config import MqttConfig, check_topic_name
 
 if TYPE_CHECKING:

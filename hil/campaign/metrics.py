@@ -3,7 +3,7 @@
 Three analyses (a campaign picks one; ``control`` metrics are always computed):
 
 - ``control``: seed 000 Tables 1-3 and seed 001: rate error and miss distance range (+-, half the
-  peak-to-peak) and std, drive ripple, LOS rate, loop health (hil.summary.summarize_log); on the sim clock also
+  peak-to-peak) and std, drive ripple, LOS rate, loop health (hil.analysis.summarize_log); on the sim clock also
   the true LOS rate (``los_rate_true_*``, from the session's truth file, hil.log.truth);
 - ``static_noise``: seed 000 Fig. 12: the elevation gyro at rest, raw vs the 150 Hz first-order
   low-pass (applied here to the logged raw gyro) vs the KF estimate the loop fed back;
@@ -174,9 +174,9 @@ def lag_cycles(reference: np.ndarray, filtered: np.ndarray, freq_hz: float, dt_s
 
 def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float = 1.0) -> dict[str, float]:
     """Every metric of ``analysis`` (plus the control ones) for the session log at ``path``."""
+    from hil.analysis import summarize_log
     from hil.log import read_log
     from hil.log.truth import read_truth
-    from hil.summary import summarize_log
 
     s = summarize_log(path, settle_s=settle_s)
     m: dict[str, float] = {}

@@ -623,10 +623,10 @@ def render_html(doc: list[Block]) -> str:
 
 def welch(x: np.ndarray, fs: float, nperseg: int = PSD_SEGMENT) -> tuple[np.ndarray, np.ndarray]:
     """One-sided power spectral density (unit²/Hz) by ``scipy.signal.welch`` with the segments and window of
-    hil.ident's FRF (Hann, >= 50 % overlap ending at the record's end, each segment detrended)."""
+    hil.analysis's FRF (Hann, >= 50 % overlap ending at the record's end, each segment detrended)."""
     from scipy import signal
 
-    from hil.ident import welch_layout, welch_options
+    from hil.analysis import welch_layout, welch_options
 
     x = np.asarray(x, dtype=float)
     n = min(nperseg, x.size)

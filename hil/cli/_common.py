@@ -63,7 +63,7 @@ def no_progress(json_out: bool = False) -> bool:
 
 def print_json(data: Any) -> None:
     """Results as JSON on stdout (NaN and infinities as null, paths and other objects as strings)."""
-    from hil.summary import json_safe
+    from hil.analysis import json_safe
 
     console.print_json(json.dumps(json_safe(data), default=str))
 

@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from hil.ident import GYRO_CHANNEL
+from hil.analysis import GYRO_CHANNEL
 
 Kind = Literal["static", "ident", "swing"]
 AXES = ("az", "el")

@@ -13,9 +13,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from hil.analysis import SweptSine
 from hil.campaign import load_campaign, run_campaign
 from hil.config import PROFILES, SessionConfig, load_session
-from hil.ident import SweptSine
 from hil.session import emulator_for_plant, run
 
 SWING_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"

@@ -5,7 +5,7 @@ Three estimators, each on the logs that carry its information, each returning :c
 
 - :func:`fit_noise` (static logs): per gyro axis, the white noise std and the band-limited component from the
   spectrum above the rate loop's bandwidth (Welch); the bias from the mean (x) or the encoder's drift (y, z);
-- :func:`fit_frequency_response` (ident logs): the indirect closed-loop FRF of ``hil.ident`` and a least-squares fit
+- :func:`fit_frequency_response` (ident logs): the indirect closed-loop FRF of ``hil.analysis`` and a least-squares fit
   of ``k_m / s`` (sampled) x gyro lag x delay x two-mass mode x cable spring (seed 000 eqs 3, 33-38);
 - :func:`fit_mechanics` (every log with motion): an equation-error fit of the torque balance, per axis,
   ``J dw/dt = K_t clip(i, I_max) - T_f(v) - k_c theta + T_imb`` with the gyro's own lag applied to the right-hand
@@ -221,7 +221,7 @@ class FrfFit:
 
     def response(self, f_hz: np.ndarray) -> np.ndarray:
         """The fitted response: the kernel's own (:func:`linear_plant_frf`) where the fit finished on it."""
-        from hil.ident import plant_response
+        from hil.analysis import plant_response
 
         s = 2j * math.pi * np.asarray(f_hz, dtype=float)
         if self.kernel_plant is not None:
@@ -278,7 +278,7 @@ def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n
     k = np.arange(n_ticks)
     basis = np.exp(-1j * np.outer(w, k))
     # the loop logs drive k beside sample k and the board applies it from the next tick on: one tick later than the
-    # kernel's own indexing (checked against hil.ident.plant_response, whose delay matches the plant's T_d)
+    # kernel's own indexing (checked against hil.analysis.plant_response, whose delay matches the plant's T_d)
     return (basis @ y) / (basis @ u) * np.exp(-1j * w)
 
 
@@ -338,12 +338,12 @@ def _kernel_plant(plant: Mapping[str, Any], axis: str, x: np.ndarray, with_mode:
 
 def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
                            spring_q: float | None = None) -> FrfFit:
-    """The ident log's FRF (``hil.ident.estimate_frf``, indirect) and the joint least-squares fit on its coherent
-    bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as ``hil.ident.fit_plant``. The rigid
-    fit of ``hil.ident`` starts it; the mode's frequency starts from a grid over the band."""
+    """The ident log's FRF (``hil.analysis.estimate_frf``, indirect) and the joint least-squares fit on its coherent
+    bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as ``hil.analysis.fit_plant``. The rigid
+    fit of ``hil.analysis`` starts it; the mode's frequency starts from a grid over the band."""
     from scipy.optimize import least_squares
 
-    from hil.ident import Frf, SweepShapes, SweptSine, estimate_frf, fit_plant, sweep_start
+    from hil.analysis import Frf, SweepShapes, SweptSine, estimate_frf, fit_plant, sweep_start
 
     ax = log.axis or "el"
     sweep = SweptSine(**log.excitation) if log.excitation else None

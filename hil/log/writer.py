@@ -55,7 +55,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hil._version import __version__
-from hil.ipc import helper_argv, recv, send, send_bytes, spawn_helper
+from hil.log.ipc import helper_argv, recv, send, send_bytes, spawn_helper
 from hil.log.schema import (
     DETAIL_LEN,
     KIND_LEN,

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from firmware_stub.config import ConfigError as EmulatorConfigError
+from hil.analysis import summarize_log
 from hil.config import ConfigError, PortConfig, SessionConfig, load_session
 from hil.control.registry import ControllerConfigError, require_sim_clock
 from hil.files import require_regular_file, require_writable_dir
@@ -30,7 +31,6 @@ from hil.log.schema import estimated_log_bytes
 from hil.session._loopback import EmulatorProcess
 from hil.session._session import Session, SessionResult
 from hil.session._sim import run_sim_session
-from hil.summary import summarize_log
 
 if TYPE_CHECKING:
     from hil.log.frames import LogFrames

@@ -10,13 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.boards import (
-    HEXAPOD_DRIVERS,
-    HexapodOptions,
-    ProtocolHexapod,
-    installed_hexapod_drivers,
-    load_hexapod_driver,
-)
+from hil.boards import HEXAPOD_DRIVERS, HexapodOptions, ProtocolHexapod, installed_hexapod_drivers, load_hexapod_driver
 from hil.config import PROFILES, ConfigError, SessionConfig, load_session
 from tests.hexapod.drivers import RecordingHexapod, RecordingOptions
 

@@ -1,4 +1,4 @@
-"""Frequency-sweep identification (hil.ident): the chirp, the indirect closed-loop FRF, the fit, session logs.
+"""Frequency-sweep identification (hil.analysis._ident): the chirp, the indirect closed-loop FRF, the fit, session logs.
 
 A synthetic loop (k_m/s under a zero-order hold, first-order gyro at 200 Hz, 0.5 ms delay, white gyro noise, P
 controller) checks the estimator and the fit against known values; the emulated plant (firmware_stub.plant) under a
@@ -17,8 +17,7 @@ import pytest
 from pydantic import ValidationError
 
 from firmware_stub.plant import RIGID_PLANT_CONFIG, CarrierMotion, Plant, load_plant_config
-from hil.control.registry import build_controller
-from hil.ident import (
+from hil.analysis import (
     Frf,
     PlantFit,
     SweptSine,
@@ -30,6 +29,7 @@ from hil.ident import (
     plant_response,
     welch_layout,
 )
+from hil.control.registry import build_controller
 from hil.log import SCHEMA, LogData, SessionLog, read_log
 from hil.log.schema import group_by_name
 

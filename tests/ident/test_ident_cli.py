@@ -40,7 +40,7 @@ def test_ident_shows_a_structural_mode_as_a_resonance_at_its_frequency(tmp_path:
     import numpy as np
     import yaml
 
-    from hil.ident import SweptSine, identify_log
+    from hil.analysis import SweptSine, identify_log
     from hil.log import read_log
 
     mode_hz = 150.0

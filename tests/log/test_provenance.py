@@ -17,11 +17,11 @@ import pytest
 import scipy
 
 import hil
+from hil.analysis import NO_BOARD_LATENCY, board_latency, json_safe, summarize_log
 from hil.config import PROFILES, ControllerConfig
 from hil.control.registry import REGISTRY, ControllerConfigError, controller_params, effective_params
 from hil.log import SessionLog, read_attrs, read_log, read_provenance
 from hil.log.provenance import collect_provenance, git_commit
-from hil.summary import NO_BOARD_LATENCY, board_latency, json_safe, summarize_log
 from tests.log.conftest import SIM_CONTROLLER
 from tests.session.helpers import run_session, session_config
 

@@ -8,11 +8,11 @@ from typing import Any
 
 import numpy as np
 
+from hil.analysis import summarize_log
 from hil.log import SCHEMA, SessionLog, read_log
 from hil.log.schema import LINK_COUNTERS, Group, group_by_name
 from hil.protocol import Board, Decoder, DriveStatus, Encoder, GyroSample
 from hil.session import ControlLoop
-from hil.summary import summarize_log
 from tests.session.helpers import run_session, session_config
 
 G = group_by_name(SCHEMA)

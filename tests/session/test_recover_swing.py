@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.analysis import summarize_log
 from hil.log import LogError, read_log
-from hil.summary import summarize_log
 from tests.reliability.helpers import session_data, write_yaml
 from tests.session.helpers import logged_events
 

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from firmware_stub.control import ControlClient
+from hil.analysis import summarize_log
 from hil.log import read_log
 from hil.session import EmulatorProcess, Session
-from hil.summary import summarize_log
 from tests.session.helpers import run_session, session_config, wait_cycles
 
 

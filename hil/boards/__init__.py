@@ -1,0 +1,36 @@
+"""The boards as the session sees them: one client per board over a :class:`~hil.link.Link`.
+
+``ServoBoard`` (gyro and encoders, the loop's clock), ``DriverBoard`` (the power stage), ``ImageBoard`` (miss
+distance) and the hexapod: ``HexapodDriver`` is a table's interface, ``ProtocolHexapod`` the bench's own protocol
+(entry point ``hil.boards:ProtocolHexapod``, docs/hexapod-drivers.md), ``GuardedHexapod`` holds it to the one-way
+safety rule through the session's ``Interlock``."""
+
+from hil.boards._clients import (
+    HEXAPOD_DRIVERS,
+    DriverBoard,
+    GuardedHexapod,
+    HexapodDriver,
+    HexapodOptions,
+    ImageBoard,
+    Interlock,
+    InterlockClosed,
+    ProtocolHexapod,
+    ServoBoard,
+    installed_hexapod_drivers,
+    load_hexapod_driver,
+)
+
+__all__ = [
+    "HEXAPOD_DRIVERS",
+    "DriverBoard",
+    "GuardedHexapod",
+    "HexapodDriver",
+    "HexapodOptions",
+    "ImageBoard",
+    "Interlock",
+    "InterlockClosed",
+    "ProtocolHexapod",
+    "ServoBoard",
+    "installed_hexapod_drivers",
+    "load_hexapod_driver",
+]
