@@ -158,7 +158,7 @@ class _PlainLoader(yaml.SafeLoader):
 def read_yaml_mapping(path: str | Path) -> dict[str, Any]:
     """The top-level mapping of a YAML file; :class:`ConfigError` (one line naming the file) if it is not a regular
     file (a FIFO, device or directory is refused unopened), is larger than ``MAX_CONFIG_BYTES``, is not UTF-8 or
-    not YAML. The emulator's own minimal reader: the bench's (``hil.files.read_yaml_mapping``) also bounds aliases."""
+    not YAML. The emulator's own minimal reader: the bench's (``hil.config.read_yaml_mapping``) also bounds aliases."""
     path = Path(path)
     try:
         if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO, device or directory: refused unopened

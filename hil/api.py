@@ -16,8 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from hil.config import ConfigError, SessionConfig, load_session
-from hil.files import require_regular_file, require_writable_dir
+from hil.config import ConfigError, SessionConfig, load_session, require_regular_file, require_writable_dir
 from hil.session import (
     CLOCKS,
     Clock,

@@ -10,8 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hil.config import ConfigError
-from hil.files import read_yaml_mapping
+from hil.config import ConfigError, read_yaml_mapping
 
 KINDS: tuple[str, ...] = ("session", "campaign", "controller", "swing", "hexapod", "emulator", "plant", "targets")
 FOLDERS = {"sessions": "session", "campaigns": "campaign", "controllers": "controller", "swing": "swing",
@@ -118,7 +117,7 @@ def _loaders() -> dict[str, tuple[Callable[[Path], Any], Callable[[Any], str]]]:
 def check_config_file(path: Path, kind: str | None = None) -> dict[str, Any]:
     """{"file", "kind", "summary"} if ``path`` is a valid config of ``kind`` (guessed when None); ConfigError
     (one line naming the file and the field) otherwise."""
-    from hil.files import require_regular_file
+    from hil.config import require_regular_file
 
     if kind is not None and kind not in KINDS:
         raise ConfigError(f"--kind: {kind!r} is not one of {', '.join(KINDS)}")

@@ -460,7 +460,7 @@ def parse_params(text: str) -> dict[str, Any]:
 
 def _param_value(key: str, text: str) -> Any:
     """A number as a number (``1e-3`` too, which YAML 1.1 reads as a string), anything else as YAML reads it."""
-    from hil.files import parse_yaml
+    from hil.config import parse_yaml
 
     if not text:
         return ""
@@ -509,8 +509,8 @@ def replay_log(log: Path | str, controller: str | None = None,
     defaults. Metrics over [``settle_s``, the session's duration) from the first sample. ReplayError (one line) for
     input that cannot be replayed; ControllerConfigError (also a ValueError) for an unknown controller or
     parameter. :func:`write_outputs` writes the plot and JSON."""
+    from hil.config import require_regular_file
     from hil.control.registry import controller_params
-    from hil.files import require_regular_file
 
     if not isinstance(settle_s, int | float) or not math.isfinite(settle_s) or settle_s < 0:
         raise ReplayError(f"--settle: {settle_s!r} is not a finite number of seconds >= 0")
@@ -1295,7 +1295,7 @@ def ports_from_file(path: Path) -> dict[str, str]:
     ``control`` socket left out). ReplayError naming ``--ports-file`` and the file otherwise."""
     import json
 
-    from hil.files import read_text_file
+    from hil.config import read_text_file
 
     try:
         text = read_text_file(path, 1 << 20)
@@ -1394,7 +1394,7 @@ def replay_capture(capture: Path | str, *, ports: Mapping[str, str] | Iterable[s
     path = find_capture(Path(capture))
     named = resolve_ports(ports, ports_file)
     if record_dir is not None:
-        from hil.files import require_writable_dir
+        from hil.config import require_writable_dir
 
         try:
             require_writable_dir(Path(record_dir), "--out")

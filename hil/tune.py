@@ -31,8 +31,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from hil.config import ConfigError
-from hil.files import require_writable_dir
+from hil.config import ConfigError, require_writable_dir
 
 if TYPE_CHECKING:
     import optuna

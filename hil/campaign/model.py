@@ -18,8 +18,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from hil.campaign.metrics import METRICS, default_primary
-from hil.config import MAX_SESSION_S, NAME_PATTERN, Seed, Strict
-from hil.files import resolve_relative
+from hil.config import MAX_SESSION_S, NAME_PATTERN, Seed, Strict, resolve_relative
 
 _SLUG = re.compile(r"[^A-Za-z0-9]+")
 MAX_AXIS_ENTRIES = 100  # profiles, controllers, seeds: each at most this many

@@ -40,8 +40,7 @@ from pydantic import ValidationError
 from hil.campaign.engines import Engine, EngineError, Interrupted, check_options, open_engine
 from hil.campaign.metrics import METRICS, compute_metrics, score
 from hil.campaign.model import CampaignConfig, CampaignResult, CellResult, CellSpec, RuleResult
-from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line
-from hil.files import read_file_bytes
+from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line, read_file_bytes
 
 RESULT = "result.json"
 CAMPAIGN_JSON = "campaign.json"

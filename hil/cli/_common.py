@@ -86,8 +86,7 @@ def finite(option: str, value: float | None) -> None:
 def check_out_dir(path: Path, option: str) -> None:
     """``path`` is a directory we may write into, or one we may create (nothing is created here); exit 2
     naming the option otherwise. Checked before anything starts, so a bad one never reaches a board."""
-    from hil.config import ConfigError
-    from hil.files import require_writable_dir
+    from hil.config import ConfigError, require_writable_dir
 
     try:
         require_writable_dir(path, option)
@@ -97,7 +96,7 @@ def check_out_dir(path: Path, option: str) -> None:
 
 def check_input_file(path: Path) -> None:
     """``path`` names a regular file (a FIFO, device or directory is refused unopened); exit 2 otherwise."""
-    from hil.files import require_regular_file
+    from hil.config import require_regular_file
 
     try:
         require_regular_file(path)

@@ -20,7 +20,7 @@ def protocol_docs(
     path: Annotated[Path | None, typer.Option(help="The protocol document (default: docs/protocol.md).")] = None,
 ) -> None:
     """Check (or with --write, regenerate) the catalogue tables in docs/protocol.md."""
-    from hil.files import read_text_file
+    from hil.config import read_text_file
     from hil.protocol import docgen
 
     path = path or docgen.DOC_PATH

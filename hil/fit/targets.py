@@ -31,7 +31,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from hil.files import resolve_relative
+from hil.config import resolve_relative
 from hil.fit import ranges
 
 __all__ = [

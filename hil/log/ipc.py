@@ -98,7 +98,7 @@ def spawn_helper(argv: list[str]) -> subprocess.Popen[bytes]:
     """Start a helper process with pipes on its stdin and stdout and this checkout on PYTHONPATH
     (raises OSError if it cannot start)."""
     env = dict(os.environ)
-    root = str(Path(__file__).resolve().parents[1])
+    root = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
     return subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env,
                             close_fds=True)

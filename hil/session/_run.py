@@ -21,9 +21,8 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from firmware_stub.config import ConfigError as EmulatorConfigError
 from hil.analysis import summarize_log
-from hil.config import ConfigError, PortConfig, SessionConfig, load_session
+from hil.config import ConfigError, PortConfig, SessionConfig, load_session, require_regular_file, require_writable_dir
 from hil.control.registry import ControllerConfigError, require_sim_clock
-from hil.files import require_regular_file, require_writable_dir
 from hil.link import LinkError, PortUnavailable
 from hil.log import LogError
 from hil.log.frames import read_log_frames

@@ -36,7 +36,7 @@ PAPER_TABLE1 = {"eso": (0.32, 0.72), "eso_kf": (0.17, 0.28), "eso_kf_high_gain":
 PAPER_MISS_STD_PX = {1.0: {"eso": 6.02, "eso_kf_high_gain": 2.71}, 3.0: {"eso": 15.60, "eso_kf_high_gain": 6.15}}
 CONTROLLERS = ("eso", "eso_kf", "eso_kf_high_gain")
 
-# the bench's defaults (hil.config.TrackingConfig, SafetyConfig)
+# the bench's defaults (hil.config._models.TrackingConfig, SafetyConfig)
 TRACK_KP_PER_S = 8.0
 TRACK_IFOV_DEG_PER_PX = 0.002
 TRACK_MAX_RATE_DPS = 20.0

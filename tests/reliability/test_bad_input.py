@@ -11,8 +11,7 @@ from typing import Any
 
 import pytest
 
-from hil.config import PROFILES, load_session
-from hil.files import MAX_CONFIG_BYTES, MAX_YAML_NODES
+from hil.config import MAX_CONFIG_BYTES, MAX_YAML_NODES, PROFILES, load_session
 from tests.reliability.helpers import bad_input, emulator_run_dirs, listing, session_data, write_yaml
 
 NAN, INF = float("nan"), float("inf")

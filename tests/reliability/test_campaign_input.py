@@ -10,8 +10,7 @@ import pytest
 import yaml
 
 from hil.campaign import runner
-from hil.config import PROFILES
-from hil.files import MAX_YAML_NODES
+from hil.config import MAX_YAML_NODES, PROFILES
 from tests.reliability.helpers import bad_input, listing, session_data, write_yaml
 
 CAMPAIGN = PROFILES / "campaigns" / "filter-lag-15hz.yaml"

@@ -1,4 +1,4 @@
-"""hil.telemetry against a real broker (mosquitto, or amqtt where mosquitto is not installed).
+"""hil.telemetry._publisher against a real broker (mosquitto, or amqtt where mosquitto is not installed).
 
 The subscriber the tests listen with is a plain paho-mqtt client on its own thread, independent
 of the aiomqtt code under test. Creating it blocks the event loop until the broker has

@@ -47,8 +47,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, Self
 import aiomqtt
 import paho.mqtt.client as paho
 
+from hil.config import MqttConfig, check_topic_name
 from hil.log import ipc
-from hil.mqtt_config import MqttConfig, check_topic_name
 
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
@@ -596,7 +596,7 @@ class TelemetryProcess(Telemetry):
         """Start the child process (it connects, and reconnects, on its own); returns at once."""
         if self._proc is not None:
             return
-        self._proc = ipc.spawn_helper(ipc.helper_argv("hil.telemetry:_child_main"))
+        self._proc = ipc.spawn_helper(ipc.helper_argv("hil.telemetry._publisher:_child_main"))
         assert self._proc.stdin is not None and self._proc.stdout is not None
         self._wfd, self._rfd = self._proc.stdin.fileno(), self._proc.stdout.fileno()
         ipc.send(self._wfd, ("open", self.config.model_dump(), self.session_id, self._units, self._client_id))

@@ -35,18 +35,14 @@ from pydantic import (
 )
 
 from hil.analysis import SweptSine
+from hil.config._files import ConfigError, read_yaml_mapping, resolve_relative
+from hil.config._mqtt import MqttConfig
 from hil.control.registry import ControllerConfigError, controller_params
-from hil.files import (
-    ConfigError,
-    read_yaml_mapping,
-    resolve_relative,
-)
-from hil.mqtt_config import MqttConfig
 from hil.protocol import HexAxis
 from hil.protocol.swing import Envelope, Segment, check_envelope
 
 M = TypeVar("M", bound=BaseModel)
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PROFILES = REPO / "profiles"
 
 MAX_SESSION_S = 24 * 3600.0  # longest session

@@ -1,0 +1,69 @@
+"""The bench's configuration: every file a pydantic model, read within bounds, one-line errors.
+
+``load_session`` reads a session YAML (``SessionConfig``: ports, swing, controller, tracking, safety, log, MQTT);
+``ConfigError`` is the one error a bad file gives (a ValueError naming the file and field; exit 2 at the CLI).
+Files are read bounded (``read_yaml_mapping``: size, YAML node count, regular file), relative paths resolved
+against the file that names them (``resolve_relative``); ``MqttConfig`` is the broker section."""
+
+from hil.config._files import (
+    MAX_CONFIG_BYTES,
+    MAX_YAML_NODES,
+    ConfigError,
+    parse_yaml,
+    read_file_bytes,
+    read_text_file,
+    read_yaml_mapping,
+    require_regular_file,
+    require_writable_dir,
+    resolve_relative,
+)
+from hil.config._models import (
+    MAX_SESSION_S,
+    NAME_PATTERN,
+    PROFILES,
+    ControllerConfig,
+    Excitation,
+    HexapodLimits,
+    PortConfig,
+    SafetyConfig,
+    Seed,
+    SessionConfig,
+    Strict,
+    SwingProfile,
+    TrackingConfig,
+    load_model,
+    load_session,
+    one_line,
+)
+from hil.config._mqtt import MqttConfig, check_topic_name
+
+__all__ = [
+    "MAX_CONFIG_BYTES",
+    "MAX_SESSION_S",
+    "MAX_YAML_NODES",
+    "NAME_PATTERN",
+    "PROFILES",
+    "ConfigError",
+    "ControllerConfig",
+    "Excitation",
+    "HexapodLimits",
+    "MqttConfig",
+    "PortConfig",
+    "SafetyConfig",
+    "Seed",
+    "SessionConfig",
+    "Strict",
+    "SwingProfile",
+    "TrackingConfig",
+    "check_topic_name",
+    "load_model",
+    "load_session",
+    "one_line",
+    "parse_yaml",
+    "read_file_bytes",
+    "read_text_file",
+    "read_yaml_mapping",
+    "require_regular_file",
+    "require_writable_dir",
+    "resolve_relative",
+]
