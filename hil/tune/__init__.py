@@ -1,0 +1,44 @@
+"""`hil tune`: an Optuna study of a controller's gains over a campaign's cells (docs/tuning.md).
+
+``parse_params``/``parse_constraints`` read the search space and the constraints, ``tune`` runs the study (Optuna,
+RDB storage, SQLite by default; on a Dask cluster with ``jobs``), ``TuneResult`` is what it found. The study plumbing
+(``open_study``, ``rdb_storage``, ``storage_url``) and the one stability rule (``unstable_reason``) are shared with
+``hil fit --targets``."""
+
+from hil.tune._study import (
+    Constraint,
+    ParamSpec,
+    TrialInfo,
+    TuneResult,
+    choose_controller,
+    evaluate,
+    log_health,
+    open_study,
+    parse_constraints,
+    parse_params,
+    quiet_nan_warnings,
+    rdb_storage,
+    storage_url,
+    trial_campaign,
+    tune,
+    unstable_reason,
+)
+
+__all__ = [
+    "Constraint",
+    "ParamSpec",
+    "TrialInfo",
+    "TuneResult",
+    "choose_controller",
+    "evaluate",
+    "log_health",
+    "open_study",
+    "parse_constraints",
+    "parse_params",
+    "quiet_nan_warnings",
+    "rdb_storage",
+    "storage_url",
+    "trial_campaign",
+    "tune",
+    "unstable_reason",
+]
