@@ -1,6 +1,7 @@
 """Replays: a session log through another controller offline (``replay_log``), and a capture played back at a
 board or the emulator byte for byte at its recorded times (``replay_capture``, ``play_capture``; docs/capture.md)."""
 
+from hil.replay._controller import ReplayError, ReplayResult, replay_log, write_outputs, xcorr_lag
 from hil.replay._playback import (
     FIRST_SAMPLE_WAIT_S,
     SAMPLE_TIMES_KEPT,
@@ -13,7 +14,6 @@ from hil.replay._playback import (
     resolve_ports,
     write_playback_json,
 )
-from hil.replay._replay import ReplayError, ReplayResult, replay_log, write_outputs, xcorr_lag
 
 __all__ = [
     "FIRST_SAMPLE_WAIT_S",

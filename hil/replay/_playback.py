@@ -66,7 +66,7 @@ from hil.protocol import (
     ServoMode,
     StreamMode,
 )
-from hil.replay._replay import ReplayError
+from hil.replay._controller import ReplayError
 
 SPIN_S = 200e-6  # the last part of each wait is a spin that keeps polling the ports, the rest a select() sleep
 FIRST_SAMPLE_WAIT_S = 2.0  # how long the replay waits for the stream the replayed SERVO_MODE STREAM starts
