@@ -4,7 +4,7 @@
         [--controller ESO+KF] [--params "..."] [--trials 200] [--workers 2] [--skip-tune] [--json PATH]
         [--also LABEL ...] [--show METRIC] [--oracle ORACLE.yaml | --oracle-trials N]
 
-1. The study: ``hil.tune._study.tune`` on the campaign (its cells, the tuned controller's entry), ``--trials`` trials,
+1. The study: ``hil.tune.tune`` on the campaign (its cells, the tuned controller's entry), ``--trials`` trials,
    ``--workers`` at a time; its wall time is printed.
 2. The comparison: one campaign with the baseline (the campaign's ``baseline``), the tuned entry with its
    campaign parameters (the paper's defaults), the same entry with the tuned parameters, and the ``oracle``

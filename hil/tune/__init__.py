@@ -5,20 +5,14 @@ RDB storage, SQLite by default; on a Dask cluster with ``jobs``), ``TuneResult``
 (``open_study``, ``rdb_storage``, ``storage_url``) and the one stability rule (``unstable_reason``) are shared with
 ``hil fit --targets``."""
 
+from hil.tune._report import write_tune_report
+from hil.tune._space import Constraint, ParamSpec, parse_constraints, parse_params
+from hil.tune._store import TrialInfo, TuneResult, open_study, rdb_storage, storage_url
 from hil.tune._study import (
-    Constraint,
-    ParamSpec,
-    TrialInfo,
-    TuneResult,
     choose_controller,
     evaluate,
     log_health,
-    open_study,
-    parse_constraints,
-    parse_params,
     quiet_nan_warnings,
-    rdb_storage,
-    storage_url,
     trial_campaign,
     tune,
     unstable_reason,
@@ -41,4 +35,5 @@ __all__ = [
     "trial_campaign",
     "tune",
     "unstable_reason",
+    "write_tune_report",
 ]

@@ -1,0 +1,184 @@
+"""The study's report: tune.md and tune.html in the campaign report's style (hil.campaign.report's document model),
+with the optimisation history and the parameters' importances (fANOVA, once enough trials completed)."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from hil.tune._store import TRIALS, TuneResult, rdb_storage
+
+if TYPE_CHECKING:
+    import optuna
+
+
+def _plot_history(result: TuneResult, path: Path) -> Path | None:
+    from hil.campaign.report import legend_below, new_figure, save_figure
+
+    done = [t for t in result.trials if t.state == "COMPLETE" and t.value is not None]
+    if not done:
+        return None
+    fig, ax = new_figure()
+    a = ax[0, 0]
+    ok = [t for t in done if t.feasible]
+    bad = [t for t in done if not t.feasible]
+    if ok:
+        a.plot([t.number for t in ok], [t.value for t in ok], "o", ms=3.5, color="C0", label="feasible trial")
+    if bad:
+        a.plot([t.number for t in bad], [t.value for t in bad], "x", ms=4, color="C3", label="infeasible trial")
+    failed = [t.number for t in result.trials if t.state == "FAIL"]
+    pick = min if result.direction == "minimize" else max
+    best, xs, ys = None, [], []
+    for t in sorted(ok, key=lambda t: t.number):
+        best = t.value if best is None else pick(best, t.value)
+        xs.append(t.number)
+        ys.append(best)
+    if xs:
+        a.step(xs, ys, where="post", color="k", lw=1.2, label="best feasible so far")
+    if failed:
+        lo = min(t.value for t in done)
+        a.plot(failed, [lo] * len(failed), "|", ms=8, color="0.5", label="failed (unstable) trial")
+    a.set(title=f"{result.study}: {result.objective} per trial ({result.direction})", xlabel="trial",
+          ylabel=result.objective)
+    if all(t.value > 0 for t in done):
+        a.set_yscale("log")
+    a.grid(alpha=0.3)
+    legend_below(fig, a)
+    return save_figure(fig, path)
+
+
+MIN_IMPORTANCE_TRIALS = 4  # complete trials below which importances are not computed
+
+
+def _importances(study: optuna.Study) -> tuple[dict[str, float], str]:
+    """Optuna's parameter importances (its default evaluator) over the complete trials, or ({}, why not)."""
+    import optuna
+
+    n = sum(t.state == optuna.trial.TrialState.COMPLETE for t in study.get_trials(deepcopy=False))
+    if n < MIN_IMPORTANCE_TRIALS:
+        return {}, f"{n} complete trial(s), need {MIN_IMPORTANCE_TRIALS}"
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        try:
+            imp = optuna.importance.get_param_importances(study)
+        except (RuntimeError, ValueError, ZeroDivisionError) as exc:
+            return {}, " ".join(str(exc).split())
+    for w in seen:
+        if "too small" in str(w.message):  # Optuna then returns equal importances, which say nothing
+            return {}, " ".join(str(w.message).split())
+    return imp, ""
+
+
+def _plot_importances(imp: dict[str, float], path: Path) -> Path | None:
+    from hil.campaign.report import new_figure, save_figure
+
+    if not imp:
+        return None
+    fig, ax = new_figure(height=0.5 + 0.45 * len(imp))
+    names = list(imp)[::-1]
+    ax[0, 0].barh(names, [imp[n] for n in names], color="C0")
+    ax[0, 0].set(title="parameter importances (Optuna's default evaluator, complete trials)", xlabel="importance")
+    ax[0, 0].grid(alpha=0.3, axis="x")
+    return save_figure(fig, path)
+
+
+def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> Any:
+    """tune.md, tune.html and the plots into the study's directory: the best parameters, the optimisation history,
+    the parameter importances, the best trial's campaign table, the trials. Returns a ReportFiles."""
+    import optuna
+
+    from hil.campaign import CampaignError, load_results
+    from hil.campaign.report import (
+        Banner,
+        Bullets,
+        Cell,
+        Figure,
+        Heading,
+        Item,
+        ReportFiles,
+        Table,
+        Text,
+        format_number,
+        profile_table,
+        render_html,
+        render_markdown,
+    )
+
+    if study is None:
+        study = optuna.load_study(study_name=result.study, storage=rdb_storage(result.storage))
+    out = result.out_dir
+    out.mkdir(parents=True, exist_ok=True)
+    pngs: list[Path] = []
+    doc: list[Any] = [Heading(1, f"Tuning {result.controller_label} ({result.controller}) on {result.campaign}")]
+    feasible = result.best_trial is not None
+    head = (f"trial {result.best_trial}: {result.objective} {format_number(result.best_value or math.nan)}" if feasible
+            else "no feasible trial")
+    doc.append(Banner(head, f"{len(result.trials)} trials: {result.n_complete} complete "
+                            f"({result.n_infeasible} infeasible), {result.n_failed} failed (unstable); objective: "
+                            f"mean {result.objective} over the campaign's profiles and seeds, {result.direction}d.",
+                      feasible))
+    doc.append(Heading(2, "Best parameters"))
+    if result.params is not None:
+        rows = [[Cell(k), Cell(f"{v:.6g}" if isinstance(v, float) else str(v)),
+                 Cell("tuned" if k in (result.best_params or {}) else "campaign")] for k, v in result.params.items()]
+        doc.append(Table(["parameter", "value", "from"], rows, align="lrl"))
+        if result.yaml_path is not None:
+            doc.append(Text(f"Controller file: {result.yaml_path.name} (hil check {result.yaml_path.name})."))
+    else:
+        doc.append(Text("No trial was complete and feasible: nothing to write."))
+    doc.append(Heading(2, "Search"))
+    doc.append(Bullets([Item(f"space: {', '.join(str(s) for s in result.space)}"),
+                        Item("constraints: " + (", ".join(str(c) for c in result.constraints) or "none")
+                             + " (and the campaign's thresholds, on every cell)"),
+                        Item(f"sampler: TPE (multivariate), seeded; {result.workers} trial(s) at a time, "
+                             f"engine {result.engine}"),
+                        Item(f"storage: {result.storage}, study {result.study}")]))
+    hist = _plot_history(result, out / "tune-history.png")
+    if hist is not None:
+        pngs.append(hist)
+        doc.append(Figure(hist, "optimisation history: each complete trial, the best feasible so far"))
+    imp, why = _importances(study)
+    doc.append(Heading(2, "Parameter importances"))
+    if imp:
+        png = _plot_importances(imp, out / "tune-importances.png")
+        if png is not None:
+            pngs.append(png)
+            doc.append(Figure(png, "parameter importances"))
+        doc.append(Table(["parameter", "importance"], [[Cell(k), Cell(f"{v:.3f}")] for k, v in imp.items()],
+                         align="lr"))
+    else:
+        doc.append(Text(f"Not computed: {why}." if why else "Not computed."))
+    if result.best_trial is not None:
+        trial_dir = out / TRIALS / f"{result.best_trial:05d}"
+        doc.append(Heading(2, f"Best trial's campaign (trial {result.best_trial})"))
+        try:
+            best = load_results(trial_dir)
+        except CampaignError as exc:
+            doc.append(Text(f"Not available: {exc}"))
+        else:
+            for p in best.config.profiles:
+                doc.append(Heading(3, p.label))
+                doc.append(profile_table(best, p.label))
+    doc.append(Heading(2, "Trials"))
+    ranked = sorted(result.trials, key=lambda t: (t.state != "COMPLETE", not t.feasible,
+                                                  (t.value if result.direction == "minimize" else -(t.value or 0))
+                                                  if t.value is not None else math.inf, t.number))
+    rows = []
+    for t in ranked[:20]:
+        state = t.state if t.state != "COMPLETE" else ("feasible" if t.feasible else "infeasible")
+        rows.append([Cell(str(t.number)), Cell(state, status="pass" if t.feasible else "fail"),
+                     Cell(format_number(t.value) if t.value is not None else "—"),
+                     Cell(", ".join(f"{k}={v:.4g}" for k, v in t.params.items())),
+                     Cell(t.failure or ", ".join(f"{k}: {c:+.3g}" for k, c in t.constraints.items()))])
+    doc.append(Text(f"The best 20 of {len(result.trials)} (feasible first, then infeasible, then failed)."))
+    doc.append(Table(["trial", "state", result.objective, "parameters", "constraints (<= 0 holds) / why it failed"],
+                     rows, align="llrll"))
+    doc.append(Heading(2, "Run"))
+    doc.append(Bullets([Item(f"this run: {result.trials_run} trial(s), {result.wall_s:.1f} s wall, "
+                             f"{result.workers} worker(s), engine {result.engine}")]))
+    md, page = out / "tune.md", out / "tune.html"
+    md.write_text(render_markdown(doc, out), encoding="utf-8")
+    page.write_text(render_html(doc), encoding="utf-8")
+    return ReportFiles(md, page, pngs)

@@ -1,0 +1,130 @@
+"""Where a study lives and what it found: the Optuna RDB storage (SQLite by default, any SQLAlchemy URL for a
+study several machines share; a heartbeat fails the trials of a killed run), ``open_study`` (create, or load and
+check it was made with the same space and objective), and the result records ``TrialInfo`` and ``TuneResult``."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from pathlib import Path
+from typing import Any
+
+from hil.config import ConfigError
+from hil.tune._space import Constraint, ParamSpec
+
+TRIALS = "trials"
+
+
+HEARTBEAT_S = 30  # RDB heartbeat: a trial left RUNNING by a killed run is failed after GRACE_S
+GRACE_S = 120
+
+
+@dataclasses.dataclass(frozen=True)
+class TrialInfo:
+    """One finished trial as the study stored it."""
+
+    number: int
+    state: str  # COMPLETE, FAIL, PRUNED, RUNNING
+    value: float | None
+    params: dict[str, Any]
+    feasible: bool | None  # None: failed (no constraints evaluated)
+    constraints: dict[str, float]  # name (metric<=bound) -> the worst cell's excess, <= 0 holds
+    failure: str
+    wall_s: float | None
+
+
+@dataclasses.dataclass
+class TuneResult:
+    """A study's outcome. ``best_params``: the best feasible trial's tuned parameters (None if no trial was
+    feasible); ``params``: the whole controller entry's parameters with them merged in, as the YAML holds them."""
+
+    study: str
+    storage: str
+    out_dir: Path
+    campaign: str
+    controller_label: str
+    controller: str
+    objective: str
+    direction: str
+    space: list[ParamSpec]
+    constraints: list[Constraint]
+    trials: list[TrialInfo]
+    trials_run: int
+    wall_s: float
+    engine: str
+    workers: int
+    best_trial: int | None = None
+    best_value: float | None = None
+    best_params: dict[str, Any] | None = None
+    params: dict[str, Any] | None = None
+    yaml_path: Path | None = None
+    profile_path: Path | None = None
+    report: Any = None  # hil.campaign.report.ReportFiles
+
+    @property
+    def n_complete(self) -> int:
+        return sum(t.state == "COMPLETE" for t in self.trials)
+
+    @property
+    def n_failed(self) -> int:
+        return sum(t.state == "FAIL" for t in self.trials)
+
+    @property
+    def n_infeasible(self) -> int:
+        return sum(t.state == "COMPLETE" and t.feasible is False for t in self.trials)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"study": self.study, "storage": self.storage, "dir": str(self.out_dir), "campaign": self.campaign,
+                "controller": {"label": self.controller_label, "name": self.controller},
+                "objective": self.objective, "direction": self.direction,
+                "space": [str(s) for s in self.space], "constraints": [str(c) for c in self.constraints],
+                "trials": len(self.trials), "trials_run": self.trials_run, "complete": self.n_complete,
+                "failed": self.n_failed, "infeasible": self.n_infeasible, "wall_s": self.wall_s,
+                "engine": self.engine, "workers": self.workers, "best_trial": self.best_trial,
+                "best_value": self.best_value, "best_params": self.best_params, "params": self.params,
+                "yaml": None if self.yaml_path is None else str(self.yaml_path),
+                "profile": None if self.profile_path is None else str(self.profile_path),
+                "report": None if self.report is None else {"markdown": str(self.report.markdown),
+                                                            "html": str(self.report.html),
+                                                            "plots": [str(p) for p in self.report.pngs]}}
+
+
+def storage_url(storage: str | None, out_dir: Path) -> str:
+    if storage is None:
+        return f"sqlite:///{(out_dir / 'tune.db').absolute()}"
+    if "://" not in storage:
+        raise ConfigError(f"--storage: {storage!r} is not a database URL (e.g. sqlite:///tune.db, "
+                          "postgresql://user@host/db)")
+    return storage
+
+
+def rdb_storage(url: str) -> Any:
+    import optuna
+    import sqlalchemy.exc
+
+    kwargs: dict[str, Any] = {"connect_args": {"timeout": 60}} if url.startswith("sqlite") else {}
+    try:
+        with warnings.catch_warnings():  # the heartbeat is marked experimental
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            return optuna.storages.RDBStorage(url, engine_kwargs=kwargs, heartbeat_interval=HEARTBEAT_S,
+                                              grace_period=GRACE_S)
+    except (sqlalchemy.exc.SQLAlchemyError, ImportError, ValueError) as exc:
+        msg = " ".join(str(exc).split())
+        raise ConfigError(f"--storage {url}: cannot open: {msg[:200]}") from None
+
+
+def open_study(rdb: Any, study_name: str, sampler: Any, direction: str, *, meta: dict[str, Any],
+               exists: bool) -> Any:
+    """Create the study, or load it (``exists``) and check it was made with the same ``meta`` (its user attributes:
+    the space, the objective, ...); ConfigError naming ``--resume`` if not. A new study gets ``meta`` stored."""
+    import optuna
+
+    st = optuna.create_study(storage=rdb, sampler=sampler, study_name=study_name, direction=direction,
+                             load_if_exists=True)
+    for key, value in meta.items():
+        if not exists:
+            st.set_user_attr(key, value)
+        elif st.user_attrs.get(key) != value:
+            raise ConfigError(f"--resume: study {study_name!r} was made with {key} {st.user_attrs.get(key)!r}, "
+                              f"not {value!r}; choose another --study")
+    return st
