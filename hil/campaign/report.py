@@ -18,13 +18,10 @@ rendered twice, so the Markdown and the HTML always say the same thing.
 
 from __future__ import annotations
 
-import base64
-import html
 import json
 import math
-import os
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,79 +30,33 @@ import numpy as np
 from hil.campaign.metrics import METRICS, gain_pct, gap_closed, improvement_pct, low_pass, score
 from hil.campaign.model import CampaignResult, slug
 from hil.campaign.runner import load_results
+from hil.report import (
+    Banner,
+    Block,
+    Bullets,
+    Cell,
+    Figure,
+    Heading,
+    Item,
+    ReportFiles,
+    Table,
+    Text,
+    format_number,
+    legend_below,
+    new_figure,
+    render_html,
+    render_markdown,
+    save_figure,
+)
 
 SETTLE_S = 1.0  # as hil.campaign.metrics.compute_metrics: the plots start after the swing ramped in
 WINDOW_S = 2.0  # the rate-error time series
 STATIC_WINDOW_S = 0.2  # seed 000 Fig. 12
 LAG_PERIODS = 4  # seed 000 Fig. 13: a few periods of the excitation sine
 PSD_SEGMENT = 1024  # Welch segment length, samples
-DPI = 100
 
 
 # --- the neutral document --------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Cell:
-    text: str
-    best: bool = False  # the best value of its column
-    status: str | None = None  # "pass" or "fail"
-
-
-@dataclass(frozen=True)
-class Table:
-    header: list[str]
-    rows: list[list[Cell]]
-    align: str = ""  # per column 'l' or 'r'; columns past its end are right-aligned (numbers)
-
-    def right(self, i: int) -> bool:
-        return (self.align[i:i + 1] or "r") == "r"
-
-
-@dataclass(frozen=True)
-class Heading:
-    level: int
-    text: str
-
-
-@dataclass(frozen=True)
-class Text:
-    text: str
-
-
-@dataclass(frozen=True)
-class Item:
-    text: str
-    status: str | None = None
-    sub: list[str] = field(default_factory=list)
-
-
-@dataclass(frozen=True)
-class Bullets:
-    items: list[Item]
-
-
-@dataclass(frozen=True)
-class Banner:
-    headline: str
-    text: str
-    passed: bool
-
-
-@dataclass(frozen=True)
-class Figure:
-    path: Path
-    caption: str
-
-
-Block = Heading | Text | Bullets | Banner | Table | Figure
-
-
-@dataclass(frozen=True)
-class ReportFiles:
-    markdown: Path
-    html: Path
-    pngs: list[Path]
 
 
 # --- numbers ---------------------------------------------------------------------------------
@@ -124,20 +75,6 @@ def _stat(result: CampaignResult, profile: str, controller: str, metric: str) ->
     if not v:
         return Stat(math.nan, math.nan, math.nan, 0)
     return Stat(float(np.mean(v)), min(v), max(v), len(v))
-
-
-def format_number(x: float) -> str:
-    """Three significant digits (all of them from 1000 up), never an exponent: 0.281, 6.02, 15.6, 1234; 9.996
-    rounds to 10.0 (not 10.00)."""
-    if not math.isfinite(x):
-        return "n/a"
-    if x == 0:
-        return "0"
-    exponent = math.floor(math.log10(abs(x)))
-    digits = max(0, 2 - exponent)
-    if math.floor(math.log10(abs(round(x, digits)))) > exponent:  # rounding carried into the next decade
-        digits = max(0, digits - 1)
-    return f"{x:.{digits}f}"
 
 
 def _value(metric: str, x: float, fmt: Callable[[float], str] = format_number) -> str:
@@ -510,112 +447,7 @@ def build_document(result: CampaignResult, campaign_dir: Path, figures: dict[str
 # --- Markdown --------------------------------------------------------------------------------
 
 
-def _md_cell(c: Cell) -> str:
-    text = c.text.replace("|", "\\|")
-    return f"**{text}**" if c.best or c.status == "fail" else text
-
-
-def _md_table(t: Table) -> str:
-    lines = ["| " + " | ".join(h.replace("|", "\\|") for h in t.header) + " |",
-             "|" + "|".join("---:" if t.right(i) else "---" for i in range(len(t.header))) + "|"]
-    lines += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in t.rows]
-    return "\n".join(lines)
-
-
-def _md_item(i: Item) -> str:
-    head = f"- **{i.status.upper()}** {i.text}" if i.status else f"- {i.text}"
-    return "\n".join([head, *(f"  - {s}" for s in i.sub)])
-
-
-def render_markdown(doc: list[Block], out_dir: Path) -> str:
-    parts = []
-    for b in doc:
-        match b:
-            case Heading():
-                parts.append(f"{'#' * b.level} {b.text}")
-            case Banner():
-                parts.append(f"> **Verdict: {b.headline}.** {b.text}")
-            case Text():
-                parts.append(b.text)
-            case Bullets():
-                parts.append("\n".join(_md_item(i) for i in b.items))
-            case Table():
-                parts.append(_md_table(b))
-            case Figure():
-                parts.append(f"![{b.caption}]({Path(os.path.relpath(b.path, out_dir)).as_posix()})\n\n*{b.caption}*")
-    return "\n\n".join(parts) + "\n"
-
-
 # --- HTML ------------------------------------------------------------------------------------
-
-CSS = """
-body { font-family: system-ui, sans-serif; max-width: 1200px; margin: 2em auto; padding: 0 1em; color: #222; }
-table { border-collapse: collapse; margin: 1em 0; font-size: 0.92em; }
-th, td { border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: right; vertical-align: top; }
-th { background: #f2f2f2; }
-th.l, td.l { text-align: left; }
-td.best { font-weight: bold; background: #dff3e4; }
-.pass { color: #0a7d28; font-weight: bold; }
-.fail { color: #b00020; font-weight: bold; }
-.banner { padding: 0.8em 1.2em; border-radius: 6px; margin: 1em 0; }
-.banner .headline { font-size: 1.6em; font-weight: bold; }
-.banner.pass { background: #dff3e4; border: 2px solid #0a7d28; }
-.banner.fail { background: #fde7ea; border: 2px solid #b00020; }
-figure { margin: 1em 0; } figure img { max-width: 100%; } figcaption { color: #555; font-size: 0.9em; }
-"""
-
-
-def _esc(text: str) -> str:
-    return html.escape(text).replace("+-", "±")
-
-
-def _html_cell(c: Cell, right: bool) -> str:
-    cls = " ".join(x for x in ("best" if c.best else "", c.status or "", "" if right else "l") if x)
-    return f'<td class="{cls}">{_esc(c.text)}</td>' if cls else f"<td>{_esc(c.text)}</td>"
-
-
-def _html_table(t: Table) -> str:
-    head = "".join(("<th>" if t.right(i) else '<th class="l">') + f"{_esc(h)}</th>" for i, h in enumerate(t.header))
-    rows = "".join("<tr>" + "".join(_html_cell(c, t.right(i)) for i, c in enumerate(row)) + "</tr>\n"
-                   for row in t.rows)
-    return f"<table>\n<thead><tr>{head}</tr></thead>\n<tbody>\n{rows}</tbody>\n</table>"
-
-
-def _html_item(i: Item) -> str:
-    status = f'<span class="{i.status}">{i.status.upper()}</span> ' if i.status else ""
-    sub = "<ul>" + "".join(f"<li>{_esc(s)}</li>" for s in i.sub) + "</ul>" if i.sub else ""
-    return f"<li>{status}{_esc(i.text)}{sub}</li>"
-
-
-def _html_figure(f: Figure) -> str:
-    data = base64.b64encode(f.path.read_bytes()).decode("ascii")
-    return (f'<figure><img alt="{_esc(f.caption)}" src="data:image/png;base64,{data}">'
-            f"<figcaption>{_esc(f.caption)}</figcaption></figure>")
-
-
-def _html_block(b: Block) -> str:
-    match b:
-        case Heading():
-            return f"<h{b.level}>{_esc(b.text)}</h{b.level}>"
-        case Banner():
-            cls = "pass" if b.passed else "fail"
-            return f'<div class="banner {cls}"><div class="headline">{_esc(b.headline)}</div>{_esc(b.text)}</div>'
-        case Text():
-            return f"<p>{_esc(b.text)}</p>"
-        case Bullets():
-            return "<ul>" + "".join(_html_item(i) for i in b.items) + "</ul>"
-        case Table():
-            return _html_table(b)
-        case Figure():
-            return _html_figure(b)
-    raise TypeError(f"not a report block: {b!r}")
-
-
-def render_html(doc: list[Block]) -> str:
-    title = next((b.text for b in doc if isinstance(b, Heading)), "Campaign report")
-    body = "\n".join(_html_block(b) for b in doc)
-    return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{_esc(title)}</title>\n'
-            f"<style>{CSS}</style>\n</head>\n<body>\n{body}\n</body>\n</html>\n")
 
 
 # --- signals ---------------------------------------------------------------------------------
@@ -694,27 +526,8 @@ def _read_trace(result: CampaignResult, campaign_dir: Path, profile: str, contro
 # --- plots -----------------------------------------------------------------------------------
 
 
-def new_figure(rows: int = 1, cols: int = 1, height: float = 3.6) -> tuple[Any, Any]:
-    from matplotlib.figure import Figure as MplFigure  # lazy, and no pyplot: no global state, no GUI backend
-
-    fig = MplFigure(figsize=(9.0, height * rows), layout="constrained")
-    return fig, fig.subplots(rows, cols, squeeze=False)
-
-
 def _color(result: CampaignResult, controller: str) -> str:
     return f"C{_labels(result).index(controller) % 10}"
-
-
-def save_figure(fig: Any, path: Path) -> Path:
-    fig.savefig(path, dpi=DPI, format="png")
-    return path
-
-
-def legend_below(fig: Any, ax: Any) -> None:
-    """The legend of ``ax``'s lines under the axes, outside them (constrained layout makes room): never over data."""
-    handles, labels = ax.get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="outside lower center", ncols=min(len(handles), 4), frameon=False)
 
 
 def plot_rate_error(result: CampaignResult, profile: str, traces: list[Trace], path: Path) -> Path | None:

@@ -13,6 +13,23 @@ import numpy as np
 
 from hil.fit.logs import FitLog
 from hil.fit.twin import TwinFit
+from hil.report import (
+    Banner,
+    Bullets,
+    Cell,
+    Figure,
+    Heading,
+    Item,
+    ReportFiles,
+    Table,
+    Text,
+    format_number,
+    legend_below,
+    new_figure,
+    render_html,
+    render_markdown,
+    save_figure,
+)
 from hil.session import emulator_for_plant
 from hil.session import run as run_session
 
@@ -92,7 +109,6 @@ def rerun_on_twin(fit: TwinFit, plant_path: Path, work_dir: Path) -> tuple[list[
 
 
 def _plot_psd(fit: TwinFit, path: Path) -> Path | None:
-    from hil.campaign.report import legend_below, new_figure, save_figure
 
     psd = fit.noise.get("psd") or {}
     if not psd:
@@ -110,7 +126,6 @@ def _plot_psd(fit: TwinFit, path: Path) -> Path | None:
 
 
 def _plot_frf(fit: TwinFit, path: Path) -> Path | None:
-    from hil.campaign.report import legend_below, new_figure, save_figure
 
     if not fit.frf:
         return None
@@ -136,7 +151,6 @@ def _plot_frf(fit: TwinFit, path: Path) -> Path | None:
 
 
 def _plot_torque(fit: TwinFit, path: Path) -> Path | None:
-    from hil.campaign.report import legend_below, new_figure, save_figure
 
     rows = [(axis, name, tr) for axis, mf in fit.mechanics.items() for name, tr in mf.traces.items()]
     if not rows:
@@ -162,7 +176,6 @@ def _plot_torque(fit: TwinFit, path: Path) -> Path | None:
 
 
 def _plot_rerun(traces: dict[str, Any], path: Path) -> Path | None:
-    from hil.campaign.report import legend_below, new_figure, save_figure
 
     if not traces:
         return None
@@ -183,7 +196,6 @@ def _plot_rerun(traces: dict[str, Any], path: Path) -> Path | None:
 
 
 def _fmt(x: float | None, sig: float | None = None) -> str:
-    from hil.campaign.report import format_number
 
     if x is None:
         return "-"
@@ -195,19 +207,6 @@ def write_fit_report(fit: TwinFit, plant_path: Path, out_dir: Path, *, rerun: bo
                      command: str = "hil fit") -> tuple[Any, list[TwinCheck]]:
     """fit.md, fit.html and the plots into ``out_dir``; re-runs the static and swing sessions on the twin (``sim``)
     unless ``rerun`` is False. Returns the ReportFiles and the twin checks."""
-    from hil.campaign.report import (
-        Banner,
-        Bullets,
-        Cell,
-        Figure,
-        Heading,
-        Item,
-        ReportFiles,
-        Table,
-        Text,
-        render_html,
-        render_markdown,
-    )
 
     out_dir.mkdir(parents=True, exist_ok=True)
     checks, traces = rerun_on_twin(fit, plant_path, out_dir / "twin-runs") if rerun else ([], {})

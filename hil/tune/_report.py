@@ -8,6 +8,23 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hil.report import (
+    Banner,
+    Bullets,
+    Cell,
+    Figure,
+    Heading,
+    Item,
+    ReportFiles,
+    Table,
+    Text,
+    format_number,
+    legend_below,
+    new_figure,
+    render_html,
+    render_markdown,
+    save_figure,
+)
 from hil.tune._store import TRIALS, TuneResult, rdb_storage
 
 if TYPE_CHECKING:
@@ -15,7 +32,6 @@ if TYPE_CHECKING:
 
 
 def _plot_history(result: TuneResult, path: Path) -> Path | None:
-    from hil.campaign.report import legend_below, new_figure, save_figure
 
     done = [t for t in result.trials if t.state == "COMPLETE" and t.value is not None]
     if not done:
@@ -72,7 +88,6 @@ def _importances(study: optuna.Study) -> tuple[dict[str, float], str]:
 
 
 def _plot_importances(imp: dict[str, float], path: Path) -> Path | None:
-    from hil.campaign.report import new_figure, save_figure
 
     if not imp:
         return None
@@ -90,21 +105,7 @@ def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> 
     import optuna
 
     from hil.campaign import CampaignError, load_results
-    from hil.campaign.report import (
-        Banner,
-        Bullets,
-        Cell,
-        Figure,
-        Heading,
-        Item,
-        ReportFiles,
-        Table,
-        Text,
-        format_number,
-        profile_table,
-        render_html,
-        render_markdown,
-    )
+    from hil.campaign.report import profile_table
 
     if study is None:
         study = optuna.load_study(study_name=result.study, storage=rdb_storage(result.storage))

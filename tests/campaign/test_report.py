@@ -17,6 +17,7 @@ from hil.campaign.report import format_values, gain_pct, profile_table, welch, w
 from hil.campaign.runner import CAMPAIGN_JSON, judge
 from hil.log import SCHEMA, SessionLog
 from hil.log.schema import group_by_name
+from hil.report._render import _esc as escape_html  # the page escapes as the renderer does
 
 ROOT = Path(__file__).resolve().parents[2]
 G = group_by_name(SCHEMA)
@@ -291,7 +292,7 @@ def test_every_metric_cell_is_format_values(full):
                 values = result.values(profile, row[0].text, metric)
                 assert len(values) == 2
                 assert row[col].text == format_values(values, metric=metric)
-                assert report._esc(row[col].text) in page
+                assert escape_html(row[col].text) in page
     assert "| **+-0.290 (0.280–0.300)** |" in files.markdown.read_text()
 
 
