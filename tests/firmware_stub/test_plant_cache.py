@@ -9,7 +9,8 @@ import sys
 
 PROBE = """
 import json, numpy as np
-from firmware_stub.plant import DEFAULT_PLANT_CONFIG, CarrierMotion, Plant, kernel, load_plant_config, _SIGNATURES
+from firmware_stub.plant import DEFAULT_PLANT_CONFIG, CarrierMotion, Plant, kernel, load_plant_config
+from firmware_stub.plant._kernel import _SIGNATURES
 p = Plant(load_plant_config(DEFAULT_PLANT_CONFIG), 0)
 p.step_tick(0, 0, CarrierMotion.at_rest()); p.truth(); p.miss_px()
 p.run(np.zeros(3), np.zeros(3), np.zeros((3, 18)))
