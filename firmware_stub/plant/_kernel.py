@@ -1,5 +1,5 @@
 """The plant's numba kernel (``@numba.njit(cache=True)``): one tick (``kernel``) or many (``_run``) over float64
-arrays of parameters (``P_*``/``PA_*`` offsets) and state (``S_*``), laid out by ``_params``. One implementation for
+arrays of parameters (``P_*``/``PA_*`` offsets) and state (``S_*``), laid out by ``pack_params``. One implementation for
 every clock: the emulator, the in-process sim clock and offline runs all call it."""
 
 from __future__ import annotations
@@ -22,12 +22,12 @@ from firmware_stub.plant._config import (
     MotorConfig,
     PlantConfig,
 )
-from firmware_stub.plant._math import _foh, axis_zoh, band_pass
+from firmware_stub.plant._math import axis_zoh, band_pass, foh
 
-_NOISE_WHITE = 5  # per tick: gyro x, y, z (bias + noise, output units), camera x, y (px)
-_NOISE_BLOCK_TICKS = 1000
+NOISE_WHITE = 5  # per tick: gyro x, y, z (bias + noise, output units), camera x, y (px)
+NOISE_BLOCK_TICKS = 1000
 _ROUND = 6755399441055744.0  # 1.5 * 2^52: (x + _ROUND) - _ROUND is x rounded to the nearest integer (|x| < 2^51)
-_MAX_BANDS = 8
+MAX_BANDS = 8
 
 # --- layout of the parameter array p (float64) ----------------------------------------------------------------------
 # per axis (az at 0, el at PA_LEN):
@@ -40,8 +40,8 @@ PA_LEN = 65
 (P_NSUB, P_H, P_MRX, P_MRY, P_MRZ, P_HAS_IMB, P_PVX, P_PVY, P_PVZ, P_HAS_PIV, P_EF, P_C1, P_C0, P_EA, P_D1, P_D0,
  P_DELAY, P_LSB, P_INV_LSB, P_ENC_LSB, P_NCOL, P_RW, P_STRIDE, P_TGX, P_TGY, P_TGZ, P_IFOV, P_HW, P_HH) = range(
     2 * PA_LEN, 2 * PA_LEN + 29)
-P_COL = 2 * PA_LEN + 29  # _MAX_BANDS x (b0 in output units per unit normal, a1, a2)
-P_LEN = P_COL + 3 * _MAX_BANDS
+P_COL = 2 * PA_LEN + 29  # MAX_BANDS x (b0 in output units per unit normal, a1, a2)
+P_LEN = P_COL + 3 * MAX_BANDS
 
 # --- layout of the state array s (float64) --------------------------------------------------------------------------
 S_X = 0  # 10: per axis (i, w_m, theta_m, w_l, theta_l); az at 0, el at 5
@@ -61,13 +61,13 @@ S_IMB = 57  # 2: imbalance torque held over the last tick (az, el)
 S_LOS = 59  # 3: true elevation-frame inertial rates at the tick end (rad/s)
 S_ATT = 62  # 4: sin, cos of the carrier's roll and pitch at the last mid-tick
 S_RIP = 66  # 4: sin, cos of N theta_m (ripple phase), az then el
-S_COL = 70  # _MAX_BANDS x 3 axes x (e1, e2, y1, y2) of the coloured-noise filters
-S_RING = S_COL + 4 * 3 * _MAX_BANDS  # 3 x delay_ticks: the gyro's whole-tick delay line
+S_COL = 70  # MAX_BANDS x 3 axes x (e1, e2, y1, y2) of the coloured-noise filters
+S_RING = S_COL + 4 * 3 * MAX_BANDS  # 3 x delay_ticks: the gyro's whole-tick delay line
 
 OUT_LEN = 8  # step_tick's tuple: gyro x, y, z (deg/s), encoders az, el (deg), currents az, el (A), refill flag
 
 
-def _params(cfg: PlantConfig) -> np.ndarray:
+def pack_params(cfg: PlantConfig) -> np.ndarray:
     """Every constant of the kernel, in the layout above."""
     p = np.zeros(P_LEN)
     h = cfg.internal_step_s
@@ -112,11 +112,11 @@ def _params(cfg: PlantConfig) -> np.ndarray:
     p[P_HAS_PIV] = 1.0 if any(piv) else 0.0
     g = cfg.gyro
     wc = 2.0 * math.pi * g.bandwidth_hz
-    ef, c1, c0 = _foh(wc, TICK_S, g.scale_factor)  # filter state, tick end to tick end
+    ef, c1, c0 = foh(wc, TICK_S, g.scale_factor)  # filter state, tick end to tick end
     delay_ticks = int(g.delay_s / TICK_S + 1e-9)
     tau_r = g.delay_s - delay_ticks * TICK_S  # the rest of the delay, within one tick
     alpha = TICK_S - tau_r if tau_r > 1e-12 else TICK_S
-    ea, c1a, c0a = _foh(wc, alpha, g.scale_factor)
+    ea, c1a, c0a = foh(wc, alpha, g.scale_factor)
     fa = alpha / TICK_S  # the input at t0 + alpha, linearly interpolated
     d1, d0 = c1a * fa, c1a * (1.0 - fa) + c0a  # y(alpha) = ea y0 + d1 x1 + d0 x0
     # the filter, the delay ring and the noise work in the output's unit: gyro LSBs (deg/s if not quantised)
@@ -134,7 +134,7 @@ def _params(cfg: PlantConfig) -> np.ndarray:
         b0, a1, a2, var = band_pass(band.centre_hz, band.bandwidth_hz)
         p[P_COL + 3 * k: P_COL + 3 * k + 3] = (b0 * band.std_dps / math.sqrt(var) / unit, a1, a2)
     p[P_RW] = g.random_walk * math.sqrt(TICK_S) / unit
-    p[P_STRIDE] = _NOISE_WHITE + 3 * len(bands) + (3 if g.random_walk > 0 else 0)
+    p[P_STRIDE] = NOISE_WHITE + 3 * len(bands) + (3 if g.random_walk > 0 else 0)
     cam = cfg.camera
     taz, tel = cam.target_az_deg * D2R, cam.target_el_deg * D2R
     p[P_TGX], p[P_TGY], p[P_TGZ] = math.cos(tel) * math.cos(taz), math.cos(tel) * math.sin(taz), -math.sin(tel)
@@ -505,7 +505,7 @@ def _advance(p, s, nz, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
     my += nz[k + 1]
     mz += nz[k + 2]
     s[S_CAMN], s[S_CAMN + 1] = nz[k + 3], nz[k + 4]
-    e = k + _NOISE_WHITE
+    e = k + NOISE_WHITE
     for c in range(int(p[P_NCOL])):
         b0, a1, a2 = p[P_COL + 3 * c], p[P_COL + 3 * c + 1], p[P_COL + 3 * c + 2]
         for j in range(3):
@@ -608,7 +608,7 @@ def _friction_now(p, s, ax, vr):
 
 @numba.njit(**_JIT)
 def _truth(p, s):
-    """Noise-free values at the tick end, in the order of ``_TRUTH_KEYS`` (SI, rates in rad/s)."""
+    """Noise-free values at the tick end, in the order of ``TRUTH_KEYS`` (SI, rates in rad/s)."""
     pr = qr = rr = 0.0
     fbx, fby, fbz = 0.0, 0.0, -G0_M_S2
     if s[S_HASC] != 0.0:
@@ -643,7 +643,7 @@ def _truth(p, s):
 
 
 # what truth() returns, and the unit conversion of each kernel value
-_TRUTH_KEYS: tuple[tuple[str, float], ...] = (
+TRUTH_KEYS: tuple[tuple[str, float], ...] = (
     ("los_rate_x_dps", R2D), ("los_rate_y_dps", R2D), ("los_rate_z_dps", R2D),
     ("az_rate_dps", R2D), ("el_rate_dps", R2D), ("az_rel_rate_dps", R2D), ("el_rel_rate_dps", R2D),
     ("az_deg", R2D), ("el_deg", R2D),
@@ -662,7 +662,7 @@ RUN_COLUMNS = (
     "los_error_x_deg", "los_error_y_deg", "miss_x_px", "miss_y_px", "track_valid",
     "los_rate_x_dps", "los_rate_y_dps", "los_rate_z_dps", "az_deg", "el_deg", "voltage_az_v", "voltage_el_v",
 )
-_RUN_INDEX = {name: j for j, name in enumerate(RUN_COLUMNS)}
+RUN_INDEX = {name: j for j, name in enumerate(RUN_COLUMNS)}
 
 
 @numba.njit(**_JIT)

@@ -168,7 +168,7 @@ def axis_zoh(cfg: PlantConfig, axis: Axis, h: float) -> tuple[np.ndarray, np.nda
     return phi, gam
 
 
-def _foh(wc: float, tau: float, gain: float) -> tuple[float, float, float]:
+def foh(wc: float, tau: float, gain: float) -> tuple[float, float, float]:
     """Exact discretisation of ``gain * wc / (s + wc)`` over ``tau`` for an input linear in time (first-order hold):
     ``y(tau) = e y(0) + c1 x(tau) + c0 x(0)``; returns ``(e, c1, c0)``."""
     e = math.exp(-wc * tau)

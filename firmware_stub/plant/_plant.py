@@ -20,17 +20,16 @@ from firmware_stub.plant._config import (
     Vec3f,
 )
 from firmware_stub.plant._kernel import (
-    _MAX_BANDS,
-    _NOISE_BLOCK_TICKS,
-    _NOISE_WHITE,
-    _RUN_INDEX,
-    _TRUTH_KEYS,
+    MAX_BANDS,
+    NOISE_BLOCK_TICKS,
+    NOISE_WHITE,
     P_DELAY,
     P_LEN,
     P_STRIDE,
     PA_LEN,
     PA_RIPN,
     RUN_COLUMNS,
+    RUN_INDEX,
     S_CAMN,
     S_M,
     S_REFILL,
@@ -39,8 +38,9 @@ from firmware_stub.plant._kernel import (
     S_SC,
     S_TICK,
     S_X,
-    _params,
+    TRUTH_KEYS,
     kernel,
+    pack_params,
 )
 from firmware_stub.plant._math import CarrierMotion, normal_table
 
@@ -103,21 +103,21 @@ class Plant:
         self.config = config
         self.seed = seed
         self.n_sub = round(TICK_S / config.internal_step_s)
-        p = _params(config)
+        p = pack_params(config)
         self._delay_ticks = int(p[P_DELAY])
         self._stride = int(p[P_STRIDE])
         # one buffer: parameters, state, noise block (views of it; the per-tick kernel call takes the buffer)
         ns = S_RING + 3 * self._delay_ticks
-        self._buf = np.zeros(P_LEN + ns + _NOISE_BLOCK_TICKS * self._stride)
+        self._buf = np.zeros(P_LEN + ns + NOISE_BLOCK_TICKS * self._stride)
         self._p, self._s, self._nz = np.split(self._buf, [P_LEN, P_LEN + ns])
         self._p[:] = p
         self._table = np.frombuffer(normal_table(), dtype=np.float64)
         g = config.gyro
-        unit = g.quantisation_lsb_dps or 1.0  # the kernel works in gyro LSBs (see _params)
+        unit = g.quantisation_lsb_dps or 1.0  # the kernel works in gyro LSBs (see pack_params)
         sn = config.camera.centroid_noise_std_px
         self._offsets = np.array([*(b / unit for b in g.bias_dps), 0.0, 0.0])
         self._scales = np.array([*(x / unit for x in g.noise_std_dps), sn, sn])
-        self._ones, self._zeros = np.ones(3 * _MAX_BANDS + 3), np.zeros(3 * _MAX_BANDS + 3)
+        self._ones, self._zeros = np.ones(3 * MAX_BANDS + 3), np.zeros(3 * MAX_BANDS + 3)
         self._tick = kernel("tick")
         self._out: tuple[float, ...] = ()
         self.reset()
@@ -148,13 +148,13 @@ class Plant:
         """The next block of noise, per tick: gyro x, y, z (bias + std * N(0, 1), output units) and camera x, y
         (std * N(0, 1), px), then the unit normals of the coloured bands and the random walk. Each N(0, 1) is a
         normal quantile picked by 16 random bits (little-endian pairs of bytes, so any platform draws the same)."""
-        n = _NOISE_BLOCK_TICKS
+        n = NOISE_BLOCK_TICKS
         fill = kernel("fill")
-        fill(self._nz, self._stride, 0, _NOISE_WHITE, _random_u16(self._rng, _NOISE_WHITE * n), self._table,
+        fill(self._nz, self._stride, 0, NOISE_WHITE, _random_u16(self._rng, NOISE_WHITE * n), self._table,
              self._scales, self._offsets)
-        extra = self._stride - _NOISE_WHITE
+        extra = self._stride - NOISE_WHITE
         if extra:
-            fill(self._nz, self._stride, _NOISE_WHITE, extra, _random_u16(self._rng_extra, extra * n), self._table,
+            fill(self._nz, self._stride, NOISE_WHITE, extra, _random_u16(self._rng_extra, extra * n), self._table,
                  self._ones[:extra], self._zeros[:extra])
         self._s[S_REFILL] = 0.0
 
@@ -198,9 +198,9 @@ class Plant:
         names = RUN_COLUMNS if outputs is None else tuple(dict.fromkeys(outputs))
         rows = np.full(len(RUN_COLUMNS), -1, dtype=np.int64)
         for i, name in enumerate(names):
-            if name not in _RUN_INDEX:
+            if name not in RUN_INDEX:
                 raise ValueError(f"run: unknown output {name!r}; the outputs are {', '.join(RUN_COLUMNS)}")
-            rows[_RUN_INDEX[name]] = i
+            rows[RUN_INDEX[name]] = i
         out = np.empty((len(names), n))
         tick0 = int(self._s[S_TICK])
         step = kernel("run")
@@ -261,7 +261,7 @@ class Plant:
         ``*_motor_*`` the motor side's (the encoder's); they are equal without ``structure``."""
         values = kernel("truth")(self._p, self._s)
         out = {"t_s": self.t_s}
-        for (key, scale), v in zip(_TRUTH_KEYS, values, strict=True):
+        for (key, scale), v in zip(TRUTH_KEYS, values, strict=True):
             out[key] = v * scale if scale != 1.0 else v
         return out
 
