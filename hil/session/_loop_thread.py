@@ -40,7 +40,7 @@ from typing import Any, Protocol
 from hil.link import RX, TX, Link, LinkError, SerialLink
 from hil.protocol import AxisMask, Board, ClockLate, DriveCmd, DriveDisable, Frame, GyroSample
 from hil.protocol.framing import FramePacker
-from hil.session import _host as host
+from hil.session._host import pin_this_thread, set_fifo
 from hil.session._watchdog import Watchdog
 
 READ_SIZE = 4096
@@ -194,12 +194,12 @@ class LoopThread:
     def _place(self) -> None:
         if self.cpu is not None:
             try:
-                host.pin_this_thread(self.cpu)
+                pin_this_thread(self.cpu)
             except OSError as exc:
                 self._info(loop_cpu=None, warning=f"loop thread not pinned to CPU {self.cpu}: {exc.strerror or exc}")
         if self.rt_priority:
             try:
-                host.set_fifo(self.rt_priority)
+                set_fifo(self.rt_priority)
                 self._info(rt_priority=self.rt_priority, thread="hil-loop")
             except OSError as exc:
                 self._info(rt_priority=0, warning=f"SCHED_FIFO {self.rt_priority} refused: {exc.strerror or exc}")

@@ -53,7 +53,17 @@ from hil.protocol import (
     MissDistance,
 )
 from hil.protocol.swing import profile_end_s, resume_segments
-from hil.session import _host as host
+from hil.session._host import (
+    Placement,
+    allowed_cpus,
+    current_placement,
+    pin_process,
+    pin_this_thread,
+    pin_this_thread_to,
+    resolve_cpu,
+    restore_placement,
+    set_fifo,
+)
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._watchdog import EventLoopWatchdog, Watchdog
 from hil.telemetry import Telemetry, TelemetryProcess, schema_units
@@ -315,7 +325,7 @@ class Session:
         self.log_path: Path | None = None
         self._finished: asyncio.Future[str] | None = None
         self._recovering = False
-        self._placement_before: host.Placement | None = None
+        self._placement_before: Placement | None = None
         self.lockstep = lockstep
         self.open_link = open_link
         self.use_watchdog = watchdog
@@ -461,20 +471,20 @@ class Session:
         and are moved off the loop's CPU. With a loop thread, the event loop goes with the helpers and the loop
         thread takes the CPU and the priority itself when it starts. Refusals are logged, never fatal."""
         host_cfg = self.config.host
-        self._placement_before = host.current_placement()
+        self._placement_before = current_placement()
         if host_cfg.loop_cpu is not None:
             helpers = [p for p in (self.log.writer_pid if self.log else None,
                                    self.telemetry.pid if self.telemetry else None) if p is not None]
             try:
-                cpus = host.allowed_cpus()
-                cpu = host.resolve_cpu(host_cfg.loop_cpu, cpus)
+                cpus = allowed_cpus()
+                cpu = resolve_cpu(host_cfg.loop_cpu, cpus)
                 if self.use_thread:
                     self._loop_cpu = cpu
-                    host.pin_this_thread_to(set(cpus) - {cpu})
+                    pin_this_thread_to(set(cpus) - {cpu})
                 else:
-                    host.pin_this_thread(cpu)
+                    pin_this_thread(cpu)
                 for pid in helpers:
-                    host.pin_process(pid, set(cpus) - {cpu})
+                    pin_process(pid, set(cpus) - {cpu})
                 self.event("info", loop_cpu=cpu, helper_cpus=sorted(set(cpus) - {cpu}), helper_pids=helpers)
             except (OSError, ValueError) as exc:
                 self.event("info", loop_cpu=None, warning=f"host.loop_cpu {host_cfg.loop_cpu} not applied: "
@@ -482,7 +492,7 @@ class Session:
         prio = host_cfg.rt_priority
         if prio and not self.use_thread:
             try:  # this thread (the event loop) only; threads started later inherit it, children do not
-                host.set_fifo(prio)
+                set_fifo(prio)
                 self.event("info", rt_priority=prio)
             except OSError as exc:
                 self.event("info", rt_priority=0, warning=f"SCHED_FIFO {prio} refused: {exc.strerror or exc}")
@@ -940,7 +950,7 @@ class Session:
             self.capture.close()
         if self._placement_before is not None:  # the process may go on (a test, a script): give the thread back
             with contextlib.suppress(OSError):
-                host.restore_placement(self._placement_before)
+                restore_placement(self._placement_before)
 
     async def _disarm(self) -> str:
         if self.driver is None or not self.driver.link.is_open:
