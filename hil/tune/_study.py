@@ -18,7 +18,6 @@ target. The best feasible trial's parameters are written as a controller YAML (`
 from __future__ import annotations
 
 import contextlib
-import inspect
 import json
 import math
 import re
@@ -30,6 +29,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hil.campaign.engines import EngineError, check_options
 from hil.config import ConfigError, require_writable_dir
 from hil.tune._report import write_tune_report
 from hil.tune._space import Constraint, ParamSpec, parse_constraints, parse_params
@@ -192,28 +192,15 @@ def _best(trials: list[TrialInfo], direction: str) -> TrialInfo | None:
 
 
 def _engine_options(engine: str, scheduler: str | None, shared_dir: str | Path | None) -> dict[str, Any]:
-    """The runner's keyword arguments for the engine, checked (nothing started); without a scheduler the dask
-    engine's address is filled in once the study's LocalCluster runs (:func:`_start_cluster`)."""
-    from hil.campaign import runner
-
-    if engine not in ("local", "dask"):
-        raise ConfigError(f"--engine: {engine!r} is not local or dask")
-    supported = "engine" in inspect.signature(runner.run_campaign).parameters
-    if engine == "local":
-        if scheduler is not None or shared_dir is not None:
-            raise ConfigError(f"{'--scheduler' if scheduler is not None else '--shared-dir'}: only with --engine dask")
-        return {"engine": "local"} if supported else {}
-    if not supported:
-        raise ConfigError("--engine dask: this bench's campaign runner has no dask engine")
+    """The runner's keyword arguments for the engine, checked by the campaign's own rule
+    (:func:`hil.campaign.engines.check_options`, nothing started); without a scheduler the dask engine's address is
+    filled in once the study's LocalCluster runs (:func:`_start_cluster`)."""
     try:
-        from hil.campaign.engines import EngineError, check_options
-    except ImportError:
-        pass
-    else:
-        try:
-            check_options("dask", scheduler=scheduler, shared_dir=shared_dir)
-        except EngineError as exc:
-            raise ConfigError(str(exc)) from None
+        check_options(engine, scheduler=scheduler, shared_dir=shared_dir)
+    except EngineError as exc:
+        raise ConfigError(str(exc)) from None
+    if engine == "local":
+        return {"engine": "local"}
     return {"engine": "dask", "scheduler": scheduler, **({} if shared_dir is None else {"shared_dir": str(shared_dir)})}
 
 
