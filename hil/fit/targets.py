@@ -22,17 +22,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import re
 import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from hil.config import resolve_relative
 from hil.fit import ranges
+from hil.tune import check_study_name, check_trials, failed, run_study, start_study, storage_url
+
+if TYPE_CHECKING:
+    import optuna
 
 __all__ = [
     "PREMISES",
@@ -546,39 +549,23 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
     again on the verification seeds at full duration, and ``OUT/residuals.md`` holds the residual table and the
     premises. ``progress`` gets one line per trial. ValueError (one line) for bad input (a missing or invalid
     targets file, an unknown target kind or metric, an existing study without ``resume``)."""
-    import optuna
-
-    from hil.tune import open_study, quiet_nan_warnings, rdb_storage, storage_url
-
     config = load_targets(targets_path)
-    if not 1 <= trials <= 100_000:
-        raise ValueError(f"--trials: {trials} (need 1..100000)")
-    study_name = study or config.name
-    if not re.match(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$", study_name):
-        raise ValueError(f"--study: {study_name!r} is not a name (letters, digits, '_', '.', '-')")
+    check_trials(trials)
+    study_name = check_study_name(study or config.name)
     out_plant = Path(out_plant)
     if out_plant.is_dir():
         raise ValueError(f"--out {out_plant}: is a directory (give the plant YAML's path)")
     out = Path(out_dir) if out_dir is not None else FIT_DIR / study_name
     out.mkdir(parents=True, exist_ok=True)
     url = f"sqlite:///{(out / 'targets.db').absolute()}" if storage is None else storage_url(storage, out)
-    rdb = rdb_storage(url)
-    exists = study_name in optuna.study.get_all_study_names(rdb)
-    if exists and not resume:
-        raise ValueError(f"--study {study_name}: already in {url}; pass --resume to continue it, or choose another "
-                         "--study")
     base = ranges.load_plant_dict(config.plant)
     space = config.search.plant_ranges()
     meta = {"targets": config.name, "ranges": config.search.ranges, "space": [p.name for p in space]
             + [p.name for p in config.search.controller_params]}
-    with _quiet_experimental():
-        sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(20, max(2, trials // 10)),
-                                             multivariate=True, constant_liar=True)
-    st = open_study(rdb, study_name, sampler, "minimize", meta=meta, exists=exists)  # ConfigError is a ValueError
-    if not exists:
-        st.enqueue_trial(_first_trial(config, base))
-    done = sum(t.state.name in ("COMPLETE", "FAIL", "PRUNED") for t in st.get_trials(deepcopy=False))
-    todo = max(0, trials - done)
+    run = start_study(study_name, url, trials=trials, resume=resume, direction="minimize", meta=meta, seed=seed,
+                      startup_trials=min(20, max(2, trials // 10)), constant_liar=True,
+                      first_params=_first_trial(config, base))
+    st, todo = run.study, run.todo
     trials_dir = out / "trials"
 
     def objective_fn(trial: optuna.Trial) -> float:
@@ -598,8 +585,7 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
                 raise ValueError(f"plant: {' '.join(str(exc).split())[:300]}") from None
             m = measure(config, plant, ctrl, work_dir=work)
         except Exception as exc:  # an invalid plant or a broken trial is a failed trial, never the study's end
-            trial.set_user_attr("failure", " ".join(str(exc).split())[:500] or type(exc).__name__)
-            return math.nan
+            return failed(trial, exc)
         finally:
             shutil.rmtree(work, ignore_errors=True)
         vals = m.values
@@ -632,11 +618,7 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
         else:
             progress(f"trial {t.number}: {t.state.name.lower()}: {t.user_attrs.get('failure', '')}; best {best}")
 
-    t0 = time.monotonic()
-    if todo:
-        with quiet_nan_warnings():
-            st.optimize(objective_fn, n_trials=todo, timeout=timeout_s, callbacks=[callback])
-    wall = time.monotonic() - t0
+    wall = run_study(run, objective_fn, timeout_s=timeout_s, callbacks=[callback])
     all_trials = st.get_trials(deepcopy=False)
     complete = [t for t in all_trials if t.state.name == "COMPLETE" and t.value is not None and math.isfinite(t.value)]
     result = TargetsResult(targets=str(targets_path), study=study_name, storage=url, out_dir=out, plant_path=None,
@@ -670,22 +652,6 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
     result.residuals_path.write_text(summary_markdown(result))
     (out / "result.json").write_text(json.dumps(result.to_json(), indent=2, default=str))
     return result
-
-
-class _quiet_experimental:
-    """Multivariate / constant-liar TPE are marked experimental: say nothing."""
-
-    def __enter__(self) -> None:
-        import warnings
-
-        import optuna
-
-        self._cm = warnings.catch_warnings()
-        self._cm.__enter__()
-        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-
-    def __exit__(self, *exc: Any) -> None:
-        self._cm.__exit__(*exc)
 
 
 def _header(config: TargetsConfig, targets_path: str | Path, out_plant: Path, result: TargetsResult, *, study: str,

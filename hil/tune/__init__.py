@@ -5,6 +5,15 @@ RDB storage, SQLite by default; on a Dask cluster with ``jobs``), ``TuneResult``
 (``open_study``, ``rdb_storage``, ``storage_url``) and the one stability rule (``unstable_reason``) are shared with
 ``hil fit --targets``."""
 
+from hil.tune._driver import (
+    StudyRun,
+    check_study_name,
+    check_trials,
+    failed,
+    quiet_nan_warnings,
+    run_study,
+    start_study,
+)
 from hil.tune._report import write_tune_report
 from hil.tune._space import Constraint, ParamSpec, parse_constraints, parse_params
 from hil.tune._store import TrialInfo, TuneResult, open_study, rdb_storage, storage_url
@@ -12,7 +21,6 @@ from hil.tune._study import (
     choose_controller,
     evaluate,
     log_health,
-    quiet_nan_warnings,
     trial_campaign,
     tune,
     unstable_reason,
@@ -21,16 +29,22 @@ from hil.tune._study import (
 __all__ = [
     "Constraint",
     "ParamSpec",
+    "StudyRun",
     "TrialInfo",
     "TuneResult",
+    "check_study_name",
+    "check_trials",
     "choose_controller",
     "evaluate",
+    "failed",
     "log_health",
     "open_study",
     "parse_constraints",
     "parse_params",
     "quiet_nan_warnings",
     "rdb_storage",
+    "run_study",
+    "start_study",
     "storage_url",
     "trial_campaign",
     "tune",

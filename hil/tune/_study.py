@@ -20,20 +20,19 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import re
 import shutil
 import threading
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hil.campaign.engines import EngineError, check_options
 from hil.config import ConfigError, require_writable_dir
+from hil.tune._driver import check_study_name, check_trials, failed, run_study, start_study
 from hil.tune._report import write_tune_report
 from hil.tune._space import Constraint, ParamSpec, parse_constraints, parse_params
-from hil.tune._store import TRIALS, TrialInfo, TuneResult, open_study, rdb_storage, storage_url
+from hil.tune._store import TRIALS, TrialInfo, TuneResult, storage_url
 
 if TYPE_CHECKING:
     import optuna
@@ -247,7 +246,6 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     Writes ``OUT/NAME-tuned.yaml`` (and ``write_profile``) from the best feasible trial, and the report.
     ``on_trial``: called after every trial of this run. ConfigError (one line) for bad input or an existing study
     without ``resume``."""
-    import optuna
 
     from hil.campaign import CampaignError, load_campaign
     from hil.campaign.metrics import METRICS
@@ -259,8 +257,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         raise ConfigError(str(exc)) from None
     if objective not in METRICS:
         raise ConfigError(f"--objective: unknown metric {objective!r} (metrics: {', '.join(METRICS)})")
-    if not 1 <= trials <= 100_000:
-        raise ConfigError(f"--trials: {trials} (need 1..100000)")
+    check_trials(trials)
     if not 1 <= workers <= 256 or not 1 <= jobs <= 64:
         raise ConfigError(f"--workers {workers} / --jobs {jobs}: need 1..256 and 1..64")
     entry = choose_controller(config, controller)
@@ -268,9 +265,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         parse_params(params, entry.name, entry.params)  # type: ignore[arg-type]
     space = list(space)  # type: ignore[arg-type]
     cons = parse_constraints(constraints)
-    study_name = study or config.name
-    if not re.match(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$", study_name):
-        raise ConfigError(f"--study: {study_name!r} is not a name (letters, digits, '_', '.', '-')")
+    study_name = check_study_name(study or config.name)
     out_dir = Path(out) if out is not None else TUNE_DIR / study_name
     require_writable_dir(out_dir, "--out")
     if write_profile is not None and Path(write_profile).is_dir():
@@ -285,21 +280,11 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
 
     out_dir.mkdir(parents=True, exist_ok=True)
     url = storage_url(storage, out_dir)
-    rdb = rdb_storage(url)
-    exists = study_name in optuna.study.get_all_study_names(rdb)
-    if exists and not resume:
-        raise ConfigError(f"--study {study_name}: already in {url}; pass --resume to continue it, or choose another "
-                          "--study")
     meta = {"campaign": config.name, "controller_label": entry.label, "controller": entry.name,
             "objective": objective, "space": [str(s) for s in space]}
-    with warnings.catch_warnings():  # multivariate TPE is marked experimental
-        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=min(10, max(2, trials // 10)),
-                                             multivariate=True)
-    st = open_study(rdb, study_name, sampler, direction, meta=meta, exists=exists)
-    finished = {"COMPLETE", "FAIL", "PRUNED"}
-    done = sum(t.state.name in finished for t in st.get_trials(deepcopy=False))
-    todo = max(0, trials - done)
+    run = start_study(study_name, url, trials=trials, resume=resume, direction=direction, meta=meta, seed=seed,
+                      startup_trials=min(10, max(2, trials // 10)))
+    st, todo = run.study, run.todo
 
     lock = threading.Lock()
 
@@ -317,9 +302,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
             result = run_campaign(cfg, trial_dir, jobs=jobs, **kwargs)
             value, cvals, attrs = evaluate(result, trial_dir, objective, cons)
         except Exception as exc:  # an unstable or broken trial is a failed trial, never the study's end
-            trial.set_user_attr("failure", " ".join(str(exc).split())[:500] or type(exc).__name__)
-            trial.set_user_attr("wall_s", time.monotonic() - t0)
-            return math.nan  # Optuna: a NaN objective marks the trial FAIL
+            return failed(trial, exc, t0)
         finally:
             if not keep_logs and trial_dir.exists():
                 from hil.log.truth import truth_path
@@ -345,17 +328,13 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
                                str(frozen.user_attrs.get("failure", "")),
                                frozen.duration.total_seconds() if frozen.duration else None))
 
-    t0 = time.monotonic()
     cluster = _start_cluster(kwargs, workers) if todo else None
     try:
-        with quiet_nan_warnings():
-            if todo:
-                st.optimize(objective_fn, n_trials=todo, n_jobs=workers, callbacks=[callback])
+        wall = run_study(run, objective_fn, n_jobs=workers, callbacks=[callback])
     finally:
         if cluster is not None:
             with contextlib.suppress(Exception):
                 cluster.close()
-    wall = time.monotonic() - t0
     infos = _trial_infos(st)
     result = TuneResult(study=study_name, storage=url, out_dir=out_dir, campaign=config.name,
                         controller_label=entry.label, controller=entry.name, objective=objective,
@@ -380,18 +359,3 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     if write_report:
         result.report = write_tune_report(result, st)
     return result
-
-
-@contextlib.contextmanager
-def quiet_nan_warnings() -> Any:
-    """Optuna logs a warning for every trial that returns NaN; the failed trials are reported here instead."""
-    import logging
-
-    log = logging.getLogger("optuna")
-    level = log.level
-    if level < logging.ERROR and not logging.getLogger("hil").isEnabledFor(logging.INFO):
-        log.setLevel(logging.ERROR)
-    try:
-        yield
-    finally:
-        log.setLevel(level)
