@@ -33,7 +33,7 @@ from hil.session import (
 if TYPE_CHECKING:
     from hil.campaign import CampaignConfig, CampaignResult, CellResult
     from hil.campaign.engines import Engine
-    from hil.report import ReportFiles
+    from hil.reporting import ReportFiles
 
 __all__ = ["CLOCKS", "CampaignRun", "Clock", "IdentRun", "Progress", "RunResult", "check_file", "ident", "load_session",
            "prepare_campaign", "prepare_run", "read_log", "replay_capture", "replay_log", "report", "run", "run_async",

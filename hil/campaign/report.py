@@ -30,7 +30,7 @@ import numpy as np
 from hil.campaign.metrics import METRICS, gain_pct, gap_closed, improvement_pct, low_pass, score
 from hil.campaign.model import CampaignResult, slug
 from hil.campaign.runner import load_results
-from hil.report import (
+from hil.reporting import (
     Banner,
     Block,
     Bullets,

@@ -13,7 +13,7 @@ import numpy as np
 
 from hil.fit.logs import FitLog
 from hil.fit.twin import TwinFit
-from hil.report import (
+from hil.reporting import (
     Banner,
     Bullets,
     Cell,

@@ -8,7 +8,7 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hil.report import (
+from hil.reporting import (
     Banner,
     Bullets,
     Cell,

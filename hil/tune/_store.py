@@ -59,7 +59,7 @@ class TuneResult:
     params: dict[str, Any] | None = None
     yaml_path: Path | None = None
     profile_path: Path | None = None
-    report: Any = None  # hil.report.ReportFiles
+    report: Any = None  # hil.reporting.ReportFiles
 
     @property
     def n_complete(self) -> int:

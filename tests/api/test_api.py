@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import importlib
+import pkgutil
 import threading
+import types
 from pathlib import Path
 
 import pytest
@@ -184,3 +187,12 @@ def test_a_keyboard_interrupt_in_a_notebook_cell_ends_the_session_safely(tmp_pat
     details = [str(d) for d in log.events["detail"]]
     assert any('"safe"' in d and '"disabled"' in d for d in details)
     assert len(log.loop) < 590_000
+
+
+def test_no_subpackage_shadows_a_public_name() -> None:
+    # importing hil.X sets the attribute hil.X to the module: a package named like a public name would hide it
+    for info in pkgutil.iter_modules(hil.__path__):
+        if not info.name.startswith("_"):  # hil.__main__ would run the CLI
+            importlib.import_module(f"hil.{info.name}")
+    shadowed = [name for name in hil.__all__ if isinstance(getattr(hil, name), types.ModuleType)]
+    assert shadowed == []

@@ -17,7 +17,7 @@ from hil.campaign.report import format_values, gain_pct, profile_table, welch, w
 from hil.campaign.runner import CAMPAIGN_JSON, judge
 from hil.log import SCHEMA, SessionLog
 from hil.log.schema import group_by_name
-from hil.report._render import _esc as escape_html  # the page escapes as the renderer does
+from hil.reporting._render import _esc as escape_html  # the page escapes as the renderer does
 
 ROOT = Path(__file__).resolve().parents[2]
 G = group_by_name(SCHEMA)

@@ -8,7 +8,7 @@ import html
 import os
 from pathlib import Path
 
-from hil.report._document import (
+from hil.reporting._document import (
     Banner,
     Block,
     Bullets,

@@ -1,8 +1,10 @@
 """Reports: the document model (blocks, tables, figures), its Markdown and HTML rendering, and the plot helpers that
 the campaign, tune and fit reports share. The content of each report is its own package's (hil.campaign.report,
-hil.tune, hil.fit)."""
+hil.tune, hil.fit).
 
-from hil.report._document import (
+Not ``hil.report``: that name is the public API's ``hil.report(PATH)``, which writes a campaign's report."""
+
+from hil.reporting._document import (
     Banner,
     Block,
     Bullets,
@@ -15,8 +17,8 @@ from hil.report._document import (
     Text,
     format_number,
 )
-from hil.report._plots import DPI, legend_below, new_figure, save_figure
-from hil.report._render import render_html, render_markdown
+from hil.reporting._plots import DPI, legend_below, new_figure, save_figure
+from hil.reporting._render import render_html, render_markdown
 
 __all__ = [
     "DPI",

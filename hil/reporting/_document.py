@@ -1,5 +1,5 @@
 """The report document: a list of blocks (Heading, Text, Bullets, Banner, Table of Cells, Figure) that every report
-of the bench builds (campaign, tune, fit) and :mod:`hil.report._render` writes as Markdown and HTML alike."""
+of the bench builds (campaign, tune, fit) and :mod:`hil.reporting._render` writes as Markdown and HTML alike."""
 
 from __future__ import annotations
 
