@@ -271,8 +271,9 @@ def _load(path: Path) -> _Inputs:
 
 
 def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dict[str, int]]:
-    """The session's cycle (ControlLoop.on_sample, armed) over the logged rows, open loop. Returns the per-tick
-    arrays and the input checks."""
+    """The session's cycle (ControlLoop.on_sample, armed; its drive step is the shared hil.control.cycle.DriveStep)
+    over the logged rows, open loop. Returns the per-tick arrays and the input checks."""
+    from hil.control.cycle import DriveStep
     from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
     from hil.control.loops import TrackingLoop
     from hil.control.registry import build_controller
@@ -288,7 +289,8 @@ def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dic
     clock = ProfileClock()
     exc = inp.excitation
     excite_el = exc is None or exc.axis == "el"
-    lim, slew = inp.safety.max_drive_counts, inp.safety.max_slew_counts
+    step = DriveStep(ctrl_az, ctrl_el, feed, max_drive_counts=inp.safety.max_drive_counts,
+                     max_slew_counts=inp.safety.max_slew_counts)
     n = inp.n
     out = {key: np.zeros(n) for key in ("az_fb", "el_fb", "az_dist", "el_dist", "ff_el", "az_cmd", "el_cmd")}
     drive_az, drive_el = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
@@ -302,8 +304,6 @@ def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dic
     logged_az, logged_el = inp.drive["az"], inp.drive["el"]
     cmd32_az, cmd32_el = inp.cmd_logged["az"].tolist(), inp.cmd_logged["el"].tolist()
     f32 = np.float32
-    u_az_prev = u_el_prev = 0
-    ff_el = 0.0
     checks = Counter()
     for k in range(n):
         while fi < len(frames) and frames[fi][0] <= k:  # camera frames that arrived before this sample
@@ -336,20 +336,12 @@ def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dic
         if f32(cmd_el) != cmd32_el[k]:
             checks["command_mismatches_el"] += 1
             cmd_el = cmd32_el[k]
-        u_az = ctrl_az.step(cmd_az, gz[k])
-        if feed is not None:
-            ff_el = feed.tick(clock.at(t_rel), gy[k], inp.az_deg[k], inp.el_deg[k], u_el_prev)
-        u_el = ctrl_el.step(cmd_el, gy[k], ff_el)
-        u_az = max(-lim, min(lim, max(u_az_prev - slew, min(u_az_prev + slew, u_az))))
-        u_el = max(-lim, min(lim, max(u_el_prev - slew, min(u_el_prev + slew, u_el))))
-        drive_az[k], drive_el[k] = u_az, u_el
+        drive_az[k], drive_el[k] = step.step(cmd_az, cmd_el, gy[k], gz[k], az_deg=inp.az_deg[k],
+                                             el_deg=inp.el_deg[k], t_profile_s=clock.at(t_rel))
         out["az_fb"][k], out["el_fb"][k] = ctrl_az.rate_fb_dps, ctrl_el.rate_fb_dps
         out["az_dist"][k], out["el_dist"][k] = ctrl_az.disturbance_counts, ctrl_el.disturbance_counts
-        out["ff_el"][k], out["az_cmd"][k], out["el_cmd"][k] = ff_el, cmd_az, cmd_el
-        # open loop: what the plant really got is what the estimators are told was applied
-        u_az_prev, u_el_prev = logged_az[k], logged_el[k]
-        ctrl_az.hold(u_az_prev)
-        ctrl_el.hold(u_el_prev)
+        out["ff_el"][k], out["az_cmd"][k], out["el_cmd"][k] = step.ff_el, cmd_az, cmd_el
+        step.applied(int(logged_az[k]), int(logged_el[k]))  # open loop: what the plant really got
     out["az_drive"], out["el_drive"] = drive_az, drive_el
     checks["gyro_inexact"] = inp.gyro_inexact
     checks["poses_used"] = pi

@@ -36,6 +36,7 @@ from hil._version import __version__
 from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, InterlockClosed, ProtocolHexapod, ServoBoard
 from hil.config import ConfigError, PortConfig, SessionConfig
 from hil.control.controller import RateController
+from hil.control.cycle import DriveStep
 from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
 from hil.control.loops import TrackingLoop
 from hil.control.oracle import TruthSource, bind_truth, truth_refusal
@@ -133,13 +134,14 @@ class ControlLoop:
         kw = {"kp_per_s": tr.kp_per_s, "ki_per_s2": tr.ki_per_s2, "ifov_deg_per_px": tr.ifov_deg_per_px,
               "max_rate_dps": tr.max_rate_dps, "stale_s": tr.stale_s}
         self.track_az, self.track_el = TrackingLoop(**kw), TrackingLoop(**kw)
-        self.u_az = self.u_el = 0
-        self.ff_el = 0.0
         # seed 001's imbalance feed-forward (elevation), for a controller that carries a UKF
         imbalance = self.ctrl_el.imbalance
         self.imbalance_feed = None if imbalance is None else ImbalanceFeed(
             imbalance, self.config.profile.protocol_segments(), dt_s=1e-3)
         self.profile_clock = ProfileClock()
+        self.drive_step = DriveStep(self.ctrl_az, self.ctrl_el, self.imbalance_feed,
+                                    max_drive_counts=self.limits.max_drive_counts,
+                                    max_slew_counts=self.limits.max_slew_counts)
 
     # --- the 1 kHz cycle -------------------------------------------------------------------------------
 
@@ -170,23 +172,14 @@ class ControlLoop:
                 cmd_el += exc.rate_dps(self.t_s)
             else:
                 cmd_az += exc.rate_dps(self.t_s)
+        step = self.drive_step
         if self.armed:
-            lim, slew = self.limits.max_drive_counts, self.limits.max_slew_counts
-            u_az = self.ctrl_az.step(cmd_az, g.rate_z_dps)
-            feed = self.imbalance_feed
-            if feed is not None:
-                self.ff_el = feed.tick(self.profile_clock.at(self.t_s), g.rate_y_dps, g.az_deg, g.el_deg, self.u_el)
-            u_el = self.ctrl_el.step(cmd_el, g.rate_y_dps, self.ff_el)
-            u_az = max(-lim, min(lim, max(self.u_az - slew, min(self.u_az + slew, u_az))))
-            u_el = max(-lim, min(lim, max(self.u_el - slew, min(self.u_el + slew, u_el))))
-            if u_az != self.ctrl_az.u_counts:
-                self.ctrl_az.hold(u_az)  # the estimator must see the drive actually applied
-            if u_el != self.ctrl_el.u_counts:
-                self.ctrl_el.hold(u_el)
+            u_az, u_el = step.step(cmd_az, cmd_el, g.rate_y_dps, g.rate_z_dps, az_deg=g.az_deg, el_deg=g.el_deg,
+                                   t_profile_s=self.profile_clock.at(self.t_s))
             self.drive(g.tick, u_az, u_el)
         else:
             u_az = u_el = 0
-        self.u_az, self.u_el = u_az, u_el
+            step.disarmed()
         latency_ns = time.monotonic_ns() - t_rx
         st.cycles += 1
         if latency_ns > LATE_NS:
@@ -196,7 +189,7 @@ class ControlLoop:
         self.log.append("loop", (
             g.tick, t_s, t_rx, g.rate_x_dps, g.rate_y_dps, g.rate_z_dps, g.az_deg, g.el_deg,
             cmd_az, cmd_el, az.rate_fb_dps, el.rate_fb_dps, cmd_az - g.rate_z_dps, cmd_el - g.rate_y_dps,
-            az.disturbance_counts, el.disturbance_counts, 0.0, self.ff_el, u_az, u_el, latency_ns / 1000,
+            az.disturbance_counts, el.disturbance_counts, 0.0, step.ff_el, u_az, u_el, latency_ns / 1000,
             gap))
         if self.record_truth is not None:
             self.record_truth(g.tick)
