@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from hil.log import read_log
+from hil.protocol import LINKS
 
 
 def _spread(x: np.ndarray) -> dict[str, float]:
@@ -125,7 +126,7 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
     out["missed_cycles"] = missed_cycles(loop)
     out["board_latency_us"] = board_latency(timing.get("board_latency_us", np.zeros(0)), data.attrs.get("clock"))
     errors = {}
-    for name in ("servo", "driver", "image", "hexapod"):
+    for name in LINKS:
         cols = [f"{name}_{c}" for c in LINK_ERROR_COUNTERS]
         errors[name] = int(sum(int(links[c][-1]) for c in cols if c in links and links[c].size))
     out["link_errors"] = errors

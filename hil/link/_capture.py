@@ -40,7 +40,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
-from hil.protocol import CATALOGUE, Board, Decoder, Frame, LinkCounters
+from hil.protocol import CATALOGUE, LINKS, Board, Decoder, Frame, LinkCounters
 
 MAGIC = b"HILCAP\x1a\n"  # 8 bytes; \x1a\n catch a text-mode transfer, as PNG's signature does
 VERSION = 1
@@ -48,7 +48,6 @@ SUFFIX = ".hilcap"
 RX, TX, NOTE = 0, 1, 2
 DIRECTIONS = ("rx", "tx", "note")
 Direction = Literal["rx", "tx"]
-LINKS = ("servo", "driver", "image", "hexapod")
 _FILE_HEAD = struct.Struct("<8sHI")  # magic, version, length of the JSON description
 _RECORD = struct.Struct("<qIBBH")  # t_ns, N, link, direction, reserved
 RECORD_OVERHEAD = _RECORD.size + 4

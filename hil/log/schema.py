@@ -15,12 +15,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from hil.protocol import LINKS
+
 LOG_FORMAT_VERSION = 1
 
 KIND_LEN = 32  # events/kind: fixed-length ASCII, NUL-padded
 DETAIL_LEN = 480  # events/detail: fixed-length ASCII (JSON text), NUL-padded, truncated with "..." if longer
 
-LINKS = ("servo", "driver", "image", "hexapod")
 
 
 class Channel(NamedTuple):

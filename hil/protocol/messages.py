@@ -30,6 +30,9 @@ class Board(IntEnum):
     HEXAPOD = 0x40  # six-axis swing table controller
 
 
+LINKS = tuple(board.name.lower() for board in Board if board is not Board.HOST)  # one link per board, in id order
+
+
 class BoardState(IntEnum):
     BOOT = 0
     READY = 1
@@ -348,6 +351,7 @@ class HexapodStatus(NamedTuple):
 
 __all__ = [
     "CATALOGUE",
+    "LINKS",
     "NO_AXIS",
     "NO_LATENCY_US",
     "PROTOCOL_VERSION",

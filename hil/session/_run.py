@@ -27,6 +27,7 @@ from hil.link import LinkError, PortUnavailable
 from hil.log import LogError
 from hil.log.frames import read_log_frames
 from hil.log.schema import estimated_log_bytes
+from hil.protocol import LINKS
 from hil.session._loopback import EmulatorProcess
 from hil.session._session import Session, SessionResult
 from hil.session._sim import run_sim_session
@@ -154,7 +155,7 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
         return _result(result, "sim", emulator)
     if not loopback:
         assert config.ports is not None
-        ports = {name: port for name in ("servo", "driver", "image", "hexapod")
+        ports = {name: port for name in LINKS
                  if (port := getattr(config.ports, name)) is not None}
         session = Session(config, ports, out_dir, progress=progress,
                           log_attrs={"loopback": False, "clock": "hardware"}, **_capture(capture_dir))

@@ -44,6 +44,7 @@ from hil.control.registry import build_controller, needs_truth
 from hil.link import Capture, Link, LinkError, PortClaims, SerialLink, claim_ports
 from hil.log import SessionLog
 from hil.protocol import (
+    LINKS,
     NO_LATENCY_US,
     ClockLate,
     DriveStatus,
@@ -70,7 +71,6 @@ from hil.session._watchdog import EventLoopWatchdog, Watchdog
 from hil.telemetry import Telemetry, TelemetryProcess, schema_units
 
 _log = logging.getLogger("hil.session")
-LINKS = ("servo", "driver", "image", "hexapod")
 LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[Link]]
 LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
 HOST_ALIVE_S = 0.1  # HOST_ALIVE on every link this often (docs/protocol.md, "Host liveness")

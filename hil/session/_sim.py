@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 from hil.config import PortConfig, SessionConfig
 from hil.control.oracle import AxisTruth
 from hil.link import Link, LinkError
-from hil.protocol import CATALOGUE, Frame
+from hil.protocol import CATALOGUE, LINKS, Frame
 
 if TYPE_CHECKING:
     from firmware_stub.plant import Plant
@@ -280,7 +280,7 @@ class SimLab:
 
 def sim_ports() -> dict[str, PortConfig]:
     """Placeholder ports for a Session whose links a SimLab opens."""
-    return {name: PortConfig(port=f"sim:{name}") for name in ("servo", "driver", "image", "hexapod")}
+    return {name: PortConfig(port=f"sim:{name}") for name in LINKS}
 
 
 async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Callable[[int, int], None] | None = None,
