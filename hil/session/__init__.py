@@ -12,6 +12,7 @@
 Import from here; the underscored modules are this package's own.
 """
 
+from hil.session._control_loop import LATE_NS, ControlLoop, LoopStats
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._loopback import DEFAULT_EMULATOR, EmulatorProcess, emulator_for_plant
 from hil.session._run import (
@@ -27,19 +28,10 @@ from hil.session._run import (
     run_async,
     run_coroutine,
 )
-from hil.session._session import (
-    HOST_ALIVE_S,
-    LATE_NS,
-    LINKS,
-    ControlLoop,
-    LoopStats,
-    Session,
-    SessionResult,
-    TickWindDown,
-    capture_for_session,
-)
+from hil.session._session import HOST_ALIVE_S, LINKS, Session, SessionResult, capture_for_session
 from hil.session._sim import PlantTruth, SimLab, SimLink, TruthLog, run_sim_session, sim_ports
 from hil.session._watchdog import EventLoopWatchdog, Watchdog
+from hil.session._wind_down import TickWindDown
 
 __all__ = [
     "CLOCKS",

@@ -24,8 +24,6 @@ import signal
 import threading
 import time
 import traceback
-from array import array
-from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -35,17 +33,12 @@ from typing import Any
 from hil._version import __version__
 from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, InterlockClosed, ProtocolHexapod, ServoBoard
 from hil.config import ConfigError, PortConfig, SessionConfig
-from hil.control.controller import RateController
-from hil.control.cycle import DriveStep
-from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
-from hil.control.loops import TrackingLoop
-from hil.control.oracle import TruthSource, bind_truth, truth_refusal
-from hil.control.registry import build_controller, needs_truth
+from hil.control.oracle import TruthSource, truth_refusal
+from hil.control.registry import needs_truth
 from hil.link import Capture, Link, LinkError, PortClaims, SerialLink, claim_ports
 from hil.log import SessionLog
 from hil.protocol import (
     LINKS,
-    NO_LATENCY_US,
     ClockLate,
     DriveStatus,
     Frame,
@@ -55,6 +48,7 @@ from hil.protocol import (
     MissDistance,
 )
 from hil.protocol.swing import profile_end_s, resume_segments
+from hil.session._control_loop import ControlLoop, LoopStats
 from hil.session._host import (
     Placement,
     allowed_cpus,
@@ -68,175 +62,13 @@ from hil.session._host import (
 )
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._watchdog import EventLoopWatchdog, Watchdog
+from hil.session._wind_down import HEXAPOD_HOME_S, TickWindDown
 from hil.telemetry import Telemetry, TelemetryProcess, schema_units
 
 _log = logging.getLogger("hil.session")
 LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[Link]]
-LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
 HOST_ALIVE_S = 0.1  # HOST_ALIVE on every link this often (docs/protocol.md, "Host liveness")
 EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
-HEXAPOD_HOME_S = 5.0  # wind-down: the hexapod ramps down (1 s on the emulator) and rests within this
-
-
-@dataclass
-class LoopStats:
-    cycles: int = 0
-    late: int = 0
-    missed: int = 0  # samples that never arrived (tick gaps)
-    latency_us: array = field(default_factory=lambda: array("f"))
-    faults: list[str] = field(default_factory=list)
-    recoveries: int = 0
-    host_stalls: int = 0  # silences the host caused, not the board: the watchdog woke late, or the emulator's clock
-    clock_late: int = 0  # CLOCK_LATE frames: the emulator's clock fired late (its host did not run it in time)
-    drive_short_writes: int = 0  # realtime: DRIVE_CMDs the driver's fd did not take whole (hil.session._loop_thread)
-
-
-class ControlLoop:
-    """Per-axis controllers and tracking loops; everything that happens per sample and per frame."""
-
-    def __init__(self, config: SessionConfig, drive: Callable[[int, int, int], None], log: SessionLog, *,
-                 telemetry: Telemetry | None, duration_ticks: int, on_done: Callable[[], None],
-                 truth: TruthSource | None = None, record_truth: Callable[[int], None] | None = None) -> None:
-        """``drive(tick, az_counts, el_counts)`` sends DRIVE_CMD; ``on_done`` is called once, at the last tick of
-        the run (from the loop's own thread: it must hand over to the event loop itself if it needs it). ``truth``:
-        the plant's true state (the sim clock's hil.session.PlantTruth), which only the ``oracle`` controller reads.
-        ``record_truth(tick)``: called with each loop row's sample counter (the sim clock's hil.session.TruthLog)."""
-        self.config = config
-        self.truth = truth
-        self.record_truth = record_truth
-        self.drive = drive
-        self.log = log
-        self.telemetry = telemetry
-        self.duration_ticks = duration_ticks
-        self.on_done = on_done
-        self.stats = LoopStats()
-        self.armed = False
-        self.last_tick: int | None = None
-        self.t_wraps = 0
-        self.last_t_us = 0
-        self.t0_s: float | None = None
-        self.t_s = 0.0
-        self.limits = config.safety
-        self.decoders: dict[str, Any] = {}
-        self.frames: deque[tuple[int, MissDistance]] = deque()  # (board time to use it, us; frame)
-        self.apply_after_us = round(config.tracking.apply_after_ms * 1000)
-        self.excitation = config.excitation
-        self.excite_el = config.excitation is None or config.excitation.axis == "el"
-        self.reset_controllers()
-
-    def reset_controllers(self) -> None:
-        c = self.config.controller
-        self.ctrl_az: RateController = build_controller(c.name, c.params)
-        self.ctrl_el: RateController = build_controller(c.name, c.params)
-        bind_truth(self.ctrl_az, self.truth, "az")  # the oracle reads the plant's truth; the others, nothing
-        bind_truth(self.ctrl_el, self.truth, "el")
-        tr = self.config.tracking
-        kw = {"kp_per_s": tr.kp_per_s, "ki_per_s2": tr.ki_per_s2, "ifov_deg_per_px": tr.ifov_deg_per_px,
-              "max_rate_dps": tr.max_rate_dps, "stale_s": tr.stale_s}
-        self.track_az, self.track_el = TrackingLoop(**kw), TrackingLoop(**kw)
-        # seed 001's imbalance feed-forward (elevation), for a controller that carries a UKF
-        imbalance = self.ctrl_el.imbalance
-        self.imbalance_feed = None if imbalance is None else ImbalanceFeed(
-            imbalance, self.config.profile.protocol_segments(), dt_s=1e-3)
-        self.profile_clock = ProfileClock()
-        self.drive_step = DriveStep(self.ctrl_az, self.ctrl_el, self.imbalance_feed,
-                                    max_drive_counts=self.limits.max_drive_counts,
-                                    max_slew_counts=self.limits.max_slew_counts)
-
-    # --- the 1 kHz cycle -------------------------------------------------------------------------------
-
-    def on_sample(self, g: GyroSample, t_rx: int | None = None) -> None:
-        """One cycle for sample ``g``, read at ``t_rx`` (monotonic ns; default: now). Latency is counted from
-        ``t_rx`` to DRIVE_CMD written."""
-        if t_rx is None:
-            t_rx = time.monotonic_ns()
-        gap = 0 if self.last_tick is None else max(0, g.tick - self.last_tick - 1)
-        self.last_tick = g.tick
-        if g.t_us < self.last_t_us:
-            self.t_wraps += 1
-        self.last_t_us = g.t_us
-        t_s = (g.t_us + (self.t_wraps << 32)) / 1e6
-        if self.t0_s is None:
-            self.t0_s = t_s
-        self.t_s = t_s - self.t0_s
-        st = self.stats
-        st.missed += gap
-        while self.frames and self.frames[0][0] < g.t_us + (self.t_wraps << 32):
-            self._use_frame(self.frames.popleft()[1])
-        tracking = self.config.tracking.enabled
-        cmd_az = self.track_az.rate_cmd_dps(t_s) if tracking else 0.0
-        cmd_el = self.track_el.rate_cmd_dps(t_s) if tracking else 0.0
-        exc = self.excitation
-        if exc is not None:
-            if self.excite_el:
-                cmd_el += exc.rate_dps(self.t_s)
-            else:
-                cmd_az += exc.rate_dps(self.t_s)
-        step = self.drive_step
-        if self.armed:
-            u_az, u_el = step.step(cmd_az, cmd_el, g.rate_y_dps, g.rate_z_dps, az_deg=g.az_deg, el_deg=g.el_deg,
-                                   t_profile_s=self.profile_clock.at(self.t_s))
-            self.drive(g.tick, u_az, u_el)
-        else:
-            u_az = u_el = 0
-            step.disarmed()
-        latency_ns = time.monotonic_ns() - t_rx
-        st.cycles += 1
-        if latency_ns > LATE_NS:
-            st.late += 1
-        st.latency_us.append(latency_ns / 1000)
-        az, el = self.ctrl_az, self.ctrl_el
-        self.log.append("loop", (
-            g.tick, t_s, t_rx, g.rate_x_dps, g.rate_y_dps, g.rate_z_dps, g.az_deg, g.el_deg,
-            cmd_az, cmd_el, az.rate_fb_dps, el.rate_fb_dps, cmd_az - g.rate_z_dps, cmd_el - g.rate_y_dps,
-            az.disturbance_counts, el.disturbance_counts, 0.0, step.ff_el, u_az, u_el, latency_ns / 1000,
-            gap))
-        if self.record_truth is not None:
-            self.record_truth(g.tick)
-        if self.telemetry is not None:
-            self.telemetry.sample(t_s, lambda: {
-                "gyro_y_dps": g.rate_y_dps, "gyro_z_dps": g.rate_z_dps, "rate_err_el_dps": cmd_el - g.rate_y_dps,
-                "rate_err_az_dps": cmd_az - g.rate_z_dps, "drive_az_counts": u_az, "drive_el_counts": u_el,
-                "az_deg": g.az_deg, "el_deg": g.el_deg, "latency_us": latency_ns / 1000})
-        if st.cycles % 100 == 0:
-            self._log_links(t_rx)
-        if st.cycles == self.duration_ticks:
-            self.on_done()
-
-    def _log_links(self, t_ns: int) -> None:
-        from hil.log.schema import LINK_COUNTERS  # the links group's columns of one link, in order
-
-        row: list[int] = [t_ns]
-        for name in LINKS:
-            dec = self.decoders.get(name)
-            totals = {} if dec is None else dec.counters.totals()
-            row += [totals.get(counter, 0) for counter in LINK_COUNTERS]
-        self.log.append("links", [min(v, 0xFFFFFFFF) if i else v for i, v in enumerate(row)])
-
-    def on_timing(self, t: LoopTiming) -> None:
-        for i, lat in enumerate(t.latency_us):
-            self.log.append("timing", (t.first_tick + i, float("nan") if lat == NO_LATENCY_US else float(lat)))
-
-    def on_miss(self, m: MissDistance) -> None:
-        """Log the frame now; feed it to the tracking loop at a board time fixed by its exposure time."""
-        t_exp_us = m.t_exposure_us + (self.t_wraps << 32)
-        self.log.append("image", (m.frame, t_exp_us / 1e6, time.monotonic_ns(), m.miss_x_px, m.miss_y_px,
-                                  int(m.track_valid), self.last_tick or 0))
-        if self.telemetry is not None:
-            self.telemetry.miss(m.miss_x_px, m.miss_y_px, m.track_valid)
-        self.frames.append((t_exp_us + self.apply_after_us, m))
-
-    def _use_frame(self, m: MissDistance) -> None:
-        t_exp = (m.t_exposure_us + (self.t_wraps << 32)) / 1e6
-        if self.config.tracking.enabled:
-            self.track_az.on_frame(frame=m.frame, miss_px=m.miss_x_px, track_valid=m.track_valid,
-                                   t_exposure_s=t_exp, now_s=self.t_s + (self.t0_s or 0.0))
-            self.track_el.on_frame(frame=m.frame, miss_px=m.miss_y_px, track_valid=m.track_valid,
-                                   t_exposure_s=t_exp, now_s=self.t_s + (self.t0_s or 0.0))
-
-    def on_pose(self, t_profile_s: float, pose: tuple[float, ...]) -> None:
-        self.log.append("hexapod", (t_profile_s, time.monotonic_ns(), *pose))
-        self.profile_clock.on_pose(t_profile_s, self.t_s)
 
 
 @dataclass
@@ -978,130 +810,3 @@ class Session:
                 "link_errors": {n: link.decoder.counters.errors() for n, link in self.links.items()}}
 
 
-class TickWindDown:
-    """The wind-down of a lockstep or sim session, by the boards' ticks: reproducible to the last row.
-
-    A lockstep world steps when DRIVE_CMD k comes in. A frame the bench writes on another link is sure to be handled
-    before that step only if the world has answered it by then, and the bench reads the hexapod's link and the
-    servo's in either order; so no step of the wind-down may depend on when the event loop gets to it. Each is
-    taken in the loop's sample handler, at a tick fixed by the session's duration, the tick's DRIVE_CMD held until
-    the hexapod's ACK is back (the world waits for it):
-
-    - the first sample after the duration, then every :attr:`CHECK_TICKS` samples: HEXAPOD_STOP (the first stops
-      the swing; later ones change nothing). Its ACK follows every HEXAPOD_STATUS sent before it, so the table's
-      state read then is its state at that tick; the held DRIVE_CMD goes out after it;
-    - once a check finds the table at rest (or :attr:`HOME_TICKS` after the first stop), the next sample is the
-      loop's last, logged unarmed and not answered: the world waits there while the session's shutdown disables
-      the driver, stops the swing and the stream. Without a swing (``hexapod`` None) that is the first sample after
-      the duration.
-
-    The sim clock's world (``world_waits`` false) handles each frame as it is sent and delivers the replies within
-    the tick, so the same frames reach it at the same ticks; but it does not wait for an answer, so the last sample
-    is answered with SERVO_MODE IDLE, which stops it where lockstep's waits."""
-
-    CHECK_TICKS = 10  # the hexapod's POSE period
-    HOME_TICKS = round(HEXAPOD_HOME_S * 1000)
-
-    def __init__(self, session: Session, loop: ControlLoop, servo: ServoBoard, hexapod: ProtocolHexapod | None, *,
-                 world_waits: bool) -> None:
-        self.session = session
-        self.loop = loop
-        self.servo = servo
-        self.hexapod = hexapod
-        self.world_waits = world_waits
-        self.done: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
-        self.first_tick: int | None = None  # the first stop's
-        self.next_check = 0
-        self.holding = False
-        self.held: tuple[int, int, int] | None = None  # the DRIVE_CMD waiting for the hexapod's ACK
-        self.last_sample = hexapod is None  # the table rests: the next sample is the loop's last
-        self._on_sample, self._drive = loop.on_sample, loop.drive
-        loop.on_sample = self.on_sample  # type: ignore[method-assign]
-        loop.drive = self.drive
-
-    def drive(self, tick: int, az_counts: int, el_counts: int) -> None:
-        if self.holding:
-            self.held = (tick, az_counts, el_counts)
-        else:
-            self._drive(tick, az_counts, el_counts)
-
-    def on_sample(self, g: GyroSample, t_rx: int | None = None) -> None:
-        if self.done.done():
-            self._on_sample(g, t_rx)
-            return
-        self.held = None  # an ACK that did not come before the world moved on (a lockstep timeout): too late now
-        if self.last_sample:
-            self.loop.armed = False
-            self._on_sample(g, t_rx)
-            self.session._disarm_watchdog()  # no sample comes after this one
-            if not self.world_waits:
-                with contextlib.suppress(LinkError, OSError):  # else the shutdown stops it
-                    self.servo.stop_stream_now()
-            self.done.set_result(True)
-            return
-        check = self.first_tick is None or g.tick - self.next_check >= 0
-        self.holding = check
-        try:
-            self._on_sample(g, t_rx)
-        finally:
-            self.holding = False
-        if self.held is None:  # not a check, or the loop did not drive (a fault or a signal disarmed it)
-            return
-        if self.first_tick is None:
-            self.first_tick = g.tick
-        self.next_check = g.tick + self.CHECK_TICKS
-        try:
-            assert self.hexapod is not None
-            self.hexapod.stop_now(self._confirmed)
-        except (LinkError, OSError) as exc:
-            self._give_up(f"HEXAPOD_STOP not sent: {exc}")
-
-    def _confirmed(self) -> None:
-        """The hexapod's ACK: its state is the one at the held sample's tick."""
-        if self.held is None or self.done.done():
-            return
-        if not self.loop.armed:  # a fault or a signal since the sample: nothing more to drive
-            self._give_up()
-            return
-        assert self.hexapod is not None
-        if self.held[0] == self.first_tick:
-            self.session.event("state", state="swing stopping")
-        if not self.hexapod.running:
-            self.last_sample = True
-        elif self.held[0] - (self.first_tick or 0) >= self.HOME_TICKS:
-            self.session.event("info", hexapod=f"still {self.hexapod.state} {HEXAPOD_HOME_S:g} s after the stop")
-            self.last_sample = True
-        held, self.held = self.held, None
-        try:
-            self._drive(*held)
-        except (LinkError, OSError) as exc:
-            self._give_up(f"DRIVE_CMD not sent: {exc}")
-
-    def _give_up(self, why: str = "") -> None:
-        """The wind-down cannot go on by ticks (``why``, logged; none when a fault or a signal disarmed the loop): the
-        loop drives as it did while it is armed, and :meth:`wait` returns False."""
-        if why and not self.done.done():
-            self.session.event("info", wind_down=why)
-        held, self.held = self.held, None
-        if held is not None and self.loop.armed:
-            with contextlib.suppress(LinkError, OSError):
-                self._drive(*held)
-        if not self.done.done():
-            self.done.set_result(False)
-
-    async def wait(self) -> bool:
-        """Until the loop's last sample (True), or until the loop stops driving before it (a fault, a signal) or no
-        sample comes for HEXAPOD_HOME_S (False). Wall time only keeps this from waiting forever."""
-        loop = self.loop
-        cycles, quiet_since = -1, time.monotonic()
-        while not self.done.done():
-            if not loop.armed:
-                self._give_up()
-                break
-            if loop.stats.cycles != cycles:
-                cycles, quiet_since = loop.stats.cycles, time.monotonic()
-            elif time.monotonic() - quiet_since > HEXAPOD_HOME_S:
-                self._give_up(f"no sample for {HEXAPOD_HOME_S:g} s")
-                break
-            await asyncio.wait((self.done,), timeout=0.1)
-        return self.done.result()
