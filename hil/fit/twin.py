@@ -14,6 +14,9 @@ Three estimators, each on the logs that carry its information, each returning :c
 
 :func:`fit_logs` runs them and writes the plant: fitted values where the logs determine them, the prior's elsewhere
 (said so in :attr:`TwinFit.estimates`).
+
+One responsibility in one file (about 950 lines): fitting the plant to logs; the passes share the prior, the
+fitted plant and the order in which each estimate feeds the next.
 """
 
 from __future__ import annotations

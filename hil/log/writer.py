@@ -27,6 +27,9 @@ What survives what:
   holding every batch flushed before the kill (after a power loss: every batch fsynced); read it with
   ``h5py.File(p, 'r', swmr=True)`` or ``read_log``, repair it with ``recover_log``
   (``hil recover LOG``).
+
+One responsibility in one file (about 830 lines): the two halves of the writer, the bench's side and the child's,
+speak one pipe protocol and are read together.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Capture playback (docs/capture.md).
+"""Capture playback (docs/capture.md): one responsibility in one file (about 880 lines), the player thread and the
+board's answers it reads, which share the capture's timing.
 
 **Capture playback** (:func:`replay_capture`, ``hil replay CAPTURE --to-emulator``; :func:`play_capture` to given
 ports): the frames the bench sent in a capture (hil.link), written again, byte for byte, to a board's or an
