@@ -12,6 +12,7 @@ The public API (docs/api.md), for notebooks and scripts; the `hil` command line 
 
 from __future__ import annotations
 
+import importlib
 from typing import TYPE_CHECKING, Any
 
 from hil._version import __version__
@@ -50,7 +51,6 @@ def __getattr__(name: str) -> Any:
     module = _FROM.get(name)
     if module is None:
         raise AttributeError(f"module 'hil' has no attribute {name!r}")
-    import importlib
 
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value

@@ -12,11 +12,20 @@ or option) for bad input, before anything reaches a board; the command line prin
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from hil.config import ConfigError, SessionConfig, load_session, require_regular_file, require_writable_dir
+from pydantic import ValidationError
+
+from hil.analysis import SweptSine, bode_plot, identify_log, summarize_log
+from hil.config import ConfigError, SessionConfig, load_session, one_line, require_regular_file, require_writable_dir
+from hil.control.registry import K_M_DEFAULT, ControllerConfigError, require_sim_clock
+from hil.log import LogError
+from hil.log import read_log as read_arrays
+from hil.log.reader import NotASessionLog
 from hil.session import (
     CLOCKS,
     Clock,
@@ -55,7 +64,7 @@ class CampaignRun:
 
     def table(self) -> Any:
         """Every cell's metrics, one row per cell: profile, controller, seed, status, then a column per metric."""
-        import pandas as pd
+        import pandas as pd  # noqa: PLC0415  (heavy: loaded only for DataFrames)
 
         rows = [{"cell": c.cell_id, "profile": c.profile, "controller": c.controller, "seed": c.seed,
                  "status": c.status, "passed": c.passed, **c.metrics} for c in self.result.cells]
@@ -64,8 +73,8 @@ class CampaignRun:
 
 def load_campaign(path: str | Path) -> CampaignConfig:
     """A campaign YAML (profiles x controllers x seeds, metrics, thresholds, acceptance rules)."""
-    from hil.campaign import CampaignError
-    from hil.campaign import load_campaign as load
+    from hil.campaign import CampaignError  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
+    from hil.campaign import load_campaign as load  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     try:
         return load(path)
@@ -82,9 +91,9 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
     """Check a campaign without running it: (config, its directory, every cell's session). ConfigError otherwise.
     The engine options are checked as given (the scheduler is not contacted here: :func:`run_campaign` does).
     ``plant``: run every cell on this plant file (a fitted twin, docs/fit.md) instead of the sessions' own."""
-    from hil.campaign import CampaignError
-    from hil.campaign.engines import EngineError, check_options
-    from hil.campaign.runner import cell_sessions
+    from hil.campaign import CampaignError  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
+    from hil.campaign.engines import EngineError, check_options  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
+    from hil.campaign.runner import cell_sessions  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     source = str(campaign) if not hasattr(campaign, "cells") else "campaign"
     config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore[assignment]
@@ -98,7 +107,6 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
         check_options(engine, hardware=hardware, scheduler=scheduler, workers=workers, shared_dir=shared_dir)
     except EngineError as exc:
         raise ConfigError(str(exc)) from None
-    from hil.control.registry import ControllerConfigError, require_sim_clock
 
     if (clock != "sim" or hardware) and (use := config.sim_only_metric()) is not None:
         raise ConfigError(f"{source}: {use} is read from the plant's truth, which only the sim clock records "
@@ -117,7 +125,7 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
 
 def _on_plant(config: CampaignConfig, plant: Path, out_dir: Path) -> CampaignConfig:
     """The campaign with every cell's emulator on ``plant`` (an emulator file written into ``out_dir``)."""
-    from firmware_stub.plant import PlantConfigError, load_plant_config
+    from firmware_stub.plant import PlantConfigError, load_plant_config  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     try:
         load_plant_config(plant)
@@ -150,8 +158,8 @@ def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | Non
     A KeyboardInterrupt stops the cells running (each session the safe way) and raises
     :class:`hil.campaign.runner.CampaignInterrupted` (a KeyboardInterrupt) naming the cells done and cut short;
     the finished cells stay in ``out``, and ``resume=True`` runs the rest. No report is written then."""
-    from hil.campaign import CampaignError
-    from hil.campaign import run_campaign as run_cells
+    from hil.campaign import CampaignError  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
+    from hil.campaign import run_campaign as run_cells  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     config, out_dir, sessions = prepare_campaign(campaign, out=out, hardware=hardware, clock=clock, engine=engine,
                                                  scheduler=scheduler, workers=workers, shared_dir=shared_dir,
@@ -164,7 +172,7 @@ def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | Non
         raise ConfigError(str(exc)) from None
     files = None
     if write_report:
-        from hil.campaign.report import write_report as write
+        from hil.campaign.report import write_report as write  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
         try:
             files = write(out_dir)
@@ -178,16 +186,13 @@ def report(path: str | Path, *, settle_s: float = 1.0) -> Any:
     again (Markdown, HTML and plots) with the campaign's results: a :class:`CampaignRun`."""
     path = Path(path)
     if path.is_dir():
-        from hil.campaign import CampaignError, load_results
-        from hil.campaign.report import write_report
+        from hil.campaign import CampaignError, load_results  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
+        from hil.campaign.report import write_report  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
         try:
             return CampaignRun(result=load_results(path), out_dir=path, report=write_report(path))
         except CampaignError as exc:
             raise ConfigError(str(exc)) from None
-    from hil.analysis import summarize_log
-    from hil.log import LogError
-    from hil.log.reader import NotASessionLog
 
     try:
         require_regular_file(path)
@@ -227,15 +232,8 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
     of the closed rate loop (``session``'s controller, tracking off, no swing), the plant's frequency response from
     the log, a Bode plot and the fit of k_m, the gyro's bandwidth and the delay. ValueError (ConfigError) for bad
     input; a fit that cannot be made raises ValueError naming the log."""
-    import json
-    import math
 
-    from pydantic import ValidationError
 
-    from hil.analysis import SweptSine, bode_plot, identify_log
-    from hil.config import one_line
-    from hil.control.registry import K_M_DEFAULT
-    from hil.log import read_log as read_arrays
 
     if axis not in ("el", "az"):
         raise ConfigError(f"--axis: {axis!r} is not el or az")
@@ -282,7 +280,7 @@ def replay_log(log: str | Path, controller: str | None = None, params: Any = Non
     """Re-run a controller open loop on a logged gyro and drive stream (`hil replay LOG`, docs/capture.md):
     its estimates, would-be drive, noise and lag beside the logged controller's. ``params``: a dict, a
     ``"k=v,..."`` string or a controller YAML path. Returns a ``hil.replay.ReplayResult``."""
-    from hil import replay
+    from hil import replay  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     try:
         return replay.replay_log(Path(log), controller, params, settle_s=settle_s)
@@ -294,7 +292,7 @@ def replay_capture(capture: str | Path, **options: Any) -> Any:
     """Play a capture's host-side frames back at the boards or a fresh emulator with the original timing
     (`hil replay CAPTURE --to-emulator`, docs/capture.md); ``options`` as ``hil.replay.replay_capture``.
     Returns a ``hil.replay.PlaybackResult``."""
-    from hil import replay
+    from hil import replay  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     try:
         return replay.replay_capture(Path(capture), **options)
@@ -306,7 +304,7 @@ def tune(campaign: Any, params: Any, **options: Any) -> Any:
     """Controller gains by search (`hil tune`, docs/tuning.md): an Optuna study whose trials are the campaign's
     cells for one controller with the trial's parameters; the study lives in an RDB (SQLite by default). Returns a
     ``hil.tune.TuneResult``; ``options`` as ``hil.tune.tune``."""
-    from hil import tune as tuning
+    from hil import tune as tuning  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     return tuning.tune(campaign, params, **options)
 
@@ -315,6 +313,6 @@ def check_file(path: str | Path, kind: str | None = None) -> dict[str, Any]:
     """Validate one config file without running anything: {"file", "kind", "summary"}; ConfigError otherwise.
     The kind (session, campaign, controller, swing, hexapod, emulator, plant, targets) comes from ``kind``, else
     from the folder it is in (``profiles/KIND/``), else from its keys."""
-    from hil.checks import check_config_file
+    from hil.checks import check_config_file  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     return check_config_file(Path(path), kind)

@@ -110,7 +110,7 @@ def _expm(a: np.ndarray) -> np.ndarray:
     scaling by powers of two, exact) keeps every entry of the result to ~1e-13 relative, where plain ``expm`` leaves
     ~1e-9 on the smallest ones (current and voltage into the load rate and the angles). The tests check every
     entry against a 50-digit series, and the plant against analytic solutions."""
-    from scipy.linalg import expm, matrix_balance
+    from scipy.linalg import expm, matrix_balance  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     balanced, (scale, _) = matrix_balance(a, permute=False, separate=True)
     return expm(balanced) * scale[:, None] / scale[None, :]

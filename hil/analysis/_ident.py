@@ -218,7 +218,7 @@ def estimate_frf(
     estimates': ``1 / (1/g_ry + 1/g_ru - 1)``. ``direct``: ``S_uy / S_uu`` with ``g_uy`` (biased under feedback
     with noise; kept for comparison).
     """
-    from scipy import signal
+    from scipy import signal  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     rr, uu, yy = (np.asarray(v, dtype=float).ravel() for v in (r, u, y))
     n = rr.size
@@ -427,7 +427,7 @@ def fit_plant(
     shapes = SweepShapes(w, dt)
     best = _fit_linear(shapes, p, wt, None)
     if lag:
-        from scipy.optimize import minimize_scalar
+        from scipy.optimize import minimize_scalar  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
         def cost(log_fc: float) -> _Lin:
             return _fit_linear(shapes, p, wt, 10.0**log_fc)
@@ -482,7 +482,7 @@ def bode_plot(
     identification") heads the plot, the fitted figures (:func:`fit_caption`) under it; the page grows to hold the
     whole heading (constrained layout, tight bounding box), and the PNG's Title and Description hold the same two
     texts. Returns the PNG's path (parent directories are created)."""
-    from matplotlib.figure import Figure as MplFigure  # no pyplot: no global state, no GUI backend
+    from matplotlib.figure import Figure as MplFigure  # noqa: PLC0415  (heavy: loaded only when a figure is drawn)
 
     out = Path(path)
     f = frf.freq_hz

@@ -228,7 +228,7 @@ class DaskEngine(_Base):
         """Start the LocalCluster or connect to the scheduler (EngineError naming --scheduler if it cannot)."""
         if self.client is not None:
             return self
-        from distributed import Client, LocalCluster
+        from distributed import Client, LocalCluster  # noqa: PLC0415  (heavy and optional: only the dask engine needs it)
 
         try:
             if self.scheduler is None:
@@ -276,7 +276,7 @@ class DaskEngine(_Base):
 
     def map_cells(self, fn: Callable[[T], R], items: Iterable[T], *, key: KeyFn | None = None,
                   on_error: OnError | None = None, in_flight: int | None = None) -> Iterator[tuple[T, R]]:
-        from distributed import as_completed
+        from distributed import as_completed  # noqa: PLC0415  (heavy and optional: only the dask engine needs it)
 
         client = self.open().client
         token = uuid.uuid4().hex[:8]
@@ -334,7 +334,7 @@ def _executing(dask_worker: Any) -> list[str]:
 
 def _require_distributed() -> None:
     try:
-        import distributed  # noqa: F401
+        import distributed  # noqa: F401, PLC0415  (optional: its absence is handled here); optional: its absence is handled here
     except ImportError:
         raise EngineError("--engine dask: needs dask.distributed (pip install 'dask[distributed]')") from None
 

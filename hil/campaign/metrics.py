@@ -27,6 +27,11 @@ from typing import Any, Literal
 
 import numpy as np
 
+from hil.analysis import summarize_log
+from hil.control.filters import LowPass1
+from hil.log import read_log
+from hil.log.truth import read_truth
+
 PAPER_LPF_HZ = 150.0  # seed 000 section 4.3: "a traditional low-pass filter bandwidth of 150 Hz"
 LOS_BAND_HZ = 20.0  # seed 001's LOS rate: the 2.5 Hz vibration's band, above it the gyro's white noise dominates
 RECORD_S = 1.0  # peak-to-peak noise is read per 1 s record, as the paper's Fig. 12 shows one
@@ -151,7 +156,6 @@ def peak_per_record(x: np.ndarray, record: int = round(RECORD_S * 1000)) -> floa
 
 def low_pass(x: np.ndarray, cutoff_hz: float = PAPER_LPF_HZ, dt_s: float = 1e-3) -> np.ndarray:
     """The bench's own first-order low-pass (hil.control.filters.LowPass1) over a logged channel."""
-    from hil.control.filters import LowPass1
 
     f = LowPass1(cutoff_hz=cutoff_hz, dt_s=dt_s)
     f.reset(float(x[0]) if x.size else 0.0)
@@ -174,9 +178,6 @@ def lag_cycles(reference: np.ndarray, filtered: np.ndarray, freq_hz: float, dt_s
 
 def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float = 1.0) -> dict[str, float]:
     """Every metric of ``analysis`` (plus the control ones) for the session log at ``path``."""
-    from hil.analysis import summarize_log
-    from hil.log import read_log
-    from hil.log.truth import read_truth
 
     s = summarize_log(path, settle_s=settle_s)
     m: dict[str, float] = {}

@@ -19,6 +19,7 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 
 from hil.campaign.metrics import METRICS, default_primary
 from hil.config import MAX_SESSION_S, NAME_PATTERN, Seed, Strict, resolve_relative
+from hil.control.registry import controller_params
 
 _SLUG = re.compile(r"[^A-Za-z0-9]+")
 MAX_AXIS_ENTRIES = 100  # profiles, controllers, seeds: each at most this many
@@ -44,7 +45,6 @@ class ControllerEntry(Strict):
 
     @model_validator(mode="after")
     def _known(self) -> ControllerEntry:
-        from hil.control.registry import controller_params
 
         controller_params(self.name, self.params)  # ControllerConfigError (a ValueError): one line
         return self

@@ -27,9 +27,12 @@ from typing import Any
 
 import numpy as np
 
+from hil.analysis import welch_layout, welch_options
 from hil.campaign.metrics import METRICS, gain_pct, gap_closed, improvement_pct, low_pass, score
 from hil.campaign.model import CampaignResult, slug
 from hil.campaign.runner import load_results
+from hil.control.registry import needs_truth
+from hil.log import LogError, read_log
 from hil.reporting import (
     Banner,
     Block,
@@ -123,7 +126,6 @@ def _baseline(result: CampaignResult) -> str | None:
 
 def _oracles(result: CampaignResult) -> list[str]:
     """The labels of the campaign's oracle entries (controllers that need the plant's truth)."""
-    from hil.control.registry import needs_truth
 
     return [c.label for c in result.config.controllers if needs_truth(c.name)]
 
@@ -345,10 +347,9 @@ def cell_provenance(result: CampaignResult, campaign_dir: Path) -> list[tuple[st
     (``hil.log.provenance.read_provenance``; an old log, an unreadable one, or a bench without that module gives
     nothing)."""
     try:
-        from hil.log.provenance import read_provenance
+        from hil.log.provenance import read_provenance  # noqa: PLC0415  (optional: its absence is handled here)
     except ImportError:
         return []
-    from hil.log import LogError
 
     out = []
     for spec in result.config.cells():
@@ -456,9 +457,8 @@ def build_document(result: CampaignResult, campaign_dir: Path, figures: dict[str
 def welch(x: np.ndarray, fs: float, nperseg: int = PSD_SEGMENT) -> tuple[np.ndarray, np.ndarray]:
     """One-sided power spectral density (unit²/Hz) by ``scipy.signal.welch`` with the segments and window of
     hil.analysis's FRF (Hann, >= 50 % overlap ending at the record's end, each segment detrended)."""
-    from scipy import signal
+    from scipy import signal  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
-    from hil.analysis import welch_layout, welch_options
 
     x = np.asarray(x, dtype=float)
     n = min(nperseg, x.size)
@@ -505,7 +505,6 @@ class Trace:
 
 
 def _read_trace(result: CampaignResult, campaign_dir: Path, profile: str, controller: str) -> Trace | None:
-    from hil.log import LogError, read_log
 
     for seed in result.config.seeds:
         cell = result.cell(profile, controller, seed)

@@ -354,7 +354,7 @@ class CellOutput:
 def _worker_tmp() -> str | None:
     """The dask worker's own scratch directory (removed with the worker), else the system's temp directory."""
     with contextlib.suppress(ImportError, ValueError, AttributeError):
-        from distributed import get_worker
+        from distributed import get_worker  # noqa: PLC0415  (heavy and optional: only the dask engine needs it)
 
         return str(get_worker().local_directory)
     return None

@@ -10,7 +10,23 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hil.config import ConfigError, read_yaml_mapping
+from firmware_stub.config import EmulatorConfig, load_emulator_config
+from firmware_stub.plant import PlantConfig, load_plant_config
+from hil.campaign import load_campaign
+from hil.campaign.model import CampaignConfig
+from hil.config import (
+    ConfigError,
+    ControllerConfig,
+    HexapodLimits,
+    SessionConfig,
+    SwingProfile,
+    load_model,
+    load_session,
+    read_yaml_mapping,
+    require_regular_file,
+)
+from hil.control.registry import controller_params
+from hil.fit.targets import TargetsConfig, load_targets
 
 KINDS: tuple[str, ...] = ("session", "campaign", "controller", "swing", "hexapod", "emulator", "plant", "targets")
 FOLDERS = {"sessions": "session", "campaigns": "campaign", "controllers": "controller", "swing": "swing",
@@ -18,11 +34,6 @@ FOLDERS = {"sessions": "session", "campaigns": "campaign", "controllers": "contr
 
 
 def _models() -> dict[str, type]:
-    from firmware_stub.config import EmulatorConfig
-    from firmware_stub.plant import PlantConfig
-    from hil.campaign.model import CampaignConfig
-    from hil.config import ControllerConfig, HexapodLimits, SessionConfig, SwingProfile
-    from hil.fit.targets import TargetsConfig
 
     return {"session": SessionConfig, "campaign": CampaignConfig, "controller": ControllerConfig,
             "swing": SwingProfile, "hexapod": HexapodLimits, "emulator": EmulatorConfig, "plant": PlantConfig,
@@ -65,7 +76,6 @@ def _summary_campaign(config: Any) -> str:
 
 
 def _summary_controller(config: Any) -> str:
-    from hil.control.registry import controller_params
 
     params = controller_params(config.name, config.params)
     return (f"controller {config.name}: {len(type(params).model_fields)} parameters "
@@ -99,11 +109,6 @@ def _summary_targets(config: Any) -> str:
 
 
 def _loaders() -> dict[str, tuple[Callable[[Path], Any], Callable[[Any], str]]]:
-    from firmware_stub.config import load_emulator_config
-    from firmware_stub.plant import load_plant_config
-    from hil.campaign import load_campaign
-    from hil.config import ControllerConfig, HexapodLimits, SwingProfile, load_model, load_session
-    from hil.fit.targets import load_targets
 
     return {"session": (load_session, _summary_session), "campaign": (load_campaign, _summary_campaign),
             "targets": (load_targets, _summary_targets),
@@ -117,7 +122,6 @@ def _loaders() -> dict[str, tuple[Callable[[Path], Any], Callable[[Any], str]]]:
 def check_config_file(path: Path, kind: str | None = None) -> dict[str, Any]:
     """{"file", "kind", "summary"} if ``path`` is a valid config of ``kind`` (guessed when None); ConfigError
     (one line naming the file and the field) otherwise."""
-    from hil.config import require_regular_file
 
     if kind is not None and kind not in KINDS:
         raise ConfigError(f"--kind: {kind!r} is not one of {', '.join(KINDS)}")

@@ -40,7 +40,7 @@ class Verbosity:
     def set(cls, quiet: bool, verbose: int) -> None:
         cls.level = -1 if quiet else verbose
         if verbose:
-            from rich.logging import RichHandler
+            from rich.logging import RichHandler  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
             logging.basicConfig(level=logging.DEBUG if verbose > 1 else logging.INFO, format="%(name)s: %(message)s",
                                 handlers=[RichHandler(console=err_console, show_path=False)], force=True)
@@ -63,7 +63,7 @@ def no_progress(json_out: bool = False) -> bool:
 
 def print_json(data: Any) -> None:
     """Results as JSON on stdout (NaN and infinities as null, paths and other objects as strings)."""
-    from hil.analysis import json_safe
+    from hil.analysis import json_safe  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     console.print_json(json.dumps(json_safe(data), default=str))
 
@@ -71,7 +71,7 @@ def print_json(data: Any) -> None:
 def fail(message: str, code: int = 2) -> typer.Exit:
     """Print one line naming what is wrong (stderr) and return the Exit to raise (the message is shown as is: a
     file name or value holding ``[...]`` is not taken for markup)."""
-    from rich.markup import escape
+    from rich.markup import escape  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     err_console.print(f"[bold red]error:[/] {escape(' '.join(message.split()))}", highlight=False)
     return typer.Exit(code)
@@ -86,7 +86,7 @@ def finite(option: str, value: float | None) -> None:
 def check_out_dir(path: Path, option: str) -> None:
     """``path`` is a directory we may write into, or one we may create (nothing is created here); exit 2
     naming the option otherwise. Checked before anything starts, so a bad one never reaches a board."""
-    from hil.config import ConfigError, require_writable_dir
+    from hil.config import ConfigError, require_writable_dir  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         require_writable_dir(path, option)
@@ -96,7 +96,7 @@ def check_out_dir(path: Path, option: str) -> None:
 
 def check_input_file(path: Path) -> None:
     """``path`` names a regular file (a FIFO, device or directory is refused unopened); exit 2 otherwise."""
-    from hil.config import require_regular_file
+    from hil.config import require_regular_file  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         require_regular_file(path)

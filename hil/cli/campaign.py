@@ -72,7 +72,7 @@ def interrupted_json(stop: Any, command: str) -> dict[str, Any]:
 
 def print_interrupted(stop: Any, command: str) -> None:
     """What an interrupted campaign leaves: the cells done and cut short, and the command that finishes it."""
-    from rich.markup import escape
+    from rich.markup import escape  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     def say(text: str) -> None:
         console.print(text, highlight=False, soft_wrap=True)
@@ -90,7 +90,7 @@ def print_interrupted(stop: Any, command: str) -> None:
 def stop_on_signals() -> Iterator[None]:
     """While in the block, SIGINT and SIGTERM raise :class:`hil.campaign.engines.Interrupted` naming the signal
     (the campaign then stops its cells with it); the previous handlers come back after."""
-    from hil.campaign.engines import Interrupted
+    from hil.campaign.engines import Interrupted  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -141,11 +141,11 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     (--engine dask). Exit 1 if a threshold or an acceptance rule fails. Interrupted (Ctrl-C, SIGTERM): the cells
     running are stopped the safe way, the finished ones kept; it prints them and the --resume command that
     finishes the campaign, exit 130 (SIGTERM: 143)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    from hil import api
-    from hil.campaign.runner import CampaignInterrupted, interrupted
-    from hil.config import ConfigError
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.campaign.runner import CampaignInterrupted, interrupted  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         config, out_dir, _ = api.prepare_campaign(file, out=out, hardware=hardware, clock=clock, engine=engine,
@@ -192,8 +192,8 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
 
 def print_campaign(result) -> None:  # type: ignore[no-untyped-def]
     """The terminal table: one per profile, numbers formatted as in the report (format_values)."""
-    from hil.campaign import METRICS
-    from hil.campaign.report import format_values
+    from hil.campaign import METRICS  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.campaign.report import format_values  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     cfg = result.config
     for profile in cfg.profiles:

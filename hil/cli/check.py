@@ -22,8 +22,8 @@ def check(
 ) -> None:
     """Validate config files as `hil run`, `hil campaign` and the emulator would, without running anything:
     a summary line per good file, a one-line error per bad one (stderr), exit 2 if any is bad."""
-    from hil.api import check_file
-    from hil.config import ConfigError
+    from hil.api import check_file  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     results, bad = [], 0
     for path in files:

@@ -44,9 +44,9 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
         return
     if not logs:
         raise fail("LOGS: give the session logs to fit (or --targets FILE)")
-    from hil.fit.logs import FitInputError
-    from hil.fit.report import write_fit_report
-    from hil.fit.twin import fit_logs
+    from hil.fit.logs import FitInputError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.fit.report import write_fit_report  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.fit.twin import fit_logs  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     if out.suffix not in (".yaml", ".yml"):
         raise fail(f"--out: {out} is not a .yaml file")
@@ -74,7 +74,7 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
             "notes": result.notes,
         })
         return
-    from rich.table import Table
+    from rich.table import Table  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     table = Table(title=f"hil fit: {len(result.logs)} logs -> {plant_path}", title_justify="left")
     for col in ("parameter", "value", "+- 1 sigma", "unit", "prior", "status"):
@@ -93,9 +93,9 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
 
 def _fit_targets(targets: Path, out: Path, trials: int, storage: str | None, study: str | None, resume: bool,  # noqa: PLR0917
                  seed: int, json_out: bool, report_dir: Path | None) -> None:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    from hil.fit.targets import fit_targets
+    from hil.fit.targets import fit_targets  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     with Progress(TextColumn(f"[bold]fit {targets.stem}[/]"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[last]}"), TimeElapsedColumn(), console=err_console,
@@ -113,7 +113,7 @@ def _fit_targets(targets: Path, out: Path, trials: int, storage: str | None, stu
     if json_out:
         print_json(result.to_json())
         return
-    from rich.table import Table
+    from rich.table import Table  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     note(f"{result.complete} of {result.trials} trials complete ({result.failed} failed), best trial "
          f"{result.best_trial}: objective {result.best_value}; {result.wall_s:.0f} s")

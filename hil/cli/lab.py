@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Literal
 
 import typer
+from pydantic import ValidationError
 
 from hil.cli._common import app, console, err_console, fail, finite
 
@@ -19,13 +22,11 @@ def watch(
     seconds: Annotated[float | None, typer.Option(help="Stop after this long (default: until Ctrl-C).")] = None,
 ) -> None:
     """Live telemetry from the broker: latest value, unit and trend of every channel, session state, events."""
-    import asyncio
 
-    from pydantic import ValidationError
 
-    from hil.config import one_line
-    from hil.telemetry import MqttConfig
-    from hil.telemetry import watch as watch_telemetry
+    from hil.config import one_line  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.telemetry import MqttConfig  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.telemetry import watch as watch_telemetry  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     finite("--seconds", seconds)
     if seconds is not None and seconds <= 0:
@@ -52,7 +53,6 @@ def emulate(  # noqa: PLR0917 (typer maps parameters to options)
     seconds: Annotated[float | None, typer.Option(help="Stop after this much simulated time.")] = None,
 ) -> None:
     """Run the emulated lab (gimbal on a hexapod, four boards on ptys) until Ctrl-C: `python -m firmware_stub`."""
-    import os
 
     args = [sys.executable, "-m", "firmware_stub"]
     for flag, value in (("--config", config), ("--clock", clock), ("--seed", seed), ("--ports-file", ports_file),

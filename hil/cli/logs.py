@@ -19,9 +19,9 @@ def report(
 ) -> None:
     """Metrics of a session log (rate error, miss distance, drive ripple, latency, link errors), or a
     campaign directory's report: Markdown and a self-contained HTML page with the paper's tables and plots."""
-    from hil import api
-    from hil.cli.session import print_summary
-    from hil.config import ConfigError
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.cli.session import print_summary  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     finite("--settle-s", settle_s)
     if not log.is_dir():
@@ -32,7 +32,7 @@ def report(
         raise fail(str(exc)) from None
     if log.is_dir():
         if json_out:
-            from hil.cli.campaign import campaign_json
+            from hil.cli.campaign import campaign_json  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
             print_json(campaign_json(out))
         else:
@@ -52,7 +52,7 @@ def export(
     json_out: Annotated[bool, typer.Option("--json", help="Print the written files as JSON.")] = False,
 ) -> None:
     """Export every group of a log to Parquet or CSV files, units kept (docs/log-format.md, "Export")."""
-    from hil.log import LogError, export_log
+    from hil.log import LogError, export_log  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     check_input_file(log)
     check_out_dir(out if out is not None else log.parent, "--out" if out is not None else "the log's directory")
@@ -73,7 +73,7 @@ def recover(
     json_out: Annotated[bool, typer.Option("--json", help="Print the recovered log's path as JSON.")] = False,
 ) -> None:
     """Make a log left by a crash (SIGKILL, power loss) open normally; the original is kept beside it."""
-    from hil.log import LogError, recover_log
+    from hil.log import LogError, recover_log  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     check_input_file(log)
     try:

@@ -4,7 +4,9 @@ capture of every link, hil.link, or raw bytes of one)."""
 from __future__ import annotations
 
 import enum
+import re
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -20,8 +22,8 @@ def protocol_docs(
     path: Annotated[Path | None, typer.Option(help="The protocol document (default: docs/protocol.md).")] = None,
 ) -> None:
     """Check (or with --write, regenerate) the catalogue tables in docs/protocol.md."""
-    from hil.config import read_text_file
-    from hil.protocol import docgen
+    from hil.config import read_text_file  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.protocol import docgen  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     path = path or docgen.DOC_PATH
     try:
@@ -63,7 +65,7 @@ def protocol_decode(  # noqa: PLR0917 (typer maps parameters to options)
 ) -> None:
     """Decode what a link carried: a capture's frames with their times (every link, both directions), or a raw
     capture of one link; then the link counters. Streams: memory stays bounded."""
-    from hil.link import CaptureError, find_capture, is_capture
+    from hil.link import CaptureError, find_capture, is_capture  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     path = Path(capture)
     if capture != "-" and not hex_input and (path.is_dir() or is_capture(path)):
@@ -92,14 +94,14 @@ def _message_json(msg: Any) -> dict[str, Any]:
 
 
 def _frame_json(frame: Any) -> dict[str, Any]:
-    from hil.protocol import CATALOGUE
+    from hil.protocol import CATALOGUE  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     return {"src": frame.src, "dst": frame.dst, "seq": frame.seq, "message": CATALOGUE.spec(frame.message).name,
             "fields": _message_json(frame.message)}
 
 
 def _decode_capture(path: Path, limit: int, link: str | None, direction: str | None, json_out: bool) -> None:
-    from hil.link import CaptureDecode, CaptureError, CaptureReader, TimedFrame, decode_capture
+    from hil.link import CaptureDecode, CaptureError, CaptureReader, TimedFrame, decode_capture  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         result = CaptureDecode(CaptureReader(path))
@@ -155,11 +157,9 @@ def _decode_capture(path: Path, limit: int, link: str | None, direction: str | N
 
 
 def _decode_raw(capture: str, hex_input: bool, limit: int, link: str | None, *, side: str, json_out: bool) -> None:
-    import re
-    from collections.abc import Iterator
 
-    from hil.link import board_of
-    from hil.protocol import Decoder, Frame
+    from hil.link import board_of  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.protocol import Decoder, Frame  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     chunk_bytes = 1 << 16
     if link is None:

@@ -44,7 +44,7 @@ def replay(  # noqa: PLR0917 (typer maps parameters to options)
 ) -> None:
     """Replay a session log through an estimator/controller offline and compare it with the logged one; or, with
     --to-emulator, play a capture's frames back at a board or the emulator and count what came back."""
-    from hil.link import is_capture
+    from hil.link import is_capture  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     finite("--settle", settle)
     if out is not None:
@@ -69,8 +69,8 @@ def replay(  # noqa: PLR0917 (typer maps parameters to options)
 
 def _replay_log(log: Path, controller: str | None, params: str | None, *, settle: float, out: Path | None,
                 json_out: bool) -> None:
-    from hil import api
-    from hil.replay import write_outputs
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.replay import write_outputs  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         result = api.replay_log(log, controller, params, settle_s=settle)
@@ -110,8 +110,8 @@ def _fmt(x: float) -> str:
 
 def _replay_capture(source: Path, ports_file: Path | None, port: list[str], *, clock: str | None, seed: int | None,
                     timing: str, out: Path | None, json_out: bool) -> None:
-    from hil import api
-    from hil.replay import write_playback_json
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.replay import write_playback_json  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         result = api.replay_capture(source, ports=port, ports_file=ports_file, clock=clock, seed=seed,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -15,7 +16,7 @@ ClockOption = Literal["realtime", "lockstep", "sim"]
 
 
 def load_session_or_exit(path: Path):  # type: ignore[no-untyped-def]
-    from hil.config import ConfigError, load_session
+    from hil.config import ConfigError, load_session  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         return load_session(path)
@@ -27,10 +28,10 @@ def run_and_print(config, out: Path | None, loopback: bool, clock: str | None, j
                   capture: Path | None = None, show: bool = True):
     """Run one session through hil.api with a progress bar, print its summary (``show``), return the api's
     RunResult."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    from hil import api
-    from hil.config import ConfigError
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         config, clock_name, out_dir = api.prepare_run(config, loopback=loopback, clock=clock, out=out)  # type: ignore[arg-type]
@@ -186,7 +187,7 @@ def demo(
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
 ) -> None:
     """The README's demo: a 10 s session, 1 deg / 1 Hz swing, ESO+KF, against the emulator (no setup needed)."""
-    from hil.config import PROFILES
+    from hil.config import PROFILES  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     config = load_session_or_exit(PROFILES / "sessions" / "demo.yaml")
     raise typer.Exit(run_and_print(config, out, True, None, json_out).exit_code)
@@ -213,11 +214,11 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
     """Frequency-sweep identification (seed 000 Figs. 8-9): a swept sine on the rate command of the closed rate
     loop, the plant's frequency response from the log (indirect closed-loop method), a Bode plot, and the fit of
     k_m (deg/s^2 per count), the gyro's bandwidth and the delay."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    from hil import api
-    from hil.config import ConfigError
-    from hil.control.registry import K_M_DEFAULT
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.control.registry import K_M_DEFAULT  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     base = load_session_or_exit(session)
     with Progress(TextColumn(f"[bold]{base.name}[/] swept sine on {axis}"), BarColumn(),
@@ -257,14 +258,13 @@ def selftest(
     json_out: Annotated[bool, typer.Option("--json", help="Print the report as JSON.")] = False,
 ) -> None:
     """Protocol self-test: the bench against an emulated servo board on a pty, with injected faults."""
-    import dataclasses
 
     finite("--garbage-rate", garbage_rate)
     finite("--flip-rate", flip_rate)
 
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    from hil.link import main_sync
+    from hil.link import main_sync  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     with Progress(TextColumn("[bold]selftest[/] GYRO_SAMPLE -> DRIVE_CMD"), BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), console=err_console, transient=True, disable=no_progress(json_out)) as bar:

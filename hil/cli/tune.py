@@ -45,15 +45,15 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
     """Tune a controller on a campaign's cells with Optuna (TPE): each trial runs the campaign's profiles x seeds
     with the trial's parameters, scored by the mean of --objective (minimised); unstable trials fail, constraints
     steer the sampler. Writes OUT/NAME-tuned.yaml and the report. Exit 1 if no trial was feasible."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    from hil.config import ConfigError
-    from hil.tune import tune as run_tune
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.tune import tune as run_tune  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     if scheduler is not None and engine != "dask":
         raise fail("--scheduler: needs --engine dask")
     if Verbosity.level < 1:  # Optuna's own lines (study created, every trial) only with -v
-        import optuna
+        import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
         optuna.logging.set_verbosity(optuna.logging.WARNING)
     with Progress(TextColumn(f"[bold]tune {file.stem}[/]"), BarColumn(), MofNCompleteColumn(),

@@ -33,8 +33,10 @@ from pydantic import (
     model_serializer,
     model_validator,
 )
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from hil.analysis import SweptSine
+from hil.boards import load_hexapod_driver
 from hil.config._files import ConfigError, read_yaml_mapping, resolve_relative
 from hil.config._mqtt import MqttConfig
 from hil.control.registry import ControllerConfigError, controller_params
@@ -164,9 +166,7 @@ class HexapodConfig(BaseModel):
 
     @model_validator(mode="after")
     def _driver_and_options(self, info: ValidationInfo) -> HexapodConfig:
-        from pydantic_core import InitErrorDetails, PydanticCustomError
 
-        from hil.boards import load_hexapod_driver  # the driver's package is imported here, not with the bench
 
         try:
             cls = load_hexapod_driver(self.driver)

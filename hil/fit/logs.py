@@ -15,6 +15,7 @@ from typing import Any, Literal
 import numpy as np
 
 from hil.analysis import GYRO_CHANNEL
+from hil.log import LogError, read_log
 
 Kind = Literal["static", "ident", "swing"]
 AXES = ("az", "el")
@@ -88,7 +89,6 @@ def _driven_span(data: Any, n: int) -> tuple[int, int]:
 
 def load_fit_log(path: str | Path) -> FitLog:
     """Read and classify one log; :class:`FitInputError` (one line) if it cannot be used."""
-    from hil.log import LogError, read_log
 
     p = Path(path)
     try:
@@ -150,7 +150,7 @@ def load_fit_log(path: str | Path) -> FitLog:
 def _pose_on_loop(hexa: dict[str, np.ndarray], t_host_loop: np.ndarray, t_loop: np.ndarray) -> dict[str, np.ndarray]:
     """The hexapod's 100 Hz poses at every loop row, with rates and accelerations: each pose's host time is placed
     on the board's time through the loop rows' host times (valid on every clock), then a cubic spline."""
-    from scipy.interpolate import make_interp_spline
+    from scipy.interpolate import make_interp_spline  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     t_pose = np.interp(np.asarray(hexa["t_host_ns"], dtype=np.float64), t_host_loop, t_loop)
     keep = np.concatenate([[True], np.diff(t_pose) > 1e-6])  # one pose per board instant

@@ -28,6 +28,9 @@ from typing import Any
 import numpy as np
 import yaml
 
+from firmware_stub.config import read_yaml_mapping
+from firmware_stub.plant import PlantConfig
+
 AXES = ("az", "el")
 GYRO_AXES = ("x", "y", "z")
 R2D = 180.0 / math.pi
@@ -227,14 +230,12 @@ def apply_params(cfg: Mapping[str, Any], values: Mapping[str, float]) -> dict[st
 
 def validate_plant(cfg: Mapping[str, Any]) -> Any:
     """``PlantConfig`` of a plant dict (ValueError with the field on a bad one)."""
-    from firmware_stub.plant import PlantConfig
 
     return PlantConfig.model_validate(dict(cfg))
 
 
 def load_plant_dict(path: str | Path) -> dict[str, Any]:
     """A plant YAML as a dict, validated."""
-    from firmware_stub.config import read_yaml_mapping
 
     # the emulator's reader, then the validated model's plain dump (YAML 1.1 reads ``2.0e4`` as text; pydantic
     # reads it as the number it is): every value typed, mechanisms that are off left out

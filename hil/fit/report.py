@@ -11,8 +11,10 @@ from typing import Any
 
 import numpy as np
 
+from hil.config import SessionConfig
 from hil.fit.logs import FitLog
 from hil.fit.twin import TwinFit
+from hil.log import read_log
 from hil.reporting import (
     Banner,
     Bullets,
@@ -75,8 +77,6 @@ UNITS = {"rate_err_el_std_dps": "deg/s", "rate_err_az_std_dps": "deg/s", "drive_
 def rerun_on_twin(fit: TwinFit, plant_path: Path, work_dir: Path) -> tuple[list[TwinCheck], dict[str, Any]]:
     """Each static and swing log's session, re-run on the twin (``sim`` clock, the log's own config and seed; the
     emulator's plant replaced): its metrics beside the log's. Ident logs are checked by their FRF instead."""
-    from hil.config import SessionConfig
-    from hil.log import read_log
 
     checks: list[TwinCheck] = []
     traces: dict[str, Any] = {}

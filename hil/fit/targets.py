@@ -23,6 +23,7 @@ import dataclasses
 import json
 import math
 import shutil
+import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -30,9 +31,23 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from hil.config import resolve_relative
+from hil.campaign.metrics import METRICS, compute_metrics
+from hil.campaign.model import ControllerEntry
+from hil.campaign.runner import cell_session, load_campaign
+from hil.config import ConfigError, SessionConfig, load_model, one_line, resolve_relative
+from hil.control.registry import controller_params, effective_params
 from hil.fit import ranges
-from hil.tune import check_study_name, check_trials, failed, run_study, start_study, storage_url
+from hil.session import emulator_for_plant, run
+from hil.tune import (
+    check_study_name,
+    check_trials,
+    failed,
+    log_health,
+    run_study,
+    start_study,
+    storage_url,
+    unstable_reason,
+)
 
 if TYPE_CHECKING:
     import optuna
@@ -86,7 +101,6 @@ class Target(Cell):
     @field_validator("metric")
     @classmethod
     def _known_metric(cls, v: str) -> str:
-        from hil.campaign.metrics import METRICS
 
         if v not in METRICS:
             raise ValueError(f"unknown metric {v!r}")
@@ -114,7 +128,6 @@ class ControllerParam(_Strict):
 
     @model_validator(mode="after")
     def _check(self) -> ControllerParam:
-        from hil.control.registry import controller_params
 
         if not self.low < self.high:
             raise ValueError(f"high: the range {self.low:g}..{self.high:g} is empty")
@@ -182,7 +195,6 @@ class TargetsConfig(_Strict):
 def load_targets(path: str | Path) -> TargetsConfig:
     """A targets file, validated; every campaign it names is readable and has the profile and controller labels.
     ValueError with one line naming the file and the field."""
-    from hil.config import ConfigError, load_model, one_line
 
     path = Path(path)
     if not path.is_file():
@@ -214,7 +226,6 @@ _CAMPAIGNS: dict[Path, Any] = {}
 
 
 def _campaign(path: Path) -> Any:
-    from hil.campaign.runner import load_campaign
 
     if path not in _CAMPAIGNS:
         if not Path(path).is_file():
@@ -262,13 +273,6 @@ def proposed_controllers(config: TargetsConfig, values: Mapping[str, float]) -> 
 def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str, Any], plant_path: Path,
               work: Path) -> tuple[dict[str, float], str]:
     """One cell in this process on the sim clock: (its metrics, '' or why it is unstable)."""
-    from hil.campaign.metrics import compute_metrics
-    from hil.campaign.model import ControllerEntry
-    from hil.campaign.runner import cell_session
-    from hil.config import SessionConfig
-    from hil.control.registry import effective_params
-    from hil.session import emulator_for_plant, run
-    from hil.tune import log_health, unstable_reason
 
     camp = _campaign(cell.campaign)
     if duration is not None and camp.duration_s is not None:
@@ -312,7 +316,6 @@ def measure(config: TargetsConfig, plant: Mapping[str, Any] | str | Path, contro
     ``plant`` (a plant dict or YAML file) with ``controller_values`` (search.controller_params name -> value;
     missing ones keep their ``default``). ``full``: each campaign's own duration and ``verify.seeds``; else
     ``trial.duration_s`` and ``trial.seeds``. ``ids``: only these targets / measurements."""
-    import tempfile
 
     t0 = time.monotonic()
     values = {p.name: p.default for p in config.search.controller_params}

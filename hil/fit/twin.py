@@ -30,6 +30,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from firmware_stub.plant import DEFAULT_PLANT_CONFIG, Plant, PlantConfig
+from hil.analysis import Frf, SweepShapes, SweptSine, estimate_frf, fit_plant, plant_response, sweep_start
 from hil.fit.logs import AXES, FitInputError, FitLog, load_fit_logs
 from hil.fit.ranges import (
     BY_NAME,
@@ -83,7 +85,7 @@ def _unit(name: str, default: str = "") -> str:
 def _bandpass_shape(f_hz: np.ndarray, centre_hz: float, bandwidth_hz: float, fs_hz: float) -> np.ndarray:
     """|H|^2 of the plant's coloured-noise band-pass (``scipy.signal.iirpeak``), normalised to unit variance gain:
     the one-sided PSD of a component of std 1 is ``2 / fs * shape``."""
-    from scipy.signal import freqz, iirpeak
+    from scipy.signal import freqz, iirpeak  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     b, a = iirpeak(centre_hz, centre_hz / bandwidth_hz, fs=fs_hz)
     grid = np.linspace(0.0, fs_hz / 2.0, 4097)
@@ -107,8 +109,8 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
     (:func:`linear_plant_frf`); and bins within 20 % of ``modes_hz`` (gyro axis -> structural mode) are left out.
     Bias: x from its mean (no loop on it), y and z from the encoders' drift (the loop holds the measured rate at
     zero, so the gimbal turns at minus the bias)."""
-    from scipy.optimize import least_squares
-    from scipy.signal import welch
+    from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
+    from scipy.signal import welch  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     static = [lg for lg in logs if lg.kind == "static"]
     extras: dict[str, Any] = {"psd": {}}
@@ -134,7 +136,7 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
         sel = (f >= f_min_hz) & (f < 0.5 * fs * 0.98)
         motor = {"y": "el", "z": "az"}.get(ax)
         if driven is not None and motor is not None and ax in driven:
-            from scipy.signal import csd
+            from scipy.signal import csd  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
             u = np.concatenate([lg.loop[f"drive_{motor}_counts"][int(settle_s / lg.dt_s):] for lg in static])
             u = u - u.mean()
@@ -224,7 +226,6 @@ class FrfFit:
 
     def response(self, f_hz: np.ndarray) -> np.ndarray:
         """The fitted response: the kernel's own (:func:`linear_plant_frf`) where the fit finished on it."""
-        from hil.analysis import plant_response
 
         s = 2j * math.pi * np.asarray(f_hz, dtype=float)
         if self.kernel_plant is not None:
@@ -259,7 +260,6 @@ def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n
     sees it (drive k held over the tick after sample k): the plant kernel run on a doublet with friction, cable,
     imbalance, current limit and noise off, then the DFT ratio. Exact for whatever the kernel does (zero-order hold,
     the two-mass mode, the gyro's lag and delay discretised as the emulator does them)."""
-    from firmware_stub.plant import Plant, PlantConfig
 
     c = copy.deepcopy(dict(plant))
     for ax in AXES:
@@ -288,7 +288,7 @@ def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n
 def _exact_refine(plant: Mapping[str, Any], axis: str, fs: np.ndarray, p: np.ndarray, wt: np.ndarray,  # noqa: PLR0917
                   x0: np.ndarray, with_mode: bool, bw_fixed: float | None, spring_fixed: bool = False) -> Any:
     """Least squares of the kernel's own response (:func:`linear_plant_frf`) from the analytic fit's ``x0``."""
-    from scipy.optimize import least_squares
+    from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     s = 2j * math.pi * fs
 
@@ -344,9 +344,8 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     """The ident log's FRF (``hil.analysis.estimate_frf``, indirect) and the joint least-squares fit on its coherent
     bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as ``hil.analysis.fit_plant``. The rigid
     fit of ``hil.analysis`` starts it; the mode's frequency starts from a grid over the band."""
-    from scipy.optimize import least_squares
+    from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
-    from hil.analysis import Frf, SweepShapes, SweptSine, estimate_frf, fit_plant, sweep_start
 
     ax = log.axis or "el"
     sweep = SweptSine(**log.excitation) if log.excitation else None
@@ -532,7 +531,7 @@ class MechanicsFit:
 def _smooth(x: np.ndarray, half_width: int) -> np.ndarray:
     """Zero-phase Hann-window average over ``2 half_width + 1`` rows (compact support: a row depends only on rows
     within ``half_width``; first null at ``2 / ((2 half_width + 1) dt)``, sidelobes -31 dB)."""
-    from scipy.ndimage import convolve1d
+    from scipy.ndimage import convolve1d  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     w = np.hanning(2 * half_width + 3)[1:-1]
     return convolve1d(x, w / w.sum(), axis=0, mode="nearest")
@@ -540,7 +539,7 @@ def _smooth(x: np.ndarray, half_width: int) -> np.ndarray:
 
 def _gyro_lag(x: np.ndarray, bandwidth_hz: float, delay_s: float, dt: float) -> np.ndarray:
     """The gyro's first-order lag and delay (seed 000 eq 3) applied to a regressor sampled every tick."""
-    from scipy.signal import lfilter
+    from scipy.signal import lfilter  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     a = math.exp(-2.0 * math.pi * bandwidth_hz * dt)
     y = lfilter([1.0 - a], [1.0, -a], x, axis=0)
@@ -576,7 +575,7 @@ def fit_mechanics(logs: list[FitLog], axis: str, plant: Mapping[str, Any], *, ba
         dt = lg.dt_s
         k0, k1 = int(settle_s / dt), lg.loop["t_s"].size - 1
         theta_deg = np.unwrap(lg.loop[f"{axis}_deg"], period=360.0)
-        from scipy.signal import savgol_filter
+        from scipy.signal import savgol_filter  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
         v_dps = savgol_filter(theta_deg, 9, 2, deriv=1, delta=dt)
         v_mid = 0.5 * (v_dps[:-1] + v_dps[1:])  # over the tick k -> k + 1
@@ -742,7 +741,6 @@ def fit_logs(paths: list[str | Path], *, prior: str | Path | Mapping[str, Any] |
              progress: Any = None) -> TwinFit:
     """Fit the plant to the logs of one platform (docs/fit.md). ``prior``: the plant whose values are kept where the
     logs say nothing (default: the emulator's default plant). :class:`FitInputError` (one line) for bad input."""
-    from firmware_stub.plant import DEFAULT_PLANT_CONFIG
 
     def say(text: str) -> None:
         if progress is not None:

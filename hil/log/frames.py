@@ -8,6 +8,7 @@ pandas is imported on first use only: the bench itself never needs it.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -80,7 +81,6 @@ class LogFrames:
 
         A detail that is not a JSON object (plain text, or JSON cut at 480 bytes) comes back as ``{"text": ...}``.
         """
-        import json
 
         events = self.frames.get("events")
         if events is None:
@@ -136,7 +136,7 @@ def read_log_frames(path: str | Path, *, groups: list[str] | None = None) -> Log
     ``groups``: read only these (default: all). Raises ``hil.log.LogError`` if the file is not a
     readable session log or lacks a group asked for.
     """
-    import pandas as pd
+    import pandas as pd  # noqa: PLC0415  (heavy: loaded only for DataFrames)
 
     data = read_log(path, groups=groups)
     frames: dict[str, pd.DataFrame] = {}

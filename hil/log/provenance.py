@@ -22,6 +22,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hil._version import __version__
+from hil.control.registry import effective_params
+from hil.log.reader import read_attrs
 
 if TYPE_CHECKING:
     from hil.config import SessionConfig
@@ -62,7 +64,6 @@ def read_provenance(log_path: str | Path) -> dict[str, Any]:
     Reads only the file's attributes, so it is quick on a long log, and works on a log still being
     written or left by a crash. Raises ``LogError`` if the file is not a readable session log.
     """
-    from hil.log.reader import read_attrs
 
     value = read_attrs(log_path).get("provenance")
     return value if isinstance(value, dict) else {}
@@ -113,7 +114,7 @@ def _version(package: str) -> str | None:
 
 def _hdf5_version() -> str | None:
     try:
-        import h5py
+        import h5py  # noqa: PLC0415  (optional: its absence is handled here)
 
         return str(h5py.version.hdf5_version)
     except Exception:
@@ -123,7 +124,7 @@ def _hdf5_version() -> str | None:
 def plant_file(emulator_config: str | Path) -> Path | None:
     """The plant file an emulator YAML names (its ``plant:``, relative to that file), or None if unreadable."""
     try:
-        from firmware_stub.config import load_emulator_config
+        from firmware_stub.config import load_emulator_config  # noqa: PLC0415  (optional: its absence is handled here)
 
         return Path(load_emulator_config(emulator_config).plant).resolve()
     except Exception:
@@ -145,7 +146,6 @@ def _plant(config: SessionConfig) -> dict[str, str] | None:
 
 
 def _controller(config: SessionConfig) -> dict[str, Any]:
-    from hil.control.registry import effective_params
 
     controller = config.controller
     try:

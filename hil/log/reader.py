@@ -18,6 +18,7 @@ import datetime as _dt
 import json
 import os
 import re
+import socket
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -237,7 +238,6 @@ def _text(v: Any) -> str:
 
 def _writer_alive(attrs: dict[str, Any]) -> bool:
     """True if the pid that wrote the file still runs here as a hil.log writer."""
-    import socket
 
     pid = attrs.get("writer_pid")
     if not isinstance(pid, int) or attrs.get("writer_host") != socket.gethostname():
@@ -406,9 +406,9 @@ def _missing_dirs(directory: Path) -> list[Path]:
 
 def _write_groups(data: LogData, path: Path, fmt: str, out_dir: Path, written: list[Path]) -> None:
     """One file per group into ``out_dir``; each is added to ``written`` before it is opened."""
-    import pyarrow as pa
-    import pyarrow.csv as pacsv
-    import pyarrow.parquet as pq
+    import pyarrow as pa  # noqa: PLC0415  (heavy: loaded only for exports)
+    import pyarrow.csv as pacsv  # noqa: PLC0415  (heavy: loaded only for exports)
+    import pyarrow.parquet as pq  # noqa: PLC0415  (heavy: loaded only for exports)
 
     for g, cols in data.groups.items():
         units = data.units[g]

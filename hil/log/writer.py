@@ -320,7 +320,7 @@ class H5Sink:
         fsync: bool = True,
         overwrite: bool = False,
     ) -> None:
-        import h5py
+        import h5py  # noqa: PLC0415  (heavy: loaded only when a log is opened)
 
         self._h5s = h5py.h5s
         self.path = Path(path)

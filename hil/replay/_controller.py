@@ -18,6 +18,7 @@ bad input refused with a ReplayError (a ValueError) naming the parameter.
 
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter, deque
 from collections.abc import Mapping
@@ -26,8 +27,25 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import TypeAdapter
 
 from hil.analysis import drive_ripple, json_safe
+from hil.config import (
+    ConfigError,
+    ControllerConfig,
+    Excitation,
+    SafetyConfig,
+    SwingProfile,
+    TrackingConfig,
+    load_model,
+    parse_yaml,
+    require_regular_file,
+)
+from hil.control.cycle import DriveStep
+from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
+from hil.control.loops import TrackingLoop
+from hil.control.registry import build_controller, controller_params
+from hil.log import read_log
 
 AXES = ("el", "az")
 GYRO = {"el": "gyro_y_dps", "az": "gyro_z_dps"}  # the rate each axis's controller feeds back
@@ -195,8 +213,6 @@ def _frame_rows(image: dict[str, np.ndarray], ticks: np.ndarray, t_host: np.ndar
 
 
 def _load(path: Path) -> _Inputs:
-    from hil.config import SafetyConfig, SwingProfile, TrackingConfig
-    from hil.log import read_log
 
     try:
         data = read_log(path)
@@ -212,9 +228,7 @@ def _load(path: Path) -> _Inputs:
     profile = _section(SwingProfile, config.get("profile"), notes, "profile")
     excitation = None
     if config.get("excitation"):
-        from pydantic import TypeAdapter
 
-        from hil.config import Excitation
 
         try:
             excitation = TypeAdapter(Excitation).validate_python(config["excitation"])
@@ -273,10 +287,6 @@ def _load(path: Path) -> _Inputs:
 def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """The session's cycle (ControlLoop.on_sample, armed; its drive step is the shared hil.control.cycle.DriveStep)
     over the logged rows, open loop. Returns the per-tick arrays and the input checks."""
-    from hil.control.cycle import DriveStep
-    from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
-    from hil.control.loops import TrackingLoop
-    from hil.control.registry import build_controller
 
     ctrl_az, ctrl_el = build_controller(spec.name, spec.params), build_controller(spec.name, spec.params)
     tr = inp.tracking
@@ -362,7 +372,7 @@ def xcorr_lag(reference: np.ndarray, signal: np.ndarray, dt_s: float = DT_S, max
         return math.nan, np.zeros(0), np.zeros(0)
     x, y = x[:n] - x[:n].mean(), y[:n] - y[:n].mean()
     if band_hz is not None and band_hz < 0.5 / dt_s and n > 30:
-        from scipy.signal import butter, sosfiltfilt
+        from scipy.signal import butter, sosfiltfilt  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
         sos = butter(4, band_hz * 2 * dt_s, output="sos")
         x, y = sosfiltfilt(sos, x), sosfiltfilt(sos, y)
@@ -400,7 +410,6 @@ def parse_params(text: str) -> dict[str, Any]:
 
 def _param_value(key: str, text: str) -> Any:
     """A number as a number (``1e-3`` too, which YAML 1.1 reads as a string), anything else as YAML reads it."""
-    from hil.config import parse_yaml
 
     if not text:
         return ""
@@ -429,7 +438,6 @@ def controller_choice(controller: str | None, params: Mapping[str, Any] | str | 
     text = str(params)
     path = Path(text)
     if isinstance(params, Path) or text.endswith((".yaml", ".yml")) or path.is_file():
-        from hil.config import ConfigError, ControllerConfig, load_model
 
         try:
             cfg = load_model(ControllerConfig, path)
@@ -449,8 +457,6 @@ def replay_log(log: Path | str, controller: str | None = None,
     defaults. Metrics over [``settle_s``, the session's duration) from the first sample. ReplayError (one line) for
     input that cannot be replayed; ControllerConfigError (also a ValueError) for an unknown controller or
     parameter. :func:`write_outputs` writes the plot and JSON."""
-    from hil.config import require_regular_file
-    from hil.control.registry import controller_params
 
     if not isinstance(settle_s, int | float) or not math.isfinite(settle_s) or settle_s < 0:
         raise ReplayError(f"--settle: {settle_s!r} is not a finite number of seconds >= 0")
@@ -471,7 +477,6 @@ def replay_log(log: Path | str, controller: str | None = None,
     if not keep.any():  # a run shorter than the settling time: the whole of it
         keep = np.ones(inp.n, dtype=bool)
     window = (float(t[keep][0]), float(t[keep][-1]))
-    from hil.log import read_log
 
     loop = read_log(inp.path, groups=["loop"]).groups["loop"]
     axes: dict[str, AxisReplay] = {}
@@ -510,10 +515,10 @@ def replay_log(log: Path | str, controller: str | None = None,
 def write_plot(result: ReplayResult, path: Path, window_s: float = PLOT_WINDOW_S) -> Path:
     """A PNG (matplotlib, Agg): per axis, the gyro with both estimates and both drives over ``window_s`` from the
     start of the metric window, and the cross-correlations behind the lags."""
-    import matplotlib
+    import matplotlib  # noqa: PLC0415  (heavy: loaded only when a figure is drawn)
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415  (heavy: loaded only when a figure is drawn)
 
     s, lo = result.series, result.window_s[0]
     t = s["t_s"]
@@ -551,7 +556,6 @@ def write_plot(result: ReplayResult, path: Path, window_s: float = PLOT_WINDOW_S
 
 def write_outputs(result: ReplayResult, out_dir: Path) -> tuple[Path, Path]:
     """``<log stem>-replay-<controller>.png`` and ``.json`` in ``out_dir``; returns both paths."""
-    import json
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -21,6 +21,7 @@ printing, bad input refused with a ReplayError or CaptureError (ValueErrors) nam
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import select
@@ -35,13 +36,16 @@ from pathlib import Path
 from typing import Any
 
 from hil.analysis import json_safe
+from hil.config import read_text_file, require_writable_dir
 from hil.link import (
     LINKS,
     Capture,
     CaptureReader,
+    LinkError,
     PortClaims,
     PortUnavailable,
     claim_ports,
+    find_capture,
     link_decoder,
     set_exclusive,
     time_ordered,
@@ -68,6 +72,7 @@ from hil.protocol import (
     StreamMode,
 )
 from hil.replay._controller import ReplayError
+from hil.session import EmulatorProcess
 
 SPIN_S = 200e-6  # the last part of each wait is a spin that keeps polling the ports, the rest a select() sleep
 FIRST_SAMPLE_WAIT_S = 2.0  # how long the replay waits for the stream the replayed SERVO_MODE STREAM starts
@@ -206,7 +211,7 @@ class _Port:
     """One link's port: pyserial opens it (baud rate, raw mode), the fd does the rest."""
 
     def __init__(self, name: str, path: str, baudrate: int) -> None:
-        import serial
+        import serial  # noqa: PLC0415  (loaded only when a port is opened)
 
         self.name = name
         self.path = path
@@ -346,7 +351,6 @@ class CapturePlayer:
     def __init__(self, capture: Path, ports: Mapping[str, str], *, baudrate: int = 921_600,
                  timing: Timing = "samples", watchdog_s: float = WATCHDOG_S, linger_s: float = LINGER_S,
                  record_dir: Path | None = None, links: set[str] | None = None) -> None:
-        from hil.link import find_capture
 
         if timing not in ("samples", "clock"):
             raise ReplayError(f"timing {timing!r}: samples or clock")
@@ -738,9 +742,7 @@ def play_capture(capture: Path, ports: Mapping[str, str], **kwargs: Any) -> Play
 def ports_from_file(path: Path) -> dict[str, str]:
     """A ports file (the emulator's ``--ports-file``: JSON ``{"servo": path, ...}``) as link -> path (its
     ``control`` socket left out). ReplayError naming ``--ports-file`` and the file otherwise."""
-    import json
 
-    from hil.config import read_text_file
 
     try:
         text = read_text_file(path, 1 << 20)
@@ -832,14 +834,12 @@ def replay_capture(capture: Path | str, *, ports: Mapping[str, str] | Iterable[s
     (:func:`emulator_settings`; the result's ``emulator`` says which). ``timing``, ``record_dir`` (where the replay's
     own capture goes), ``links`` (only these) and the other keywords as :func:`play_capture`. Bad input raises
     ReplayError or CaptureError (ValueErrors, one line naming the option) before anything is sent."""
-    from hil.link import find_capture
 
     if timing not in TIMINGS:
         raise ReplayError(f"--timing: {timing!r} is not {' or '.join(TIMINGS)}")
     path = find_capture(Path(capture))
     named = resolve_ports(ports, ports_file)
     if record_dir is not None:
-        from hil.config import require_writable_dir
 
         try:
             require_writable_dir(Path(record_dir), "--out")
@@ -852,8 +852,6 @@ def replay_capture(capture: Path | str, *, ports: Mapping[str, str] | Iterable[s
             raise ReplayError("--clock and --seed start a fresh emulator: not with --port or --ports-file")
         return play_capture(path, named, **options)
     settings = emulator_settings(CaptureReader(path).meta, clock=clock, seed=seed, config=emulator_config)
-    from hil.link import LinkError
-    from hil.session import EmulatorProcess
 
     emulator = EmulatorProcess(settings.config, clock=settings.clock, seed=settings.seed)
     try:
@@ -870,7 +868,6 @@ def replay_capture(capture: Path | str, *, ports: Mapping[str, str] | Iterable[s
 
 def write_playback_json(result: PlaybackResult, out_dir: Path | str) -> Path:
     """``replay-<capture stem>.json`` in ``out_dir``: ``result.as_dict()`` as strict JSON; returns its path."""
-    import json
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

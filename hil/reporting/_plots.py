@@ -10,7 +10,7 @@ DPI = 100
 
 
 def new_figure(rows: int = 1, cols: int = 1, height: float = 3.6) -> tuple[Any, Any]:
-    from matplotlib.figure import Figure as MplFigure  # lazy, and no pyplot: no global state, no GUI backend
+    from matplotlib.figure import Figure as MplFigure  # noqa: PLC0415  (heavy: loaded only when a figure is drawn; no pyplot: no global state, no GUI backend)
 
     fig = MplFigure(figsize=(9.0, height * rows), layout="constrained")
     return fig, fig.subplots(rows, cols, squeeze=False)

@@ -19,6 +19,7 @@ from hil.control.loops import TrackingLoop
 from hil.control.oracle import TruthSource, bind_truth
 from hil.control.registry import build_controller
 from hil.log import SessionLog
+from hil.log.schema import LINK_COUNTERS
 from hil.protocol import LINKS, NO_LATENCY_US, GyroSample, LoopTiming, MissDistance
 from hil.telemetry import Telemetry
 
@@ -151,7 +152,6 @@ class ControlLoop:
             self.on_done()
 
     def _log_links(self, t_ns: int) -> None:
-        from hil.log.schema import LINK_COUNTERS  # the links group's columns of one link, in order
 
         row: list[int] = [t_ns]
         for name in LINKS:

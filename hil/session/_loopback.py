@@ -41,7 +41,7 @@ def emulator_for_plant(plant: str | Path, out_dir: str | Path, *, base: str | Pa
 def _die_with_parent() -> None:
     """Linux: SIGTERM the emulator if the bench dies (even by SIGKILL), so no orphan keeps the ptys."""
     try:
-        import ctypes
+        import ctypes  # noqa: PLC0415  (optional: its absence is handled here)
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):

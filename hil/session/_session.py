@@ -37,6 +37,7 @@ from hil.control.oracle import TruthSource, truth_refusal
 from hil.control.registry import needs_truth
 from hil.link import Capture, Link, LinkError, PortClaims, SerialLink, claim_ports
 from hil.log import SessionLog
+from hil.log.provenance import collect_provenance
 from hil.protocol import (
     LINKS,
     ClockLate,
@@ -267,7 +268,6 @@ class Session:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.log_path = self.out_dir / f"{self.config.name}-{now:%Y%m%d-%H%M%S}.h5"
         idents = {name: getattr(self, name).ident_dict() for name in LINKS}
-        from hil.log.provenance import collect_provenance  # versions, commit, plant hash, full controller params
 
         emulated = self.extra_attrs.get("loopback", self.emulated or self.lockstep or self.open_link is not None)
         attrs = {"config": self.config.model_dump(mode="json"), "ident": idents, "software_version": __version__,

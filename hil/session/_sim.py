@@ -24,10 +24,13 @@ from pathlib import Path
 from time import perf_counter
 from typing import TYPE_CHECKING, Any
 
+from firmware_stub.config import ConfigError, LinkName, load_emulator_config
 from hil.config import PortConfig, SessionConfig
 from hil.control.oracle import AxisTruth
 from hil.link import Link, LinkError
+from hil.log.truth import write_truth
 from hil.protocol import CATALOGUE, LINKS, Frame
+from hil.session._session import Session
 
 if TYPE_CHECKING:
     from firmware_stub.plant import Plant
@@ -154,7 +157,6 @@ class TruthLog:
         self.rates_z_dps.append(z)
 
     def write(self, log_path: Path) -> Path:
-        from hil.log.truth import write_truth
 
         return write_truth(log_path, self.ticks, self.rates_y_dps, self.rates_z_dps)
 
@@ -164,15 +166,13 @@ class SimLab:
     Session built with ``open_link=lab.open_link``; the world ticks while the session runs."""
 
     def __init__(self, emulator_config: Path, *, seed: int) -> None:
-        from firmware_stub.config import load_emulator_config
-        from firmware_stub.plant import PlantConfigError, load_plant_config
-        from firmware_stub.sim import SimWorld
+        from firmware_stub.plant import PlantConfigError, load_plant_config  # noqa: PLC0415  (the emulated plant's numba kernel: loaded only on the sim clock)
+        from firmware_stub.sim import SimWorld  # noqa: PLC0415  (the emulated plant's numba kernel: loaded only on the sim clock)
 
         config = load_emulator_config(emulator_config, clock="lockstep", seed=seed)
         try:
             load_plant_config(config.plant)
         except PlantConfigError as exc:
-            from firmware_stub.config import ConfigError
 
             raise ConfigError(f"{emulator_config}: plant: {exc}") from None
         self.world = SimWorld(config, self._to_host)
@@ -203,7 +203,6 @@ class SimLab:
 
     def to_board(self, name: str) -> Callable[[Frame], None]:
         """What a host link calls with each frame for board ``name``."""
-        from firmware_stub.config import LinkName
 
         link = LinkName(name)
         from_host = self.world.from_host
@@ -216,7 +215,6 @@ class SimLab:
         return send
 
     def from_host_bytes(self, name: str, data: bytes) -> None:
-        from firmware_stub.config import LinkName
 
         self.world.from_host_bytes(LinkName(name), data)
         if not self._ticking:
@@ -294,7 +292,6 @@ async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Cal
     gets the Session once it exists (hil.api: to interrupt it from another thread). The session gets the lab's
     :class:`PlantTruth`, which only the ``oracle`` controller reads, and its :class:`TruthLog`, written beside the
     log as its truth file (hil.log.truth: the true LOS rates per loop row), even when the session faults."""
-    from hil.session._session import Session
 
     if capture_dir is not None:
         raise ValueError(CAPTURE_REFUSED)

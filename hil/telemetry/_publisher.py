@@ -49,6 +49,7 @@ import paho.mqtt.client as paho
 
 from hil.config import MqttConfig, check_topic_name
 from hil.log import ipc
+from hil.log.schema import SCHEMA
 
 if TYPE_CHECKING:
     pass
@@ -81,7 +82,6 @@ def schema_units() -> Mapping[str, str]:
 
     A name that appears in several groups (``t_host_ns``, ``tick``) has the same unit in each; the first wins.
     """
-    from hil.log.schema import SCHEMA  # imports numpy: paid by the publisher, when a channel first appears
 
     units: dict[str, str] = {}
     for group in SCHEMA:

@@ -139,9 +139,9 @@ class _WatchView:
         return (len(arr) - 1) / (arr[-1] - arr[0])
 
     def render(self, now: float) -> RenderableType:
-        from rich.console import Group
-        from rich.table import Table
-        from rich.text import Text
+        from rich.console import Group  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
+        from rich.table import Table  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
+        from rich.text import Text  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
         bench = self.config.bench_id
         status = (self.status or {}).get("status", "unknown")
@@ -225,8 +225,8 @@ async def watch(
     stderr). Returns 0; or 1 after printing one error line if the broker cannot be reached at the start. A
     broker lost later is one warning line, shown as disconnected and reconnected to with backoff.
     """
-    from rich.console import Console as RichConsole
-    from rich.live import Live
+    from rich.console import Console as RichConsole  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
+    from rich.live import Live  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     if err_console is None:
         err_console = RichConsole(stderr=True)

@@ -56,7 +56,7 @@ def start_study(name: str, url: str, *, trials: int, resume: bool, direction: st
     """Create the study ``name`` in ``url``, or resume it (``resume``; ConfigError if it exists without). TPE seeded
     with ``seed``, random for its first ``startup_trials``; ``constant_liar`` for trials run in parallel.
     ``first_params``: enqueued as a new study's first trial (the prior's values)."""
-    import optuna  # heavy (SQLAlchemy): loaded only when a study runs
+    import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     check_study_name(name)
     check_trials(trials)

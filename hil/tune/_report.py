@@ -8,6 +8,8 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hil.campaign import CampaignError, load_results
+from hil.campaign.report import profile_table
 from hil.reporting import (
     Banner,
     Bullets,
@@ -70,7 +72,7 @@ MIN_IMPORTANCE_TRIALS = 4  # complete trials below which importances are not com
 
 def _importances(study: optuna.Study) -> tuple[dict[str, float], str]:
     """Optuna's parameter importances (its default evaluator) over the complete trials, or ({}, why not)."""
-    import optuna
+    import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     n = sum(t.state == optuna.trial.TrialState.COMPLETE for t in study.get_trials(deepcopy=False))
     if n < MIN_IMPORTANCE_TRIALS:
@@ -102,10 +104,8 @@ def _plot_importances(imp: dict[str, float], path: Path) -> Path | None:
 def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> Any:
     """tune.md, tune.html and the plots into the study's directory: the best parameters, the optimisation history,
     the parameter importances, the best trial's campaign table, the trials. Returns a ReportFiles."""
-    import optuna
+    import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
-    from hil.campaign import CampaignError, load_results
-    from hil.campaign.report import profile_table
 
     if study is None:
         study = optuna.load_study(study_name=result.study, storage=rdb_storage(result.storage))

@@ -12,7 +12,10 @@ import re
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Literal
 
+from hil.campaign.metrics import METRICS
 from hil.config import ConfigError
+from hil.control import registry
+from hil.control.registry import ControllerConfigError, controller_params
 
 if TYPE_CHECKING:
     import optuna
@@ -54,7 +57,6 @@ def _number(text: str, what: str) -> float:
 
 def _controllers() -> dict[str, Any]:
     """Every controller by name: the registry's, and those that run only on the sim clock (the oracle)."""
-    from hil.control import registry
 
     return {**registry.REGISTRY, **getattr(registry, "SIM_ONLY", {})}
 
@@ -76,7 +78,6 @@ def parse_params(text: str | Sequence[str], controller: str, base: dict[str, Any
     Names must be numeric parameters of ``controller`` (hil.control.registry); ``low < high``, finite, positive
     for ``:log``, whole numbers for ``:int`` (an integer parameter is always sampled as one); each end of the range
     must validate for the controller with ``base`` (the entry's other parameters). ConfigError naming --params."""
-    from hil.control.registry import ControllerConfigError, controller_params
 
     models = _controllers()
     if controller not in models:
@@ -143,7 +144,6 @@ class Constraint:
 def parse_constraints(items: str | Sequence[str | Constraint] | None) -> list[Constraint]:
     """``"drive_ripple_el_counts<=800"`` (one each, or comma-separated) -> :class:`Constraint`; ConfigError naming
     --constraint for an unknown metric, another operator or a bound that is not a finite number."""
-    from hil.campaign.metrics import METRICS
 
     if items is None:
         return []

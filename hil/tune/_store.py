@@ -99,8 +99,8 @@ def storage_url(storage: str | None, out_dir: Path) -> str:
 
 
 def rdb_storage(url: str) -> Any:
-    import optuna
-    import sqlalchemy.exc
+    import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
+    import sqlalchemy.exc  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     kwargs: dict[str, Any] = {"connect_args": {"timeout": 60}} if url.startswith("sqlite") else {}
     try:
@@ -117,7 +117,7 @@ def open_study(rdb: Any, study_name: str, sampler: Any, direction: str, *, meta:
                exists: bool) -> Any:
     """Create the study, or load it (``exists``) and check it was made with the same ``meta`` (its user attributes:
     the space, the objective, ...); ConfigError naming ``--resume`` if not. A new study gets ``meta`` stored."""
-    import optuna
+    import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     st = optuna.create_study(storage=rdb, sampler=sampler, study_name=study_name, direction=direction,
                              load_if_exists=True)

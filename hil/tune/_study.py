@@ -27,8 +27,18 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+import yaml
+
+from hil.campaign import CampaignError, load_campaign
 from hil.campaign.engines import EngineError, check_options
+from hil.campaign.metrics import METRICS
+from hil.campaign.model import ControllerEntry
+from hil.campaign.runner import cell_sessions, run_campaign
 from hil.config import ConfigError, require_writable_dir
+from hil.control.registry import effective_params
+from hil.log import read_log
+from hil.log.truth import truth_path
 from hil.tune._driver import check_study_name, check_trials, failed, run_study, start_study
 from hil.tune._report import write_tune_report
 from hil.tune._space import Constraint, ParamSpec, parse_constraints, parse_params
@@ -66,7 +76,6 @@ def choose_controller(config: CampaignConfig, label: str | None) -> ControllerEn
 def trial_campaign(config: CampaignConfig, entry: ControllerEntry, params: dict[str, Any]) -> CampaignConfig:
     """The campaign one trial runs: its profiles and seeds, only ``entry`` with ``params`` merged over its own,
     no baseline, acceptance or paper values (one controller has nothing to be compared with)."""
-    from hil.campaign.model import ControllerEntry
 
     merged = ControllerEntry(label=entry.label, name=entry.name, params={**entry.params, **params})
     return config.model_copy(update={"controllers": [merged], "baseline": None, "acceptance": [], "paper": {}})
@@ -75,9 +84,7 @@ def trial_campaign(config: CampaignConfig, entry: ControllerEntry, params: dict[
 def log_health(path: Path, settle_s: float, u_max: float) -> tuple[float, float | None]:
     """(fraction of the samples with either drive at its limit, fraction of valid tracking frames or None when the
     session did not track) after ``settle_s``."""
-    import numpy as np
 
-    from hil.log import read_log
 
     data = read_log(path)
     loop, image = data.groups["loop"], data.groups.get("image") or {}
@@ -116,8 +123,6 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
              *, check_logs: bool = True) -> tuple[float, list[float], dict[str, Any]]:
     """A trial's campaign result -> (objective, constraint values, attributes). ValueError (one line) when the
     trial is unstable or its numbers are missing: the caller scores it as failed."""
-    from hil.campaign.metrics import METRICS
-    from hil.control.registry import effective_params
 
     config: CampaignConfig = result.config
     cells = result.cells
@@ -170,7 +175,7 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
 
 
 def _trial_infos(study: optuna.Study) -> list[TrialInfo]:
-    from optuna.trial import TrialState
+    from optuna.trial import TrialState  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     out = []
     for t in study.get_trials(deepcopy=False):
@@ -208,7 +213,7 @@ def _start_cluster(options: dict[str, Any], workers: int) -> Any:
     address put in ``options``; None when there is nothing to start."""
     if options.get("engine") != "dask" or options.get("scheduler") is not None:
         return None
-    from distributed import LocalCluster
+    from distributed import LocalCluster  # noqa: PLC0415  (heavy and optional: only the dask engine needs it)
 
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=None)
     options["scheduler"] = cluster.scheduler_address
@@ -216,7 +221,6 @@ def _start_cluster(options: dict[str, Any], workers: int) -> Any:
 
 
 def _controller_yaml(entry: ControllerEntry, params: dict[str, Any], note: list[str]) -> str:
-    import yaml
 
     head = ["# hil.config.ControllerConfig: a controller of hil.control's registry (docs/control.md) and its "
             "parameters.",
@@ -247,9 +251,6 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     ``on_trial``: called after every trial of this run. ConfigError (one line) for bad input or an existing study
     without ``resume``."""
 
-    from hil.campaign import CampaignError, load_campaign
-    from hil.campaign.metrics import METRICS
-    from hil.campaign.runner import cell_sessions, run_campaign
 
     try:
         config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore
@@ -305,7 +306,6 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
             return failed(trial, exc, t0)
         finally:
             if not keep_logs and trial_dir.exists():
-                from hil.log.truth import truth_path
 
                 for log in trial_dir.rglob("*.h5"):
                     log.unlink(missing_ok=True)
