@@ -16,6 +16,7 @@ import yaml
 
 from hil.campaign import runner
 from hil.config import PROFILES, ConfigError, ControllerConfig, load_model
+from hil.tune import _study as study_module
 from hil.tune import tune
 
 CAMPAIGNS = PROFILES / "campaigns"
@@ -96,7 +97,7 @@ def test_a_failing_trial_is_failed_and_the_study_goes_on(tmp_path: Path, monkeyp
             return result.model_copy(update={"cells": cells})
         return result
 
-    monkeypatch.setattr(runner, "run_campaign", faulty)
+    monkeypatch.setattr(study_module, "run_campaign", faulty)  # the runner as the study calls it
     result = tune(tiny_campaign(tmp_path), SPACE, trials=3, out=tmp_path / "s", seed=2, write_report=True)
     assert [t.state for t in result.trials] == ["COMPLETE", "FAIL", "COMPLETE"]
     failed = result.trials[1]
