@@ -142,6 +142,13 @@ def test_with_a_grace_a_board_silent_on_its_own_clock_still_trips(tmp_path) -> N
     safety = {"watchdog_ms": 5, "on_fault": "stop", "emulator_stall_grace_ms": 500}
     run = run_session(session_config(duration_s=2.0, safety=safety), tmp_path, clock="realtime", during=stall_link,
                       emulated=True)
+    if run.result.status == "completed":
+        # a loaded host held the emulator's own clock during the stall as well: the emulator said so (CLOCK_LATE) and
+        # the bench rightly took the silence for the host's. Only then may the session go on.
+        stalls = [d for k, d in logged_events(run.result.log_path) if k == "host_stall"]
+        assert run.result.stats.clock_late >= 1 and any(
+            d["late_by"] == "emulator" and d["silent_ms"] >= 50 for d in stalls), (run.result.stats, stalls)
+        return
     assert run.result.status == "fault", run.result.message
     assert run.result.stats.faults[0].startswith("watchdog: no GYRO_SAMPLE")
     silent_ms = float(run.result.stats.faults[0].split("for ")[1].split(" ms")[0])
