@@ -1,4 +1,4 @@
-"""The study's report: tune.md and tune.html in the campaign report's style (hil.campaign.report's document model),
+"""The study's report: tune.md and tune.html in the campaign report's style (hil.reporting's document model),
 with the optimisation history and the parameters' importances (fANOVA, once enough trials completed)."""
 
 from __future__ import annotations
