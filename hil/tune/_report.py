@@ -1,5 +1,6 @@
 """The study's report: tune.md and tune.html in the campaign report's style (hil.reporting's document model),
-with the optimisation history and the parameters' importances (Optuna's default evaluator, once MIN_IMPORTANCE_TRIALS trials completed)."""
+with the optimisation history and the parameters' importances (Optuna's default evaluator, once
+MIN_IMPORTANCE_TRIALS trials completed)."""
 
 from __future__ import annotations
 
