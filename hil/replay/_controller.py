@@ -299,7 +299,7 @@ def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dic
     clock = ProfileClock()
     exc = inp.excitation
     excite_el = exc is None or exc.axis == "el"
-    step = DriveStep(ctrl_az, ctrl_el, feed, max_drive_counts=inp.safety.max_drive_counts,
+    step = DriveStep(ctrl_az, ctrl_el, feed, clock, max_drive_counts=inp.safety.max_drive_counts,
                      max_slew_counts=inp.safety.max_slew_counts)
     n = inp.n
     out = {key: np.zeros(n) for key in ("az_fb", "el_fb", "az_dist", "el_dist", "ff_el", "az_cmd", "el_cmd")}
@@ -347,7 +347,7 @@ def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dic
             checks["command_mismatches_el"] += 1
             cmd_el = cmd32_el[k]
         drive_az[k], drive_el[k] = step.step(cmd_az, cmd_el, gy[k], gz[k], az_deg=inp.az_deg[k],
-                                             el_deg=inp.el_deg[k], t_profile_s=clock.at(t_rel))
+                                             el_deg=inp.el_deg[k], t_s=t_rel)
         out["az_fb"][k], out["el_fb"][k] = ctrl_az.rate_fb_dps, ctrl_el.rate_fb_dps
         out["az_dist"][k], out["el_dist"][k] = ctrl_az.disturbance_counts, ctrl_el.disturbance_counts
         out["ff_el"][k], out["az_cmd"][k], out["el_cmd"][k] = step.ff_el, cmd_az, cmd_el

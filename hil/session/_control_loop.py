@@ -87,7 +87,7 @@ class ControlLoop:
         self.imbalance_feed = None if imbalance is None else ImbalanceFeed(
             imbalance, self.config.profile.protocol_segments(), dt_s=1e-3)
         self.profile_clock = ProfileClock()
-        self.drive_step = DriveStep(self.ctrl_az, self.ctrl_el, self.imbalance_feed,
+        self.drive_step = DriveStep(self.ctrl_az, self.ctrl_el, self.imbalance_feed, self.profile_clock,
                                     max_drive_counts=self.limits.max_drive_counts,
                                     max_slew_counts=self.limits.max_slew_counts)
 
@@ -123,7 +123,7 @@ class ControlLoop:
         step = self.drive_step
         if self.armed:
             u_az, u_el = step.step(cmd_az, cmd_el, g.rate_y_dps, g.rate_z_dps, az_deg=g.az_deg, el_deg=g.el_deg,
-                                   t_profile_s=self.profile_clock.at(self.t_s))
+                                   t_s=self.t_s)
             self.drive(g.tick, u_az, u_el)
         else:
             u_az = u_el = 0
