@@ -13,8 +13,8 @@ Clock modes (docs/emulator.md):
 
 Host liveness (docs/protocol.md, "Host liveness"): in realtime each board's host timer counts world
 ticks, checked in ``step`` only when the earliest expiry is due (one comparison per tick). In lockstep
-the boards share one wall-clock timer (the last host frame on any link), judged only when a wait for
-DRIVE_CMD gives up, against max(host_timeout_ms, lockstep_timeout_ms): a slow but live host never
+the boards share one wall-clock timer (the last host frame on any link), judged only when a wait for the host
+(DRIVE_CMD, LOCKSTEP_ACK) gives up, against max(host_timeout_ms, lockstep_timeout_ms): a slow but live host never
 changes a lockstep run's bytes, and a frozen world (stream off) is never judged.
 """
 
@@ -228,7 +228,6 @@ class Emulator:
 
     def _run_lockstep(self, end: int | None) -> None:
         self.deadline = None
-        timeout_s = self.config.lockstep_timeout_ms / 1000
         paced_next = 0.0
         while not self._done(end):
             if not self.servo.streaming:
@@ -243,8 +242,7 @@ class Emulator:
                 paced_next = 0.0
                 self.awaiting = k
                 self.drain(LinkName.DRIVER)
-                answered = wait_for(lambda: self.released or not self.servo.streaming, timeout_s,
-                                    self.readers(), lambda: self.stop_requested)
+                answered = self._await_host(lambda: self.released or not self.servo.streaming)
                 if not answered and self.servo.streaming:
                     self.lockstep_timeouts += 1
                     self._judge_host_lockstep()
@@ -263,22 +261,43 @@ class Emulator:
         links = self._acked_links
         if not (links[0].unacknowledged or links[1].unacknowledged or links[2].unacknowledged):
             return
-        acked = wait_for(lambda: not any(link.unacknowledged for link in links),
-                         self.config.lockstep_timeout_ms / 1000, self.readers(), lambda: self.stop_requested)
+        acked = self._await_host(lambda: not any(link.unacknowledged for link in links))
         if not acked and not self.stop_requested:
             for link in links:
                 if link.unacknowledged:
                     self.lockstep_timeouts += 1
                     self.recorder.record(link.name, "ack_timeout", seq=link.sent_seq)
                     link.forget_acks()
+            self._judge_host_lockstep()
+
+    def _host_judge_ms(self) -> float:
+        """Lockstep: the host silence (ms of wall time, any link) after which the boards protect themselves,
+        max(host_timeout_ms, lockstep_timeout_ms); 0 when the boards have no host timer."""
+        host_timeout_ms = self.config.boards.host_timeout_ms
+        return max(host_timeout_ms, self.config.lockstep_timeout_ms) if host_timeout_ms else 0.0
+
+    def _await_host(self, condition: Callable[[], bool]) -> bool:
+        """Lockstep: serve the links until ``condition()`` holds (True), for ``lockstep_timeout_ms``; its caller
+        judges the host when it does not (:meth:`_judge_host_lockstep`). A wait that runs out less than another
+        ``lockstep_timeout_ms`` before the host's silence reaches that judgement's timeout (a host that answered
+        another board and then froze) waits on until it does, so a frozen host is judged at its first timeout,
+        never a whole wait (and a tick) later."""
+
+        def stop() -> bool:
+            return self.stop_requested
+
+        timeout_s = self.config.lockstep_timeout_ms / 1000
+        if wait_for(condition, timeout_s, self.readers(), stop):
+            return True
+        rest_s = self._host_judge_ms() / 1000 - (time.perf_counter() - self.host_heard_s)
+        return 0 < rest_s <= timeout_s and self.servo.streaming and wait_for(condition, rest_s, self.readers(), stop)
 
     def _judge_host_lockstep(self) -> None:
-        """Lockstep, after a wait for DRIVE_CMD gave up: if no host frame came on any link for
+        """Lockstep, after a wait for the host (DRIVE_CMD, LOCKSTEP_ACK) gave up: if no host frame came on any link for
         max(host_timeout_ms, lockstep_timeout_ms) of wall time, every board the host had talked to protects itself."""
-        host_timeout_ms = self.config.boards.host_timeout_ms
-        if not host_timeout_ms:
+        timeout_ms = self._host_judge_ms()
+        if not timeout_ms or not self.servo.streaming:
             return
-        timeout_ms = max(host_timeout_ms, self.config.lockstep_timeout_ms)
         silence_ms = (time.perf_counter() - self.host_heard_s) * 1000
         if silence_ms >= timeout_ms:
             for board in self.boards.values():

@@ -344,6 +344,32 @@ def test_lockstep_judges_the_host_only_when_a_wait_for_drive_cmd_gives_up() -> N
         host.close()
 
 
+def test_lockstep_judges_a_host_frozen_after_its_last_frame_at_the_first_timeout() -> None:
+    """A host that answers another board (here HOST_ALIVE on the hexapod link) during a wait for DRIVE_CMD and then
+    freezes is judged once it has been silent for the timeout, at the tick it left unanswered: not a wait later,
+    by when a host frozen for twice the timeout would be back and find its boards still armed."""
+    boards = {"host_timeout_ms": 100}
+    with running_emulator(clock="lockstep", lockstep_timeout_ms=600, boards=boards) as emu:
+        host = Host(emu.ports())
+        assert isinstance(host.request("driver", DriveEnable(AxisMask.BOTH, True)), Ack)
+        assert isinstance(host.request("servo", ServoMode(StreamMode.STREAM)), Ack)
+        stream(host, 100)
+        time.sleep(0.4)  # inside the wait for DRIVE_CMD 100
+        host["hexapod"].send(HostAlive(100))
+        heard = time.monotonic()
+        give_up = heard + 10
+        while not [r for r in emu.recorder.records if r.kind == "host_timeout"]:
+            assert time.monotonic() < give_up, "no host timeout"
+            time.sleep(0.01)
+        judged_after_s = time.monotonic() - heard
+        records = [r for r in emu.recorder.records if r.kind == "host_timeout"]
+        assert {r.tick for r in records} == {101}, records  # sample 100 (tick 101) was the one left unanswered
+        assert all(600 <= r.detail["silence_ms"] < 1200 for r in records), records
+        assert judged_after_s >= 0.6, judged_after_s
+        assert emu.lockstep_timeouts == 1 and not emu.servo.streaming and emu.driver.enabled == 0
+        host.close()
+
+
 def test_host_timeout_zero_disables_the_timer() -> None:
     with stepped(host_timeout_ms=0) as bench:
         start_everything(bench)
