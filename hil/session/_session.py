@@ -459,12 +459,15 @@ class Session:
             if self.use_thread:
                 self.interlock.check("restarting the loop thread")
                 self._start_loop_thread()
-            await self.servo.start_stream()
+            # in the start's order: the loop drives from the restarted stream's first sample (in lockstep the
+            # world waits for that answer), and the watchdog watches once the stream is on
             await self.driver.enable(clear_faults=True)
             self.interlock.check("re-arming")
             loop.reset_controllers()
             loop.last_tick = None
             loop.stats.recoveries += 1
+            loop.armed = True
+            await self.servo.start_stream()
             self._arm()
             await self._resume_swing(fault_t_s, fresh_driver="hexapod" in reopened)
             self._recovering = False
