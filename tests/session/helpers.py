@@ -83,11 +83,11 @@ async def wait_cycles(session: Session, n: int, timeout_s: float = 30.0) -> None
 
 
 def logged_events(log_path: Path) -> list[tuple[str, dict[str, Any]]]:
-    """The events of a session log as (kind, detail) pairs."""
-    from hil.log import read_log
+    """The events of a session log as (kind, detail) pairs, decoded as the log's reader does (a detail cut at the
+    log's detail length comes back as ``{"text": ...}``)."""
+    from hil.log import read_log_frames
 
-    events = read_log(log_path).groups["events"]
-    return [(str(k), json.loads(str(d))) for k, d in zip(events["kind"], events["detail"], strict=True)]
+    return [(e["kind"], e["detail"]) for e in read_log_frames(log_path, groups=["events"]).event_details()]
 
 
 HOST_CLOCK = {"t_host_ns", "latency_us"}  # the host's own monotonic clock: differs between any two runs

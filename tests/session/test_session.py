@@ -16,7 +16,7 @@ from firmware_stub.control import ControlClient
 from hil.analysis import summarize_log
 from hil.log import read_log
 from hil.session import EmulatorProcess, Session
-from tests.session.helpers import run_session, session_config, wait_cycles
+from tests.session.helpers import logged_events, run_session, session_config, wait_cycles
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +112,9 @@ def test_a_bench_the_host_stopped_while_the_board_was_stopped_too_does_not_trip(
     The board is released 5 ms after the bench is back, when the watchdog (whose wait ran out during the stop)
     has looked. A sample the board wrote just before the stop and the bench had not read yet reaches the
     bench when it resumes and feeds the watchdog first; that stop is then no stall at all, which is also
-    right, so the test asks for at least one stall of the three and no trip."""
+    right, so the test asks for at least one stall of the three and no trip. A loaded host may stall the bench
+    on its own as well (a late look at a shorter silence): those are counted too, never tripped on, and left out
+    of the count of the stops'."""
     stops = 3
 
     async def freeze(emu: EmulatorProcess, session: Session) -> None:
@@ -133,7 +135,9 @@ def test_a_bench_the_host_stopped_while_the_board_was_stopped_too_does_not_trip(
     assert run.result.status == "completed", run.result.message
     summary = summarize_log(run.result.log_path)
     assert summary["faults"] == 0 and run.result.stats.faults == []
-    assert stops >= summary["host_stalls"] == run.result.stats.host_stalls >= 1  # seen as stalls, none a trip
+    assert summary["host_stalls"] == run.result.stats.host_stalls
+    stalls_ms = [d["silent_ms"] for k, d in logged_events(run.result.log_path) if k == "host_stall"]
+    assert stops >= len([ms for ms in stalls_ms if ms >= 60.0]) >= 1, stalls_ms  # seen as stalls, none a trip
     assert 60.0 <= summary["host_stall_max_ms"] < 1000.0
 
 
