@@ -98,11 +98,11 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
     source = str(campaign) if not hasattr(campaign, "cells") else "campaign"
     config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore[assignment]
     out_dir = Path(out) if out is not None else Path("runs") / "campaigns" / config.name
-    require_writable_dir(out_dir, "--out")
+    require_writable_dir(out_dir, "out")
     if plant is not None:
         config = _on_plant(config, Path(plant), out_dir)
     if clock not in ("sim", "lockstep"):
-        raise ConfigError(f"--clock: {clock!r} is not sim or lockstep")
+        raise ConfigError(f"clock={clock!r}: not sim or lockstep")
     try:
         check_options(engine, hardware=hardware, scheduler=scheduler, workers=workers, shared_dir=shared_dir)
     except EngineError as exc:
@@ -110,7 +110,7 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
 
     if (clock != "sim" or hardware) and (use := config.sim_only_metric()) is not None:
         raise ConfigError(f"{source}: {use} is read from the plant's truth, which only the sim clock records "
-                          f"(not {'hardware' if hardware else clock}); run with --clock sim")
+                          f"(not {'hardware' if hardware else clock}); run with clock='sim'")
     for entry in config.controllers:  # the oracle needs the sim clock's true plant state
         try:
             require_sim_clock(entry.name, "hardware" if hardware else clock)
@@ -130,7 +130,7 @@ def _on_plant(config: CampaignConfig, plant: Path, out_dir: Path) -> CampaignCon
     try:
         load_plant_config(plant)
     except PlantConfigError as exc:
-        raise ConfigError(f"--plant: {exc}") from None
+        raise ConfigError(f"plant={str(plant)!r}: {exc}") from None
     emulator = emulator_for_plant(plant, out_dir)
     overrides = {**config.overrides, "emulator": {**(config.overrides.get("emulator") or {}),
                                                   "config": str(emulator.resolve())}}
@@ -152,7 +152,7 @@ def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | Non
     end; with a scheduler, ``workers`` waits for that many workers. The cells' files come back to ``out`` as bytes,
     or through ``shared_dir``, a directory every worker sees at the same path. An open
     :class:`hil.campaign.engines.Engine` may be given instead (its owner closes it). An unreachable scheduler is
-    a ConfigError naming ``--scheduler``, raised before anything is written. ``plant``: every cell on this plant
+    a ConfigError naming the scheduler, raised before anything is written. ``plant``: every cell on this plant
     file (a fitted twin) instead of the one its session's emulator names.
     Blocking; inside a running event loop it runs the cells in worker threads, which is what it does anyway.
     A KeyboardInterrupt stops the cells running (each session the safe way) and raises
@@ -182,7 +182,7 @@ def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | Non
 
 
 def report(path: str | Path, *, settle_s: float = 1.0) -> Any:
-    """A session log's metrics (a dict, as `hil report LOG --json`), or for a campaign directory its report written
+    """A session log's metrics (a dict, as `hil report LOG` prints it), or for a campaign directory its report written
     again (Markdown, HTML and plots) with the campaign's results: a :class:`CampaignRun`."""
     path = Path(path)
     if path.is_dir():
@@ -236,12 +236,12 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
 
 
     if axis not in ("el", "az"):
-        raise ConfigError(f"--axis: {axis!r} is not el or az")
-    for option, value in (("--f-start-hz", f_start_hz), ("--f-stop-hz", f_stop_hz), ("--sweep-s", sweep_s),
-                          ("--amplitude-dps", amplitude_dps), ("--offset-dps", offset_dps)):
+        raise ConfigError(f"axis={axis!r}: not el or az")
+    for option, value in (("f_start_hz", f_start_hz), ("f_stop_hz", f_stop_hz), ("sweep_s", sweep_s),
+                          ("amplitude_dps", amplitude_dps), ("offset_dps", offset_dps)):
         if not math.isfinite(value):
-            raise ConfigError(f"{option}: {value!r} is not a finite number")
-    out_dir = require_writable_dir(Path(out), "--out")
+            raise ConfigError(f"{option}={value!r}: not a finite number")
+    out_dir = require_writable_dir(Path(out), "out")
     base = as_session_config(session)
     try:
         sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s,
@@ -255,9 +255,9 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
         raise ConfigError(one_line("ident", exc)) from None
     travel_deg = abs(offset_dps) * sweep.total_s
     if axis == "el" and travel_deg > MAX_EL_TRAVEL_DEG:
-        raise ConfigError(f"--offset-dps: the elevation axis would turn {travel_deg:.0f} deg during the sweep (at "
-                          f"most {MAX_EL_TRAVEL_DEG:g}: near 90 deg the cross-elevation gyro loses the azimuth axis); "
-                          "lower --offset-dps or --sweep-s, or identify --axis az")
+        raise ConfigError(f"offset_dps={offset_dps:g}: the elevation axis would turn {travel_deg:.0f} deg during the "
+                          f"sweep (at most {MAX_EL_TRAVEL_DEG:g}: near 90 deg the cross-elevation gyro loses the "
+                          "azimuth axis); lower offset_dps= or sweep_s=, or identify axis='az'")
     result = run(config, loopback=loopback, clock=clock, out=out_dir, progress=progress)
     if result.status != "completed" or result.log_path is None:
         return IdentRun(run=result)
@@ -290,7 +290,7 @@ def replay_log(log: str | Path, controller: str | None = None, params: Any = Non
 
 def replay_capture(capture: str | Path, **options: Any) -> Any:
     """Play a capture's host-side frames back at the boards or a fresh emulator with the original timing
-    (`hil replay CAPTURE --to-emulator`, docs/capture.md); ``options`` as ``hil.replay.replay_capture``.
+    (`hil replay CAPTURE`, docs/capture.md); ``options`` as ``hil.replay.replay_capture``.
     Returns a ``hil.replay.PlaybackResult``."""
     from hil import replay  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 

@@ -122,7 +122,7 @@ class LocalEngine(_Base):
 
     def __init__(self, jobs: int = 1) -> None:
         if jobs < 1:
-            raise EngineError(f"--jobs: {jobs} (need at least 1)")
+            raise EngineError(f"jobs={jobs}: need at least 1")
         self.jobs = jobs
 
     @property
@@ -174,7 +174,7 @@ def check_scheduler(address: str) -> str:
         port, parts = None, None
     if (parts is None or parts.scheme not in SCHEMES or not parts.hostname or port is None
             or parts.path not in ("", "/") or parts.query or parts.fragment):
-        raise EngineError(f"--scheduler: {address!r} is not a scheduler address ({DEFAULT_PORT_HINT})")
+        raise EngineError(f"scheduler={address!r}: not a scheduler address ({DEFAULT_PORT_HINT})")
     return address.rstrip("/")
 
 
@@ -185,7 +185,7 @@ def _reachable(address: str, timeout_s: float) -> None:
             pass
     except OSError as exc:
         why = exc.strerror or str(exc) or type(exc).__name__
-        raise EngineError(f"--scheduler {address}: cannot connect ({why}); is `dask scheduler` running there?"
+        raise EngineError(f"scheduler={address!r}: cannot connect ({why}); is `dask scheduler` running there?"
                           ) from None
 
 
@@ -216,7 +216,7 @@ class DaskEngine(_Base):
         _require_distributed()
         self.scheduler = check_scheduler(scheduler) if scheduler is not None else None
         if workers is not None and workers < 1:
-            raise EngineError(f"--workers: {workers} (need at least 1)")
+            raise EngineError(f"workers={workers}: need at least 1")
         self.workers = workers
         self.shared_dir = check_shared_dir(shared_dir) if shared_dir is not None else None
         self.retries = retries
@@ -225,7 +225,7 @@ class DaskEngine(_Base):
         self.cluster: Any = None
 
     def open(self) -> DaskEngine:
-        """Start the LocalCluster or connect to the scheduler (EngineError naming --scheduler if it cannot)."""
+        """Start the LocalCluster or connect to the scheduler (EngineError naming the scheduler if it cannot)."""
         if self.client is not None:
             return self
         from distributed import Client, LocalCluster  # noqa: PLC0415  (heavy and optional: only the dask engine needs it)
@@ -240,7 +240,7 @@ class DaskEngine(_Base):
                 try:
                     self.client = Client(self.scheduler, timeout=self.connect_timeout_s, set_as_default=False)
                 except (OSError, TimeoutError) as exc:
-                    raise EngineError(f"--scheduler {self.scheduler}: cannot connect ({exc})") from None
+                    raise EngineError(f"scheduler={self.scheduler!r}: cannot connect ({exc})") from None
                 if self.workers is not None:
                     _log.warning("waiting for %d dask workers on %s", self.workers, self.scheduler)
                     self.client.wait_for_workers(self.workers)
@@ -250,7 +250,7 @@ class DaskEngine(_Base):
             if self.shared_dir is not None:
                 for worker, why in self.client.run(_writable_here, str(self.shared_dir)).items():
                     if why is not None:
-                        raise EngineError(f"--shared-dir: {why} (worker {worker})")
+                        raise EngineError(f"shared_dir={str(self.shared_dir)!r}: {why} (worker {worker})")
         except BaseException:
             self.close()
             raise
@@ -334,18 +334,18 @@ def _executing(dask_worker: Any) -> list[str]:
 
 def _require_distributed() -> None:
     try:
-        import distributed  # noqa: F401, PLC0415  (optional: its absence is handled here); optional: its absence is handled here
+        import distributed  # noqa: F401, PLC0415  (optional: its absence is handled here)
     except ImportError:
-        raise EngineError("--engine dask: needs dask.distributed (pip install 'dask[distributed]')") from None
+        raise EngineError("engine='dask': needs dask.distributed (pip install 'dask[distributed]')") from None
 
 
 def check_shared_dir(path: str | Path) -> Path:
     """``path`` as an absolute path if it is an existing directory this process may write into."""
     target = Path(path).absolute()
     if not target.is_dir():
-        raise EngineError(f"--shared-dir {path}: not a directory (create it on the shared filesystem)")
+        raise EngineError(f"shared_dir={str(path)!r}: not a directory (create it on the shared filesystem)")
     if not os.access(target, os.W_OK | os.X_OK):
-        raise EngineError(f"--shared-dir {path}: not writable")
+        raise EngineError(f"shared_dir={str(path)!r}: not writable")
     return target
 
 
@@ -357,20 +357,21 @@ def check_options(engine: str | Engine = "local", *, hardware: bool = False, sch
             raise EngineError(f"engine: {engine!r} is not local, dask or an Engine")
         return
     if engine not in ENGINES:
-        raise EngineError(f"--engine: {engine!r} is not local or dask")
+        raise EngineError(f"engine={engine!r}: not local or dask")
     if engine == "local":
-        for option, value in (("--scheduler", scheduler), ("--workers", workers), ("--shared-dir", shared_dir)):
+        for option, value in (("scheduler", scheduler), ("workers", workers), ("shared_dir", shared_dir)):
             if value is not None:
-                raise EngineError(f"{option}: only with --engine dask")
+                shown = value if isinstance(value, int) else str(value)
+                raise EngineError(f"{option}={shown!r}: only with engine='dask'")
         return
     if hardware:
-        raise EngineError("--engine dask: --hardware cells run on this machine's ports one at a time; "
-                          "use --engine local")
+        raise EngineError("engine='dask': hardware=True cells run on this machine's ports one at a time; "
+                          "use engine='local'")
     _require_distributed()
     if scheduler is not None:
         check_scheduler(scheduler)
     if workers is not None and workers < 1:
-        raise EngineError(f"--workers: {workers} (need at least 1)")
+        raise EngineError(f"workers={workers}: need at least 1")
     if shared_dir is not None:
         check_shared_dir(shared_dir)
 

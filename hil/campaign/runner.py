@@ -1,9 +1,9 @@
 """Run a campaign's cells, keep each cell's log, resume, judge thresholds and acceptance.
 
-Each cell is one `hil run CELL/session.yaml --json` in its own process (with ``--loopback`` against its
-own emulated lab, on the ``sim`` clock by default or ``lockstep`` over ptys, so cells are reproducible and
-may run ``jobs`` at a time; on the lab's hardware one after another). An engine (:mod:`hil.campaign.engines`)
-runs them: ``local`` here, ``dask`` on a dask.distributed cluster, where a worker runs the same
+Each cell is one `hil run` of ``CELL/session.yaml`` in its own process (against its own emulated lab unless
+``hardware``, on the ``sim`` clock by default or ``lockstep`` over ptys, so cells are reproducible and may run
+``jobs`` at a time; on the lab's hardware one after another). An engine (:mod:`hil.campaign.engines`) runs them:
+``local`` here, ``dask`` on a dask.distributed cluster, where a worker runs the same
 :func:`run_cell` and sends the cell's files back (or leaves them in a shared directory) for this process to
 put where the local engine would. A cell's ``result.json`` is written when it finishes, and the campaign's
 ``campaign.json`` after every cell, so an interrupted campaign resumes where it stopped, with either engine.
@@ -54,7 +54,7 @@ class CampaignError(ValueError):
 
 class CampaignInterrupted(KeyboardInterrupt):
     """A campaign stopped by SIGINT or SIGTERM (``signum``), its finished cells on disk in ``out_dir``: ``done``
-    the cells ``--resume`` keeps, ``cut_short`` those running when the signal came, ``to_run`` what ``--resume``
+    the cells ``resume`` keeps, ``cut_short`` those running when the signal came, ``to_run`` what ``resume``
     runs; ``total`` cells in all. ``exit_code``: 130 for SIGINT, 143 for SIGTERM."""
 
     def __init__(self, config: CampaignConfig, out_dir: Path, signum: int, done: list[str],
@@ -171,7 +171,7 @@ def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardwar
                 profile=str(spec.profile.path), logging={**data.get("logging", {}), "dir": str(cell_dir)})
     if config.duration_s is not None:
         data["duration_s"] = config.duration_s
-    if not hardware:  # lockstep cells run side by side (--jobs): CPU placement is for one realtime loop
+    if not hardware:  # lockstep cells run side by side (``jobs``): CPU placement is for one realtime loop
         data["emulator"] = {**data.get("emulator", {}), "clock": clock, "cpu": None}
         data["host"] = {**data.get("host", {}), "loop_cpu": None}
     try:
@@ -468,7 +468,7 @@ def _engine(engine: str | Engine, jobs: int, scheduler: str | None, workers: int
 
 
 def kept_cells(config: CampaignConfig, out_dir: Path) -> dict[str, CellResult]:
-    """The cells ``--resume`` keeps, by id: those whose ``result.json`` says completed, their thresholds judged
+    """The cells ``resume`` keeps, by id: those whose ``result.json`` says completed, their thresholds judged
     again against ``config``."""
     kept: dict[str, CellResult] = {}
     for spec in config.cells():
@@ -529,7 +529,7 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
     with that signal, waits until they have ended, writes ``campaign.json`` and raises :class:`CampaignInterrupted`:
     the finished cells stay, and ``resume`` runs the rest."""
     if jobs < 1:
-        raise CampaignError(f"--jobs: {jobs} (need at least 1)")
+        raise CampaignError(f"jobs={jobs}: need at least 1")
     if hardware:
         jobs = 1  # one lab
     try:
@@ -542,8 +542,8 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
     done: dict[str, CellResult] = {}
     if (out_dir / CAMPAIGN_JSON).exists() or (out_dir / "cells").exists():
         if not resume:
-            raise CampaignError(f"{out_dir}: already holds a campaign; pass --resume to finish it, "
-                                "or choose another --out")
+            raise CampaignError(f"out={str(out_dir)!r}: already holds a campaign; pass resume=True to finish it, "
+                                "or choose another directory")
         done = kept_cells(config, out_dir)
     _LIVE.reset(out_dir)
     t0 = time.monotonic()

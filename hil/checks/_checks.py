@@ -50,14 +50,14 @@ def guess_kind(path: Path) -> str:
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     if not keys:
-        raise ConfigError(f"{path}: empty; cannot tell which kind of config it is (pass --kind)")
+        raise ConfigError(f"{path}: empty; cannot tell which kind of config it is (pass kind=)")
     scores = {}
     for kind, model in _models().items():
         fields = set(model.model_fields)  # type: ignore[attr-defined]
         scores[kind] = (len(keys & fields) / len(keys), len(keys & fields) / len(fields))
     best = max(scores, key=lambda k: scores[k])
     if scores[best][0] < 0.5:
-        raise ConfigError(f"{path}: its keys ({', '.join(sorted(keys)[:6])}) match no config kind; pass --kind "
+        raise ConfigError(f"{path}: its keys ({', '.join(sorted(keys)[:6])}) match no config kind; pass kind= "
                           f"({', '.join(KINDS)})")
     return best
 
@@ -124,7 +124,7 @@ def check_config_file(path: Path, kind: str | None = None) -> dict[str, Any]:
     (one line naming the file and the field) otherwise."""
 
     if kind is not None and kind not in KINDS:
-        raise ConfigError(f"--kind: {kind!r} is not one of {', '.join(KINDS)}")
+        raise ConfigError(f"kind={kind!r}: not one of {', '.join(KINDS)}")
     try:
         require_regular_file(path)
     except ValueError as exc:

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
+import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -68,12 +71,51 @@ def print_json(data: Any) -> None:
     console.print_json(json.dumps(json_safe(data), default=str))
 
 
+# a library parameter as its errors write it: name=value, the value a repr, a number or a word
+PARAMETER = re.compile(r"(?<![\w.\-])([a-z][a-z0-9_]*)=(True\b|'[^']*'|\"[^\"]*\"|[^\s;,:)'\"]+)?")
+PARAMETER_FLAGS = {"out_dir": "--out", "record_dir": "--out", "out_plant": "--out", "ports": "--port",
+                   "settle_s": "--settle", "constraints": "--constraint"}
+
+
+@functools.cache
+def option_names() -> frozenset[str]:
+    """Every long option of every `hil` command."""
+    def walk(command: Any) -> Iterator[str]:  # a click command or group, as typer builds it
+        for param in command.params:
+            yield from (o for o in (*param.opts, *param.secondary_opts) if o.startswith("--"))
+        for sub in getattr(command, "commands", {}).values():
+            yield from walk(sub)
+
+    return frozenset(walk(typer.main.get_command(app)))
+
+
+def as_flags(message: str) -> str:
+    """A library error in the command's words: each ``name=value`` of a parameter that is a `hil` option becomes
+    ``--name value`` (``name=True`` or a bare ``name=``: ``--name``), e.g. ``jobs=0: need at least 1`` ->
+    ``--jobs 0: need at least 1``. Other ``name=value`` text (a config field, a plant parameter) is left as it is."""
+    options = option_names()
+
+    def flag(match: re.Match[str]) -> str:
+        name, value = match.groups()
+        option = PARAMETER_FLAGS.get(name, "--" + name.replace("_", "-"))
+        if option not in options:
+            return match.group(0)
+        if value is None or value == "True":
+            return option
+        if value[0] in "'\"" and value[-1] == value[0]:
+            value = value[1:-1]
+        return f"{option} {value}"
+
+    return PARAMETER.sub(flag, message)
+
+
 def fail(message: str, code: int = 2) -> typer.Exit:
     """Print one line naming what is wrong (stderr) and return the Exit to raise (the message is shown as is: a
-    file name or value holding ``[...]`` is not taken for markup)."""
+    file name or value holding ``[...]`` is not taken for markup). A library error's parameters are shown as the
+    command's options (:func:`as_flags`)."""
     from rich.markup import escape  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    err_console.print(f"[bold red]error:[/] {escape(' '.join(message.split()))}", highlight=False)
+    err_console.print(f"[bold red]error:[/] {escape(' '.join(as_flags(message).split()))}", highlight=False)
     return typer.Exit(code)
 
 

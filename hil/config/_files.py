@@ -180,17 +180,23 @@ def require_regular_file(path: Path) -> Path:
     return path
 
 
+def named(what: str, value: object) -> str:
+    """How an error names an input: a parameter as ``name='value'`` (``what`` an identifier), a config field or
+    an option as ``what value`` (``logging.dir /data``)."""
+    return f"{what}={str(value)!r}" if what.isidentifier() else f"{what} {value}"
+
+
 def require_writable_dir(path: Path, what: str) -> Path:
     """``path`` if it is a directory we may write into, or one we may create (nothing is created here);
-    ConfigError naming ``what`` (the option or field) otherwise."""
+    ConfigError naming ``what`` (the parameter or field, :func:`named`) otherwise."""
     target = Path(path).absolute()
     if target.exists() and not target.is_dir():
-        raise ConfigError(f"{what} {path}: exists and is not a directory")
+        raise ConfigError(f"{named(what, path)}: exists and is not a directory")
     parent = target
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
-        raise ConfigError(f"{what} {path}: {parent} is not a directory")
+        raise ConfigError(f"{named(what, path)}: {parent} is not a directory")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"{what} {path}: {parent} is not writable")
+        raise ConfigError(f"{named(what, path)}: {parent} is not writable")
     return Path(path)

@@ -231,7 +231,7 @@ class SafetyConfig(Strict):
     max_slew_counts: int = Field(32767, gt=0, le=65535, description="largest change of the drive per tick")
     emulator_stall_grace_ms: float = Field(
         0.0, ge=0, le=10_000,
-        description="emulated boards only (--loopback, realtime): a silence past watchdog_ms that ends with the "
+        description="emulated boards only (a loopback run, realtime): a silence past watchdog_ms that ends with the "
         "emulator's CLOCK_LATE (the host it shares with the bench did not run its clock in time), or with the next "
         "sample and none lost (the host held the bytes up), is a host stall, not a fault; a silence that lost samples, "
         "or is longer than this, still trips. 0 = off; refused with real ports")
@@ -258,7 +258,7 @@ class LoggingConfig(Strict):
 
 
 class EmulatorRef(Strict):
-    """What `hil run --loopback` starts in place of the lab."""
+    """What a loopback run starts in place of the lab."""
 
     config: Path = PROFILES / "emulator" / "default.yaml"
     clock: Literal["realtime", "lockstep", "sim"] = Field(
@@ -313,7 +313,7 @@ class SessionConfig(Strict):
     description: str = ""
     duration_s: float = Field(gt=0, le=MAX_SESSION_S, description="run time with the stream on, s")
     seed: Seed = Field(0, description="emulator seed in loopback; recorded in the log")
-    ports: PortsConfig | None = Field(None, description="the lab's serial ports (not needed with --loopback)")
+    ports: PortsConfig | None = Field(None, description="the lab's serial ports (not needed for a loopback run)")
     controller: ControllerConfig = ControllerConfig()
     tracking: TrackingConfig = TrackingConfig()
     profile: SwingProfile = SwingProfile()

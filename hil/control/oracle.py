@@ -46,7 +46,7 @@ def truth_refusal(name: str = "oracle", clock: str | None = None) -> str:
     """The one-line refusal of controller ``name`` on ``clock`` (None: no truth source at all)."""
     where = f" (not {clock})" if clock else ""
     return (f"controller.name: {name} needs the true plant state, which only the sim clock has{where}; "
-            "run with --clock sim")
+            "run with clock='sim'")
 
 
 class TruthFeedback:

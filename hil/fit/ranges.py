@@ -1,7 +1,7 @@
 """The plant's fittable parameters, their plausible ranges, and plants drawn inside them.
 
 One vocabulary for the three users of a plant's parameters: ``hil fit`` (logs -> plant YAML), the paper-targets
-search (``hil fit --targets``) and the tests that draw hidden plants. A parameter is a flat name such as
+search (:func:`hil.fit.fit_targets`) and the tests that draw hidden plants. A parameter is a flat name such as
 ``friction.el.coulomb_n_m``; most are a path into the plant YAML (``firmware_stub.plant.PlantConfig``), a few are
 derived and set through others:
 

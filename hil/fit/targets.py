@@ -1,5 +1,5 @@
 """The paper's platform as a fitted preset: the plant (and the KF / high-gain observer defaults) fitted to a paper's
-published figures (``hil fit --targets``, docs/emulator.md, paper-000).
+published figures (:func:`fit_targets`, docs/emulator.md, paper-000).
 
 A targets file (:class:`TargetsConfig`, e.g. ``profiles/targets/seed-000.yaml``) lists each published figure with
 the campaign cell that measures it (campaign file, profile label, controller label, metric). A trial of the search
@@ -557,7 +557,7 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
     study_name = check_study_name(study or config.name)
     out_plant = Path(out_plant)
     if out_plant.is_dir():
-        raise ValueError(f"--out {out_plant}: is a directory (give the plant YAML's path)")
+        raise ValueError(f"out_plant={str(out_plant)!r}: a directory (give the plant YAML's path)")
     out = Path(out_dir) if out_dir is not None else FIT_DIR / study_name
     out.mkdir(parents=True, exist_ok=True)
     url = f"sqlite:///{(out / 'targets.db').absolute()}" if storage is None else storage_url(storage, out)
@@ -666,8 +666,8 @@ def _header(config: TargetsConfig, targets_path: str | Path, out_plant: Path, re
     return "\n".join([
         f"{config.source or config.name}: the plant fitted to the paper's published figures "
         "(docs/emulator.md, paper-000).",
-        f"Made by: hil fit --targets {targets_path} --out {out_plant} --trials {result.trials}",
-        f"(hil.fit.targets.fit_targets: seeded Optuna TPE study {study!r}, {url.split(':', 1)[0]} storage; best of "
+        f"Made by: hil.fit.fit_targets({str(targets_path)!r}, out_plant={str(out_plant)!r}, trials={result.trials})",
+        f"(`hil fit` with these targets: seeded Optuna TPE study {study!r}, {url.split(':', 1)[0]} storage; best of "
         f"{result.complete} complete trials: trial {result.best_trial}).",
         f"Objective: sum over the targets of weight * log(fitted / paper)^2 on {len(config.trial.seeds)} seed(s),",
         f"sessions <= {config.trial.duration_s:g} s on the sim clock: {result.best_value:.4g}. Searched: {what} "

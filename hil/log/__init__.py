@@ -2,8 +2,8 @@
 
 Layout and semantics: docs/log-format.md. Write with ``SessionLog``; read with ``read_log`` (numpy)
 or ``read_log_frames`` (pandas DataFrames, for notebooks); repair a file left by a crash with
-``recover_log`` (``hil recover LOG``); export with ``export_log`` (``hil export LOG --format
-parquet|csv``). ``collect_provenance`` is what a session records of its software, plant and
+``recover_log`` (``hil recover LOG``); export with ``export_log`` (``hil export LOG``, Parquet or
+CSV). ``collect_provenance`` is what a session records of its software, plant and
 controller, ``read_provenance`` reads it back.
 """
 

@@ -43,7 +43,7 @@ def collect_provenance(config: SessionConfig, *, emulated: bool | None = None) -
     the session does not run against the emulator or the file cannot be read); ``controller``
     (``{"name", "params"}`` with every parameter resolved, defaults included).
 
-    ``emulated``: whether the boards are the emulator of ``config.emulator`` (``--loopback``). ``None``
+    ``emulated``: whether the boards are the emulator of ``config.emulator`` (a loopback run). ``None``
     guesses from the config: a session without ``ports`` can only run against the emulator.
     """
     out: dict[str, Any] = {"hil_version": str(__version__), "git_commit": git_commit()}

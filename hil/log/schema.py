@@ -2,7 +2,7 @@
 
 The writer creates exactly these datasets, the reader and the exporters follow them, and
 docs/log-format.md renders its tables from them (``hil.log.docgen``). Change a channel here and
-the document test fails until ``python -m hil.log.docgen --write`` regenerates the tables.
+the document test fails until ``hil.log.docgen`` regenerates the tables (its docstring says how).
 
 Rows are appended as tuples of values in the order of ``Group.channels``.
 """
@@ -203,7 +203,7 @@ ATTRS: tuple[AttrSpec, ...] = (
         "session",
         "what ran the boards' clock: `hardware` (the lab), or the emulator's `realtime`, `lockstep` or `sim`",
     ),
-    AttrSpec("loopback", "JSON text", "session", "`true` when the boards were the emulator (`--loopback`)"),
+    AttrSpec("loopback", "JSON text", "session", "`true` when the boards were the emulator (a loopback run)"),
     AttrSpec(
         "provenance",
         "JSON text",

@@ -3,7 +3,7 @@
 The document keeps hand-written prose around blocks fenced by
 ``<!-- BEGIN GENERATED: name -->`` / ``<!-- END GENERATED: name -->``; this module renders
 each block, and a test fails when the committed document differs from the rendering.
-Regenerate with ``hil protocol docs --write``.
+Regenerate with the ``hil protocol docs`` command (its write option).
 """
 
 from __future__ import annotations

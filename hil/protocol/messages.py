@@ -1,7 +1,7 @@
 """The message catalogue: every message the bench and its boards exchange, declared once.
 
 Encoders, decoders, fingerprints and the tables in docs/protocol.md are all derived from
-these declarations (``hil protocol docs --write`` regenerates the tables).
+these declarations (the ``hil protocol docs`` command regenerates the tables).
 
 Board-frame conventions (used by the field docs below):
 - gyro axes are those of the elevation (inner) frame: x along the line of sight, y along

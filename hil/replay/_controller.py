@@ -1,6 +1,6 @@
 """Controller replay (docs/capture.md): a logged session through another controller offline.
 
-**Controller replay** (:func:`replay_log`, ``hil replay LOG --controller NAME``): the session's 1 kHz cycle
+**Controller replay** (:func:`replay_log`, ``hil replay LOG``): the session's 1 kHz cycle
 (hil.session.ControlLoop.on_sample) run again, open loop, on what the log recorded: each logged gyro sample, the
 rate command the session computed (its tracking loop re-run on the logged camera frames, its excitation), the
 hexapod poses for a controller with imbalance feed-forward, and the drive that was actually applied. The other
@@ -396,14 +396,14 @@ def xcorr_lag(reference: np.ndarray, signal: np.ndarray, dt_s: float = DT_S, max
 
 def parse_params(text: str) -> dict[str, Any]:
     """``"k=v,k=v"`` as a dict, each value a number where it is one (``500`` an int, ``1e-3`` a float), else read
-    as YAML (``true``, ``[1, 2]``...). ReplayError naming ``--params`` for an item that is not ``k=v``."""
+    as YAML (``true``, ``[1, 2]``...). ReplayError naming ``params`` for an item that is not ``k=v``."""
     out: dict[str, Any] = {}
     for item in (p.strip() for p in text.split(",")):
         if not item:
             continue
         key, eq, value = item.partition("=")
         if not eq or not key.strip():
-            raise ReplayError(f"--params: {item!r} is not k=v")
+            raise ReplayError(f"params={text!r}: {item!r} is not k=v")
         out[key.strip()] = _param_value(key.strip(), value.strip())
     return out
 
@@ -423,7 +423,7 @@ def _param_value(key: str, text: str) -> Any:
     try:
         return parse_yaml(text)
     except Exception as exc:  # YAML's errors, or its size limit
-        raise ReplayError(f"--params: {key}: not a value ({type(exc).__name__})") from None
+        raise ReplayError(f"params: {key!r}: not a value ({type(exc).__name__})") from None
 
 
 def controller_choice(controller: str | None, params: Mapping[str, Any] | str | Path | None
@@ -442,9 +442,9 @@ def controller_choice(controller: str | None, params: Mapping[str, Any] | str | 
         try:
             cfg = load_model(ControllerConfig, path)
         except (ConfigError, ValueError, OSError) as exc:
-            raise ReplayError(f"--params {text}: {' '.join(str(exc).split())}") from None
+            raise ReplayError(f"params={text!r}: {' '.join(str(exc).split())}") from None
         if controller is not None and controller != cfg.name:
-            raise ReplayError(f"--controller {controller} but {text} is a {cfg.name} controller")
+            raise ReplayError(f"controller={controller!r} but {text} is a {cfg.name} controller")
         return cfg.name, dict(cfg.params)
     return controller, parse_params(text)
 
@@ -459,7 +459,7 @@ def replay_log(log: Path | str, controller: str | None = None,
     parameter. :func:`write_outputs` writes the plot and JSON."""
 
     if not isinstance(settle_s, int | float) or not math.isfinite(settle_s) or settle_s < 0:
-        raise ReplayError(f"--settle: {settle_s!r} is not a finite number of seconds >= 0")
+        raise ReplayError(f"settle_s={settle_s!r}: not a finite number of seconds >= 0")
     try:
         require_regular_file(Path(log))
     except ValueError as exc:

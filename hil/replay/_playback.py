@@ -1,7 +1,7 @@
 """Capture playback (docs/capture.md): one responsibility in one file (about 880 lines), the player thread and the
 board's answers it reads, which share the capture's timing.
 
-**Capture playback** (:func:`replay_capture`, ``hil replay CAPTURE --to-emulator``; :func:`play_capture` to given
+**Capture playback** (:func:`replay_capture`, ``hil replay CAPTURE``; :func:`play_capture` to given
 ports): the frames the bench sent in a capture (hil.link), written again, byte for byte, to a board's or an
 emulator's ports with their original timing, by one thread that sleeps in select() (reading what comes in), then
 spins, to each write's time. What comes back is decoded and counted: commands answered (ACK, NACK, IDENT), samples,
@@ -740,39 +740,39 @@ def play_capture(capture: Path, ports: Mapping[str, str], **kwargs: Any) -> Play
 
 
 def ports_from_file(path: Path) -> dict[str, str]:
-    """A ports file (the emulator's ``--ports-file``: JSON ``{"servo": path, ...}``) as link -> path (its
-    ``control`` socket left out). ReplayError naming ``--ports-file`` and the file otherwise."""
+    """A ports file (the one an emulator writes: JSON ``{"servo": path, ...}``) as link -> path (its ``control``
+    socket left out). ReplayError naming ``ports_file`` and the file otherwise."""
 
 
     try:
         text = read_text_file(path, 1 << 20)
     except ValueError as exc:  # names the file
-        raise ReplayError(f"--ports-file {exc}") from None
+        raise ReplayError(f"ports_file: {exc}") from None
     try:
         data = json.loads(text)
     except ValueError as exc:
-        raise ReplayError(f"--ports-file {path}: not JSON: {exc}") from None
+        raise ReplayError(f"ports_file={str(path)!r}: not JSON: {exc}") from None
     if not isinstance(data, dict):
-        raise ReplayError(f"--ports-file {path}: not a ports file (a JSON object of link: path)")
+        raise ReplayError(f"ports_file={str(path)!r}: not a ports file (a JSON object of link: path)")
     return {str(k): str(v) for k, v in data.items() if k != "control"}
 
 
 def resolve_ports(ports: Mapping[str, str] | Iterable[str] | None = None,
                   ports_file: Path | str | None = None) -> dict[str, str]:
     """The boards' ports (link name -> device path): ``ports_file``'s (:func:`ports_from_file`), then ``ports`` over
-    them, a mapping or ``"LINK=PATH"`` strings (the command's ``--port``). ReplayError naming the option otherwise."""
+    them, a mapping or ``"LINK=PATH"`` strings ReplayError naming ``ports`` otherwise."""
     out: dict[str, str] = {}
     if ports_file is not None:
         out.update(ports_from_file(Path(ports_file)))
     if ports is None:
         return out
     if isinstance(ports, str):
-        raise ReplayError(f"--port: {ports!r}: give a list of LINK=PATH, or a dict of link: path")
+        raise ReplayError(f"ports={ports!r}: give a list of LINK=PATH, or a dict of link: path")
     items = [f"{k}={v}" for k, v in ports.items()] if isinstance(ports, Mapping) else [str(p) for p in ports]
     for item in items:
         name, eq, path = item.partition("=")
         if not eq or name not in LINKS or not path:
-            raise ReplayError(f"--port: {item!r} is not LINK=PATH with LINK servo, driver, image or hexapod")
+            raise ReplayError(f"ports={item!r}: not LINK=PATH with LINK servo, driver, image or hexapod")
         out[name] = path
     return out
 
@@ -798,18 +798,18 @@ def emulator_settings(meta: Mapping[str, Any], *, clock: str | None = None, seed
     if clock is None:
         clock = str(meta.get("emulator_clock") or meta.get("session_clock") or "lockstep")
         if clock not in EMULATOR_CLOCKS:
-            raise ReplayError(f"the capture's session clock {clock!r} is not one the emulator runs: give --clock "
+            raise ReplayError(f"the capture's session clock {clock!r} is not one the emulator runs: give clock= "
                               f"{' or '.join(EMULATOR_CLOCKS)}")
     elif clock not in EMULATOR_CLOCKS:
-        raise ReplayError(f"--clock: {clock!r} is not {' or '.join(EMULATOR_CLOCKS)}")
+        raise ReplayError(f"clock={clock!r}: not {' or '.join(EMULATOR_CLOCKS)}")
     if seed is None:
         recorded = meta.get("emulator_seed", meta.get("seed"))
         try:
             seed = int(recorded or 0)
         except (TypeError, ValueError):
-            raise ReplayError(f"the capture's seed {recorded!r} is not an integer: give --seed") from None
+            raise ReplayError(f"the capture's seed {recorded!r} is not an integer: give seed=") from None
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ReplayError(f"--seed: {seed!r} is not an integer >= 0")
+        raise ReplayError(f"seed={seed!r}: not an integer >= 0")
     path: Path | None = None
     if config is not None:
         path = Path(config)
@@ -819,7 +819,7 @@ def emulator_settings(meta: Mapping[str, Any], *, clock: str | None = None, seed
         path = Path(str(meta["emulator_config"]))
         if not path.is_file():
             raise ReplayError(f"the captured emulator config {path} is not a file here: start an emulator with it "
-                              f"and give its ports (--ports-file)")
+                              f"and give its ports (ports_file=)")
     return EmulatorSettings(path, clock, seed)
 
 
@@ -828,28 +828,28 @@ def replay_capture(capture: Path | str, *, ports: Mapping[str, str] | Iterable[s
                    timing: Timing = "samples", record_dir: Path | str | None = None, links: Iterable[str] | None = None,
                    emulator_config: Path | str | None = None, **kwargs: Any) -> PlaybackResult:
     """Play ``capture`` (a ``.hilcap`` file, or the directory holding one) back at the boards, as ``hil replay
-    CAPTURE --to-emulator`` does. The boards: ``ports`` (a mapping link -> path, or ``"LINK=PATH"`` strings) over
-    ``ports_file``'s (the emulator's ``--ports-file``); with neither, a fresh emulator is started for the playback
+    CAPTURE`` does. The boards: ``ports`` (a mapping link -> path, or ``"LINK=PATH"`` strings) over
+    ``ports_file``'s (the ports file an emulator writes); with neither, a fresh emulator is started for the playback
     and stopped after it, with ``clock``, ``seed`` and ``emulator_config`` where given, else the capture's
     (:func:`emulator_settings`; the result's ``emulator`` says which). ``timing``, ``record_dir`` (where the replay's
     own capture goes), ``links`` (only these) and the other keywords as :func:`play_capture`. Bad input raises
     ReplayError or CaptureError (ValueErrors, one line naming the option) before anything is sent."""
 
     if timing not in TIMINGS:
-        raise ReplayError(f"--timing: {timing!r} is not {' or '.join(TIMINGS)}")
+        raise ReplayError(f"timing={timing!r}: not {' or '.join(TIMINGS)}")
     path = find_capture(Path(capture))
     named = resolve_ports(ports, ports_file)
     if record_dir is not None:
 
         try:
-            require_writable_dir(Path(record_dir), "--out")
+            require_writable_dir(Path(record_dir), "record_dir")
         except ValueError as exc:
             raise ReplayError(str(exc)) from None
     options = {"timing": timing, "record_dir": None if record_dir is None else Path(record_dir),
                "links": None if links is None else set(links), **kwargs}
     if named:
         if clock is not None or seed is not None or emulator_config is not None:
-            raise ReplayError("--clock and --seed start a fresh emulator: not with --port or --ports-file")
+            raise ReplayError("clock= and seed= start a fresh emulator: not with ports= or ports_file=")
         return play_capture(path, named, **options)
     settings = emulator_settings(CaptureReader(path).meta, clock=clock, seed=seed, config=emulator_config)
 

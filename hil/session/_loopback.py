@@ -1,4 +1,4 @@
-"""The emulated lab as a child process (`python -m firmware_stub`), for `hil run --loopback`, `hil demo` and tests;
+"""The emulated lab as a child process (`python -m firmware_stub`), for a loopback `hil run`, `hil demo` and tests;
 and an emulator config pointed at another plant (a fitted twin, a drawn hidden plant)."""
 
 from __future__ import annotations

@@ -21,7 +21,15 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from firmware_stub.config import ConfigError as EmulatorConfigError
 from hil.analysis import summarize_log
-from hil.config import ConfigError, PortConfig, SessionConfig, load_session, require_regular_file, require_writable_dir
+from hil.config import (
+    ConfigError,
+    PortConfig,
+    SessionConfig,
+    load_session,
+    named,
+    require_regular_file,
+    require_writable_dir,
+)
 from hil.control.registry import ControllerConfigError, require_sim_clock
 from hil.link import LinkError, PortUnavailable
 from hil.log import LogError
@@ -30,7 +38,7 @@ from hil.log.schema import estimated_log_bytes
 from hil.protocol import LINKS
 from hil.session._loopback import EmulatorProcess
 from hil.session._session import Session, SessionResult
-from hil.session._sim import run_sim_session
+from hil.session._sim import CAPTURE_REFUSED, run_sim_session
 
 if TYPE_CHECKING:
     from hil.log.frames import LogFrames
@@ -81,15 +89,15 @@ def prepare_run(config: SessionConfig | str | Path, *, loopback: bool = True, cl
     if clock is not None and clock not in CLOCKS:
         raise ConfigError(f"clock: {clock!r} is not realtime, lockstep or sim")
     out_dir = Path(out) if out is not None else config.logging.dir
-    require_writable_dir(out_dir, "--out" if out is not None else "logging.dir")
-    require_log_room(config, out_dir, "--out" if out is not None else "logging.dir")
+    require_writable_dir(out_dir, "out" if out is not None else "logging.dir")
+    require_log_room(config, out_dir, "out" if out is not None else "logging.dir")
     if not loopback:
         if clock == "sim":
-            raise ConfigError("--clock sim: runs the emulated lab in this process; add --loopback")
+            raise ConfigError("clock='sim': runs the emulated lab in this process; needs loopback=True")
         if config.ports is None:
-            raise ConfigError("ports: not set in the session file; give the lab's serial ports, or pass --loopback")
+            raise ConfigError("ports: not set in the session file; give the lab's serial ports, or pass loopback=True")
         if config.safety.emulator_stall_grace_ms:
-            raise ConfigError("safety.emulator_stall_grace_ms: only for emulated boards (--loopback); real boards "
+            raise ConfigError("safety.emulator_stall_grace_ms: only for emulated boards (loopback=True); real boards "
                               "are never late, so remove it from a lab session")
         _require_clock(config, "hardware")
         return config, "hardware", out_dir
@@ -114,7 +122,7 @@ def require_log_room(config: SessionConfig, out_dir: Path, what: str) -> None:
         probe = probe.parent
     free = shutil.disk_usage(probe).free
     if need > free:
-        raise ConfigError(f"{what} {out_dir}: the log of this {config.duration_s:g} s session needs about "
+        raise ConfigError(f"{named(what, out_dir)}: the log of this {config.duration_s:g} s session needs about "
                           f"{need / 1e6:.1f} MB and {probe} has {free / 1e6:.1f} MB free; free some space or log "
                           "elsewhere")
 
@@ -143,9 +151,8 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
     capture_dir = Path(capture) if capture is not None else None
     if capture_dir is not None:
         if clock_name == "sim":
-            raise ConfigError("--capture: the sim clock's links pass messages, not bytes: nothing to capture; run on "
-                              "the lockstep clock for the same run over ptys")
-        require_writable_dir(capture_dir, "--capture")
+            raise ConfigError(CAPTURE_REFUSED)
+        require_writable_dir(capture_dir, "capture")
     hook = on_session or (lambda _s: None)
     if clock_name == "sim":
         try:

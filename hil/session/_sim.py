@@ -37,8 +37,8 @@ if TYPE_CHECKING:
     from hil.session._session import Session, SessionResult
 
 TICKS_PER_YIELD = 20  # world ticks between two yields to the event loop (a sim tick is ~20-40 us)
-CAPTURE_REFUSED = ("--capture: the sim clock's links pass messages, not bytes, so there is nothing to capture; "
-                   "use --clock lockstep (the same run over ptys)")
+CAPTURE_REFUSED = ("capture: the sim clock's links pass messages, not bytes, so there is nothing to capture; "
+                   "use clock='lockstep' (the same run over ptys)")
 
 
 class SimLink(Link):

@@ -3,7 +3,7 @@
 ``parse_params``/``parse_constraints`` read the search space and the constraints, ``tune`` runs the study (Optuna,
 RDB storage, SQLite by default; on a Dask cluster with ``jobs``), ``TuneResult`` is what it found. The study plumbing
 (``open_study``, ``rdb_storage``, ``storage_url``) and the one stability rule (``unstable_reason``) are shared with
-``hil fit --targets``."""
+:func:`hil.fit.fit_targets`."""
 
 from hil.tune._driver import (
     StudyRun,

@@ -1,4 +1,4 @@
-"""The one Optuna study driver, for ``hil tune`` and ``hil fit --targets`` alike.
+"""The one Optuna study driver, for :func:`hil.tune.tune` and :func:`hil.fit.fit_targets` alike.
 
 A study has a name (checked here), lives in an RDB storage (:mod:`hil.tune._store`), is created or resumed (a study
 that exists is continued only with ``resume``, and only if it was made with the same ``meta``), is sampled by a
@@ -29,13 +29,13 @@ FINISHED = ("COMPLETE", "FAIL", "PRUNED")  # trial states that count towards the
 def check_study_name(name: str) -> str:
     """``name`` if it can name a study (and a directory): letters, digits, '_', '.', '-'; ConfigError if not."""
     if not STUDY_NAME.match(name):
-        raise ConfigError(f"--study: {name!r} is not a name (letters, digits, '_', '.', '-')")
+        raise ConfigError(f"study={name!r}: not a name (letters, digits, '_', '.', '-')")
     return name
 
 
 def check_trials(trials: int) -> int:
     if not 1 <= trials <= MAX_TRIALS:
-        raise ConfigError(f"--trials: {trials} (need 1..{MAX_TRIALS})")
+        raise ConfigError(f"trials={trials}: need 1..{MAX_TRIALS}")
     return trials
 
 
@@ -63,7 +63,7 @@ def start_study(name: str, url: str, *, trials: int, resume: bool, direction: st
     rdb = rdb_storage(url)
     exists = name in optuna.study.get_all_study_names(rdb)
     if exists and not resume:
-        raise ConfigError(f"--study {name}: already in {url}; pass --resume to continue it, or choose another --study")
+        raise ConfigError(f"study={name!r}: already in {url}; pass resume=True to continue it, or choose another name")
     with warnings.catch_warnings():  # multivariate and constant-liar TPE are marked experimental
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=startup_trials, multivariate=True,

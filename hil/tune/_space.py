@@ -77,24 +77,24 @@ def parse_params(text: str | Sequence[str], controller: str, base: dict[str, Any
 
     Names must be numeric parameters of ``controller`` (hil.control.registry); ``low < high``, finite, positive
     for ``:log``, whole numbers for ``:int`` (an integer parameter is always sampled as one); each end of the range
-    must validate for the controller with ``base`` (the entry's other parameters). ConfigError naming --params."""
+    must validate for the controller with ``base`` (the entry's other parameters). ConfigError naming the item."""
 
     models = _controllers()
     if controller not in models:
         known = ", ".join(sorted(models))
-        raise ConfigError(f"--controller: unknown controller {controller!r} (controllers: {known})")
+        raise ConfigError(f"controller={controller!r}: unknown controller (controllers: {known})")
     items = [s for part in ([text] if isinstance(text, str) else list(text)) for s in part.split(",")]
     items = [s for s in items if s.strip()]
     if not items:
-        raise ConfigError("--params: nothing to tune (give name=low..high[:log|:int], comma-separated)")
+        raise ConfigError("params: nothing to tune (give name=low..high[:log|:int], comma-separated)")
     fields = _numeric_fields(controller)
     specs: list[ParamSpec] = []
     for item in items:
         m = _PARAM.match(item)
         if m is None:
-            raise ConfigError(f"--params: {item.strip()!r} is not name=low..high[:log|:int]")
+            raise ConfigError(f"params={item.strip()!r}: not name=low..high[:log|:int]")
         name, lo_text, hi_text, kinds = m.groups()
-        where = f"--params: {name}"
+        where = f"params={item.strip()!r}"
         if name not in fields:
             known = ", ".join(fields)
             numeric = name in models[controller].params.model_fields
@@ -143,7 +143,7 @@ class Constraint:
 
 def parse_constraints(items: str | Sequence[str | Constraint] | None) -> list[Constraint]:
     """``"drive_ripple_el_counts<=800"`` (one each, or comma-separated) -> :class:`Constraint`; ConfigError naming
-    --constraint for an unknown metric, another operator or a bound that is not a finite number."""
+    the item for an unknown metric, another operator or a bound that is not a finite number."""
 
     if items is None:
         return []
@@ -156,9 +156,10 @@ def parse_constraints(items: str | Sequence[str | Constraint] | None) -> list[Co
         for part in (p for p in item.split(",") if p.strip()):
             m = _CONSTRAINT.match(part)
             if m is None:
-                raise ConfigError(f"--constraint: {part.strip()!r} is not metric<=value or metric>=value")
+                raise ConfigError(f"constraints={part.strip()!r}: not metric<=value or metric>=value")
             metric, op, bound = m.groups()
             if metric not in METRICS:
-                raise ConfigError(f"--constraint: unknown metric {metric!r} (metrics: {', '.join(METRICS)})")
-            out.append(Constraint(metric, op, _number(bound, f"--constraint: {metric}")))  # type: ignore[arg-type]
+                raise ConfigError(f"constraints={part.strip()!r}: unknown metric {metric!r} "
+                                  f"(metrics: {', '.join(METRICS)})")
+            out.append(Constraint(metric, op, _number(bound, f"constraints={part.strip()!r}")))  # type: ignore[arg-type]
     return out

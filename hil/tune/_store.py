@@ -93,7 +93,7 @@ def storage_url(storage: str | None, out_dir: Path) -> str:
     if storage is None:
         return f"sqlite:///{(out_dir / 'tune.db').absolute()}"
     if "://" not in storage:
-        raise ConfigError(f"--storage: {storage!r} is not a database URL (e.g. sqlite:///tune.db, "
+        raise ConfigError(f"storage={storage!r}: not a database URL (e.g. sqlite:///tune.db, "
                           "postgresql://user@host/db)")
     return storage
 
@@ -110,13 +110,13 @@ def rdb_storage(url: str) -> Any:
                                               grace_period=GRACE_S)
     except (sqlalchemy.exc.SQLAlchemyError, ImportError, ValueError) as exc:
         msg = " ".join(str(exc).split())
-        raise ConfigError(f"--storage {url}: cannot open: {msg[:200]}") from None
+        raise ConfigError(f"storage={url!r}: cannot open: {msg[:200]}") from None
 
 
 def open_study(rdb: Any, study_name: str, sampler: Any, direction: str, *, meta: dict[str, Any],
                exists: bool) -> Any:
     """Create the study, or load it (``exists``) and check it was made with the same ``meta`` (its user attributes:
-    the space, the objective, ...); ConfigError naming ``--resume`` if not. A new study gets ``meta`` stored."""
+    the space, the objective, ...); ConfigError naming ``resume`` if not. A new study gets ``meta`` stored."""
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     st = optuna.create_study(storage=rdb, sampler=sampler, study_name=study_name, direction=direction,
@@ -125,6 +125,6 @@ def open_study(rdb: Any, study_name: str, sampler: Any, direction: str, *, meta:
         if not exists:
             st.set_user_attr(key, value)
         elif st.user_attrs.get(key) != value:
-            raise ConfigError(f"--resume: study {study_name!r} was made with {key} {st.user_attrs.get(key)!r}, "
-                              f"not {value!r}; choose another --study")
+            raise ConfigError(f"resume=True: study={study_name!r} was made with {key} {st.user_attrs.get(key)!r}, "
+                              f"not {value!r}; choose another study name")
     return st

@@ -68,7 +68,7 @@ def choose_controller(config: CampaignConfig, label: str | None) -> ControllerEn
         for c in config.controllers:
             if c.label == label:
                 return c
-        raise ConfigError(f"--controller: {label!r} is not a controller label of campaign {config.name!r} "
+        raise ConfigError(f"controller={label!r}: not a controller label of campaign {config.name!r} "
                           f"({', '.join(labels)})")
     return next((c for c in config.controllers if c.label != config.baseline), config.controllers[0])
 
@@ -257,10 +257,10 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     except CampaignError as exc:
         raise ConfigError(str(exc)) from None
     if objective not in METRICS:
-        raise ConfigError(f"--objective: unknown metric {objective!r} (metrics: {', '.join(METRICS)})")
+        raise ConfigError(f"objective={objective!r}: unknown metric (metrics: {', '.join(METRICS)})")
     check_trials(trials)
     if not 1 <= workers <= 256 or not 1 <= jobs <= 64:
-        raise ConfigError(f"--workers {workers} / --jobs {jobs}: need 1..256 and 1..64")
+        raise ConfigError(f"workers={workers} / jobs={jobs}: need 1..256 and 1..64")
     entry = choose_controller(config, controller)
     space = params if params and all(isinstance(p, ParamSpec) for p in params) else \
         parse_params(params, entry.name, entry.params)  # type: ignore[arg-type]
@@ -268,9 +268,9 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     cons = parse_constraints(constraints)
     study_name = check_study_name(study or config.name)
     out_dir = Path(out) if out is not None else TUNE_DIR / study_name
-    require_writable_dir(out_dir, "--out")
+    require_writable_dir(out_dir, "out")
     if write_profile is not None and Path(write_profile).is_dir():
-        raise ConfigError(f"--write-profile {write_profile}: is a directory (give the YAML file's path)")
+        raise ConfigError(f"write_profile={str(write_profile)!r}: a directory (give the YAML file's path)")
     direction = "minimize" if METRICS[objective].lower_is_better else "maximize"
     try:  # every cell of a trial, before anything is written
         cell_sessions(trial_campaign(config, entry, {}), out_dir / TRIALS / "probe")

@@ -74,7 +74,7 @@ def test_bad_input_is_a_config_error_naming_the_field(tmp_path: Path) -> None:
     with pytest.raises(hil.ConfigError, match="no such file"):
         hil.load_session(tmp_path / "missing.yaml")
     (tmp_path / "file").write_text("")
-    with pytest.raises(hil.ConfigError, match=r"^--out .*exists and is not a directory"):
+    with pytest.raises(hil.ConfigError, match=r"^out='.*': exists and is not a directory"):
         hil.run(config, clock="sim", out=tmp_path / "file")
     assert list(tmp_path.iterdir()) == [tmp_path / "file"]  # nothing was started or written
 
@@ -109,7 +109,7 @@ def test_run_campaign_and_report_inside_a_running_loop(tmp_path: Path) -> None:
     log = run.out_dir / run.result.cells[0].log
     summary = hil.report(log)
     assert summary["cycles"] >= 1990 and summary["controller"] == run.result.cells[0].controller_name
-    with pytest.raises(hil.ConfigError, match="--resume"):
+    with pytest.raises(hil.ConfigError, match="resume=True"):
         hil.run_campaign(path, out=tmp_path / "out")
 
 

@@ -49,7 +49,7 @@ def test_cells_run_in_parallel_keep_their_logs_and_resume(tmp_path: Path) -> Non
     assert [r.passed for r in result.acceptance] == [True]  # the KF leads the delayed gyro: less lag
     assert load_results(out).model_dump() == result.model_dump()
 
-    with pytest.raises(CampaignError, match="--resume"):
+    with pytest.raises(CampaignError, match="resume=True"):
         run_campaign(config, out)
     # resume: nothing to run; then lose one cell's result and only that one runs again
     assert run_campaign(config, out, resume=True, on_cell=lambda c: None).complete

@@ -108,7 +108,7 @@ def test_resume_with_the_dask_engine_runs_only_the_missing_cell(cluster: distrib
     assert {p.name: p.stat().st_mtime_ns for p in (out / "cells" / other).iterdir()} == kept  # not run again
     assert next(c for c in run.result.cells if c.cell_id == other) == local[other]
     assert_same_cells(out, [c for c in run.result.cells if c.cell_id == first], local_out, local)
-    with pytest.raises(hil.ConfigError, match="--resume"):
+    with pytest.raises(hil.ConfigError, match="resume=True"):
         hil.run_campaign(path, out=out, engine="dask", scheduler=cluster.scheduler_address)
 
 

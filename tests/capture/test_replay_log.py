@@ -133,12 +133,12 @@ def test_params_come_as_a_dict_a_k_v_string_or_a_controller_yaml(lockstep_run: C
         assert result.replayed.name == "eso_kf" and result.replayed.params == {"omega_o_rad_s": 500, "q_dps2": 1e-3}
         assert result.axes["el"].drive_diff_rms_counts == as_dict.axes["el"].drive_diff_rms_counts > 0
     for args, kwargs, message in (
-        (("eso_kf", "omega_o_rad_s"), {}, "--params: 'omega_o_rad_s' is not k=v"),
-        (("eso_kf", "=5"), {}, "--params: '=5' is not k=v"),
-        (("eso", yaml_file), {}, f"--controller eso but {yaml_file} is a eso_kf controller"),
-        (("eso_kf", str(tmp_path / "missing.yaml")), {}, "--params .*missing.yaml"),
-        ((), {"settle_s": -1.0}, "--settle: -1.0 is not a finite number of seconds >= 0"),
-        ((), {"settle_s": float("nan")}, "--settle: nan"),
+        (("eso_kf", "omega_o_rad_s"), {}, "^params='omega_o_rad_s': 'omega_o_rad_s' is not k=v"),
+        (("eso_kf", "=5"), {}, "^params='=5': '=5' is not k=v"),
+        (("eso", yaml_file), {}, f"^controller='eso' but {yaml_file} is a eso_kf controller"),
+        (("eso_kf", str(tmp_path / "missing.yaml")), {}, "^params='.*missing.yaml'"),
+        ((), {"settle_s": -1.0}, "^settle_s=-1.0: not a finite number of seconds >= 0"),
+        ((), {"settle_s": float("nan")}, "^settle_s=nan"),
     ):
         with pytest.raises(ReplayError, match=message):
             replay_log(log, *args, **kwargs)

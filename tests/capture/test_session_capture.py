@@ -127,7 +127,7 @@ def test_the_loop_threads_reads_and_writes_are_captured_with_its_own_times(realt
 
 def test_the_sim_clock_refuses_a_capture_before_anything_starts(tmp_path: Path) -> None:
     config = session_config(duration_s=0.2)
-    with pytest.raises(ValueError, match=r"sim clock's links pass messages, not bytes.*--clock lockstep"):
+    with pytest.raises(ValueError, match=r"sim clock's links pass messages, not bytes.*clock='lockstep'"):
         asyncio.run(run_sim_session(config, tmp_path / "logs", capture_dir=tmp_path / "capture"))
 
     async def direct() -> None:

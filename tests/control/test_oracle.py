@@ -66,14 +66,14 @@ def test_oracle_parameters_are_checked_like_any_controllers():
 def test_oracle_is_refused_on_every_clock_but_sim(clock):
     with pytest.raises(ControllerConfigError) as exc:
         require_sim_clock("oracle", clock)
-    assert str(exc.value) == f"{REFUSAL} (not {clock}); run with --clock sim"
+    assert str(exc.value) == f"{REFUSAL} (not {clock}); run with clock='sim'"
     require_sim_clock("oracle", "sim")
     require_sim_clock("eso_kf", clock)  # the others run anywhere
 
 
 def test_an_unbound_oracle_refuses_to_step_and_binding_leaves_other_controllers_alone():
     c = build_controller("oracle")
-    with pytest.raises(TruthRequired, match=f"^{REFUSAL}; run with --clock sim$"):
+    with pytest.raises(TruthRequired, match=f"^{REFUSAL}; run with clock='sim'$"):
         c.step(0.0, 0.1)
     with pytest.raises(TruthRequired):
         bind_truth(c, None, "el")
@@ -247,7 +247,7 @@ def test_the_oracle_is_refused_without_the_sim_clock(tmp_path):
     for kwargs, clock in (({"lockstep": True}, "lockstep"), ({"emulated": True}, "realtime"), ({}, "hardware")):
         with pytest.raises(ConfigError) as exc:
             Session(config, ports, tmp_path, **kwargs)
-        assert str(exc.value) == f"{REFUSAL} (not {clock}); run with --clock sim"
+        assert str(exc.value) == f"{REFUSAL} (not {clock}); run with clock='sim'"
 
 
 def test_cli_refuses_the_oracle_on_lockstep_with_exit_2(tmp_path):

@@ -193,5 +193,5 @@ def test_a_campaign_runs_on_a_given_plant(tmp_path: Path) -> None:
         assert Path(emulator["plant"]) == RIGID_PLANT_CONFIG.resolve()
     bad = tmp_path / "bad.yaml"
     bad.write_text("motor_az: {resistance_ohm: -1}\n")
-    with pytest.raises(ConfigError, match=r"^--plant: "):
+    with pytest.raises(ConfigError, match=r"^plant='"):
         api.prepare_campaign(campaign, out=tmp_path / "d", plant=bad)

@@ -104,7 +104,7 @@ def test_tiny_study_runs_and_resumes(tmp_path: Path) -> None:
     assert first.trials == 1 and first.complete == 1 and first.trials_run == 1
     assert first.best_trial == 0  # the base plant's own values come first
     assert lines and lines[0].startswith("trial 0: objective")
-    with pytest.raises(ValueError, match="--resume"):
+    with pytest.raises(ValueError, match="resume=True"):
         fit_targets(path, trials=2, **kwargs)
     second = fit_targets(path, trials=2, resume=True, **kwargs)
     assert second.trials == 2 and second.trials_run == 1

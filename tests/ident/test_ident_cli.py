@@ -30,7 +30,8 @@ def test_ident_refuses_an_elevation_sweep_that_would_reach_the_gimbals_singulari
     proc = subprocess.run([sys.executable, "-m", "hil", "ident", str(SESSION), "--loopback", "--out", str(tmp_path),
                            "--offset-dps", "10"], capture_output=True, text=True, timeout=60, check=False)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
-    assert "--offset-dps: the elevation axis would turn 210 deg" in proc.stderr
+    assert "error: --offset-dps 10: the elevation axis would turn 210 deg" in proc.stderr
+    assert proc.stderr.strip().endswith("lower --offset-dps or --sweep-s, or identify --axis az")
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
 
 

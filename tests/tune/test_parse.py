@@ -34,21 +34,22 @@ def test_linear_int_and_list_forms() -> None:
 
 
 @pytest.mark.parametrize(("spec", "message"), [
-    ("", "--params: nothing to tune"),
-    ("foo=1..2", "--params: foo: unknown parameter of controller 'eso_kf' (numeric parameters: kp_counts_per_dps,"),
-    ("steady_state=0..1", "--params: steady_state: not a numeric parameter of controller 'eso_kf'"),
-    ("omega_o_rad_s=2000..100", "--params: omega_o_rad_s: the range 2000..100 is empty (need low < high)"),
-    ("omega_o_rad_s=5..5", "--params: omega_o_rad_s: the range 5..5 is empty"),
-    ("q_dps2=0..1e-2:log", "--params: q_dps2: ':log' needs a positive range (got 0..0.01)"),
-    ("omega_o_rad_s=100..5000", "--params: omega_o_rad_s: 5000 is not valid: controller 'eso_kf': parameter "
+    ("", "params: nothing to tune"),
+    ("foo=1..2", "params='foo=1..2': unknown parameter of controller 'eso_kf' (numeric parameters: kp_counts_per_dps,"),
+    ("steady_state=0..1", "params='steady_state=0..1': not a numeric parameter of controller 'eso_kf'"),
+    ("omega_o_rad_s=2000..100", "params='omega_o_rad_s=2000..100': the range 2000..100 is empty (need low < high)"),
+    ("omega_o_rad_s=5..5", "params='omega_o_rad_s=5..5': the range 5..5 is empty"),
+    ("q_dps2=0..1e-2:log", "params='q_dps2=0..1e-2:log': ':log' needs a positive range (got 0..0.01)"),
+    ("omega_o_rad_s=100..5000", "params='omega_o_rad_s=100..5000': 5000 is not valid: controller 'eso_kf': parameter "
                                 "omega_o_rad_s: omega_o * dt_s = 5 is above pi"),
-    ("kp_counts_per_dps=1000..50000", "--params: kp_counts_per_dps: 50000 is not valid"),
-    ("omega_o_rad_s=100..200:cubic", "--params: omega_o_rad_s: unknown suffix ':cubic' (':log' or ':int')"),
-    ("omega_o_rad_s=100-200", "--params: 'omega_o_rad_s=100-200' is not name=low..high[:log|:int]"),
-    ("omega_o_rad_s=a..200", "--params: omega_o_rad_s: 'a' is not a number"),
-    ("omega_o_rad_s=nan..200", "--params: omega_o_rad_s: 'nan' is not a finite number"),
-    ("ki_counts_per_deg=0.5..10:int", "--params: ki_counts_per_deg: an integer range needs whole numbers"),
-    ("q_dps2=1e-6..1e-2, q_dps2=1e-5..1e-3", "--params: q_dps2: given twice"),
+    ("kp_counts_per_dps=1000..50000", "params='kp_counts_per_dps=1000..50000': 50000 is not valid"),
+    ("omega_o_rad_s=100..200:cubic",
+     "params='omega_o_rad_s=100..200:cubic': unknown suffix ':cubic' (':log' or ':int')"),
+    ("omega_o_rad_s=100-200", "params='omega_o_rad_s=100-200': not name=low..high[:log|:int]"),
+    ("omega_o_rad_s=a..200", "params='omega_o_rad_s=a..200': 'a' is not a number"),
+    ("omega_o_rad_s=nan..200", "params='omega_o_rad_s=nan..200': 'nan' is not a finite number"),
+    ("ki_counts_per_deg=0.5..10:int", "params='ki_counts_per_deg=0.5..10:int': an integer range needs whole numbers"),
+    ("q_dps2=1e-6..1e-2, q_dps2=1e-5..1e-3", "params='q_dps2=1e-5..1e-3': given twice"),
 ])
 def test_a_bad_space_is_one_line_naming_params(spec: str, message: str) -> None:
     with pytest.raises(ConfigError) as exc:
@@ -62,9 +63,9 @@ def test_constraints_parse_and_measure_the_worst_cell() -> None:
     assert Constraint("drive_ripple_el_counts", "<=", 800.0).value([700.0, 850.0]) == 50.0
     assert Constraint("drive_ripple_el_counts", "<=", 800.0).value([700.0, 750.0]) == -50.0
     assert Constraint("miss_std_px", ">=", 0.5).value([0.75, 0.25]) == 0.25
-    for bad, message in (("ripple<=3", "--constraint: unknown metric 'ripple'"),
-                         ("miss_std_px<3", "--constraint: 'miss_std_px<3' is not metric<=value"),
-                         ("miss_std_px<=inf", "--constraint: miss_std_px: 'inf' is not a finite number")):
+    for bad, message in (("ripple<=3", "^constraints='ripple<=3': unknown metric 'ripple'"),
+                         ("miss_std_px<3", "^constraints='miss_std_px<3': not metric<=value"),
+                         ("miss_std_px<=inf", "^constraints='miss_std_px<=inf': 'inf' is not a finite number")):
         with pytest.raises(ConfigError, match=message):
             parse_constraints([bad])
 
@@ -75,7 +76,7 @@ def test_the_tuned_entry_is_the_first_non_baseline_or_the_label() -> None:
     config = load_campaign(CAMPAIGN)
     assert choose_controller(config, None).label == "ESO+KF"  # ESO is the baseline
     assert choose_controller(config, "high-gain ESO+KF").name == "eso_kf_high_gain"
-    with pytest.raises(ConfigError, match=r"^--controller: 'PID' is not a controller label of campaign "):
+    with pytest.raises(ConfigError, match=r"^controller='PID': not a controller label of campaign "):
         choose_controller(config, "PID")
     trial = trial_campaign(config, choose_controller(config, "high-gain ESO+KF"), {"q_dps2": 1e-4})
     assert [(c.label, c.name, c.params) for c in trial.controllers] == [

@@ -73,9 +73,9 @@ def test_a_study_writes_its_database_controller_and_report_and_resumes(tmp_path:
     assert (out / "tune-history.png") in result.report.pngs
     assert "data:image/png;base64," in result.report.html.read_text()
 
-    with pytest.raises(ConfigError, match=r"^--study tiny-tune: already in sqlite:///.*; pass --resume"):
+    with pytest.raises(ConfigError, match=r"^study='tiny-tune': already in sqlite:///.*; pass resume=True"):
         tune(campaign, SPACE, trials=6, out=out)
-    with pytest.raises(ConfigError, match=r"^--resume: study 'tiny-tune' was made with space"):
+    with pytest.raises(ConfigError, match=r"^resume=True: study='tiny-tune' was made with space"):
         tune(campaign, "omega_o_rad_s=200..1000:log", trials=6, out=out, resume=True)
     again = tune(campaign, SPACE, trials=6, workers=2, out=out, seed=1, resume=True,
                  constraints=["drive_ripple_el_counts<=100000"], write_report=False)
@@ -129,7 +129,8 @@ def hil(*args: str) -> subprocess.CompletedProcess[str]:
 def test_the_command_line_refuses_a_bad_space_in_one_line(tmp_path: Path) -> None:
     out = hil("tune", tiny_campaign(tmp_path), "--params", "omega_o_rad_s=2000..100", "--out", tmp_path / "o")
     assert out.returncode == 2 and out.stdout == ""
-    assert out.stderr.strip() == "error: --params: omega_o_rad_s: the range 2000..100 is empty (need low < high)"
+    assert out.stderr.strip() == ("error: --params omega_o_rad_s=2000..100: the range 2000..100 is empty "
+                                  "(need low < high)")
     assert not (tmp_path / "o").exists()
 
 
