@@ -7,6 +7,8 @@ Each case is timed in batches of 100 steps (perf_counter_ns around the batch, so
 cost is spread over 100 calls); the per-step median and p99 are over the batches. Inputs are a
 noisy 1 Hz sine, precomputed. Also: seed 002's comparison, the LESO filter against a Kalman
 filter on its 10 s / 100 Hz signal (paper: the LESO takes 40 % of the KF's time).
+Also the loop's shared step (hil.control.cycle.DriveStep: both axes' controllers, limit and slew clamp) beside
+the two controller steps alone, interleaved round by round so both see the same machine: its own cost per tick.
 Targets (docs/performance.md): ESO+KF step <= 3 us median and >= 5x faster than filterpy's KF step.
 Exit status is non-zero only if a case fails to run, never on speed.
 """
@@ -28,6 +30,7 @@ from typing import Any
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
+from hil.control.cycle import DriveStep, ProfileClock
 from hil.control.ehgo import HighGainObserver
 from hil.control.eso import LinearESO, NonlinearESO
 from hil.control.filters import LowPass1, LowPass2
@@ -108,6 +111,32 @@ def cases() -> dict[str, Callable[[float], Any]]:
     return out
 
 
+def drive_step_cases(xs: list[float], rounds: int = 5) -> dict[str, dict[str, float]]:
+    """Per tick, for each registry controller: both axes' controller steps alone (the floor) and the same through
+    :class:`DriveStep` (limit, slew clamp, the drive handed back to the estimators), timed round by round
+    alternately; median of the rounds' medians, and the difference (DriveStep's own cost)."""
+    out: dict[str, dict[str, float]] = {}
+    for name in REGISTRY:
+        az, el = build_controller(name), build_controller(name)
+        step = DriveStep(build_controller(name), build_controller(name), None, ProfileClock(),
+                         max_drive_counts=30_000, max_slew_counts=4_000)
+
+        def alone(x: float, az: Any = az, el: Any = el) -> None:
+            az.step(0.0, x)
+            el.step(0.0, x)
+
+        def through(x: float, step: DriveStep = step) -> None:
+            step.step(0.0, 0.0, x, x, az_deg=0.0, el_deg=0.0, t_s=0.0)
+
+        floor, shared = [], []
+        for _ in range(rounds):
+            floor.append(time_steps(alone, xs)["median_us"])
+            shared.append(time_steps(through, xs)["median_us"])
+        f, d = statistics.median(floor), statistics.median(shared)
+        out[name] = {"controllers_us": f, "drive_step_us": d, "own_us": d - f}
+    return out
+
+
 def ukf_case(steps: int) -> dict[str, float]:
     ukf = ImbalanceUKF(mass_kg=10.0, inertia_kg_m2=0.05)
     rng = random.Random(3)
@@ -156,6 +185,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         r = time_steps(step, xs)
         results["cases"][name] = r
         print(f"{name:58s} {r['median_us']:10.2f} {r['p99_us']:9.2f}")
+    steps = drive_step_cases(xs)
+    results["drive_step"] = steps
+    print(f"\n{'DriveStep per tick (both axes), median us':42s} {'controllers':>11s} {'DriveStep':>10s} {'own':>7s}")
+    for name, r in steps.items():
+        print(f"  {name:40s} {r['controllers_us']:11.2f} {r['drive_step_us']:10.2f} {r['own_us']:7.2f}")
     ukf = ukf_case(max(200, args.steps // 20))
     results["cases"]["ImbalanceUKF.step (filterpy UKF, 7 states)"] = ukf
     print(f"{'ImbalanceUKF.step (filterpy UKF, 7 states)':58s} {ukf['median_us']:10.2f} {ukf['p99_us']:9.2f}")

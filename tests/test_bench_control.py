@@ -26,3 +26,7 @@ def test_control_benchmark_times_every_estimator_and_controller(tmp_path):
     assert set(results["seed002_run_us"]) == {
         "LesoFilter (tau 0.5, omega_o 0.1)", "plain-float KF (R 0.1, Q 0.001)", "filterpy KalmanFilter"}
     assert json.loads(out.read_text())["steps"] == 1000
+    assert set(results["drive_step"]) == set(REGISTRY)
+    for r in results["drive_step"].values():
+        assert r["controllers_us"] > 0 and r["drive_step_us"] > 0
+        assert r["own_us"] == r["drive_step_us"] - r["controllers_us"]
