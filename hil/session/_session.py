@@ -11,6 +11,10 @@ poses, board timing reports and link counters are logged as they come.
 Safety: the watchdog (no GYRO_SAMPLE for ``watchdog_ms``; hil.session._watchdog), a lost link or a driver fault
 zero the drive and DISABLE the driver at once, log a fault event, then stop or recover per config.
 SIGINT and SIGTERM disable the driver first, stop the hexapod, close the log and end with 130 / 143.
+
+One responsibility in one file (about 820 lines): one session's life on the boards, from connecting to safe,
+with its faults and recoveries; the per-sample cycle (_control_loop), the loop thread, the watchdog and the
+wind-down (_wind_down) live beside it.
 """
 
 from __future__ import annotations
