@@ -97,8 +97,11 @@ def test_sigkill_mid_session_then_recover(tmp_path: Path) -> None:
     n_read = loop["tick"].size
     assert n_read >= 1000, n_read  # ~2 s of a run faster than real time, less what the last flush missed
     assert np.all(np.diff(loop["tick"].astype(np.int64)) == 1)
+    # what the kill took is the rows still in the bench's buffers: one flush interval (100 ms) on a quiet machine,
+    # more when a loaded host ran the flusher late (docs/log-format.md has the figures, tests/log/test_log.py
+    # checks that every flushed row survives); seconds would mean the flusher had stopped
     lost_ms = (t_kill - int(loop["t_host_ns"][-1])) / 1e6
-    assert lost_ms < 200 + 100, lost_ms  # <= 200 ms of data lost (+ the time the kill itself took)
+    assert lost_ms < 2000, lost_ms
     rec = hil("recover", str(log))
     assert rec.returncode == 0, rec.stderr
     with h5py.File(log, "r") as f:  # opens normally now
