@@ -36,6 +36,9 @@ CREATE TABLE IF NOT EXISTS queue (
     uid TEXT PRIMARY KEY, position INTEGER NOT NULL, kind TEXT NOT NULL, name TEXT NOT NULL, user TEXT NOT NULL,
     file_name TEXT NOT NULL, body TEXT NOT NULL, options TEXT NOT NULL, submitted_at TEXT NOT NULL,
     started_at TEXT);
+CREATE TABLE IF NOT EXISTS lease_events (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, at TEXT NOT NULL, event TEXT NOT NULL, holder TEXT NOT NULL,
+    by TEXT NOT NULL, reason TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS history (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, uid TEXT UNIQUE NOT NULL, kind TEXT NOT NULL, name TEXT NOT NULL,
     user TEXT NOT NULL, file_name TEXT NOT NULL, submitted_at TEXT NOT NULL, started_at TEXT, ended_at TEXT NOT NULL,
@@ -273,6 +276,22 @@ class Store:
         with self._tx() as db:
             db.execute("INSERT INTO meta (key, value) VALUES (?, ?) ON CONFLICT(key) DO UPDATE SET value = "
                        "excluded.value", (f"setting.{key}", json.dumps(value)))
+
+    # --- the lease's record ------------------------------------------------------------------------
+
+    def lease_event(self, event: str, holder: str, by: str, reason: str = "") -> None:
+        """One line of the lease's history: taken, released, lapsed or broken (``by`` another operator, with
+        ``reason``)."""
+        with self._tx() as db:
+            db.execute("INSERT INTO lease_events (at, event, holder, by, reason) VALUES (?, ?, ?, ?, ?)",
+                       (now_iso(), event, holder, by, " ".join(reason.split())))
+
+    def lease_events(self, limit: int | None = None) -> list[dict[str, Any]]:
+        """The lease's history, newest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT seq, at, event, holder, by, reason FROM lease_events ORDER BY seq DESC "
+                                    "LIMIT ?", (-1 if limit is None else limit,)).fetchall()
+        return [dict(zip(("seq", "at", "event", "holder", "by", "reason"), r, strict=True)) for r in rows]
 
     # --- helpers -----------------------------------------------------------------------------------
 
