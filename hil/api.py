@@ -21,8 +21,17 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import ValidationError
 
 from hil.analysis import SweptSine, bode_plot, identify_log, summarize_log
-from hil.config import ConfigError, SessionConfig, load_session, one_line, require_regular_file, require_writable_dir
+from hil.config import (
+    ConfigError,
+    PortConfig,
+    SessionConfig,
+    load_session,
+    one_line,
+    require_regular_file,
+    require_writable_dir,
+)
 from hil.control.registry import K_M_DEFAULT, ControllerConfigError, require_sim_clock
+from hil.link import Finding, check_ports
 from hil.log import LogError
 from hil.log import read_log as read_arrays
 from hil.log.reader import NotASessionLog
@@ -44,9 +53,9 @@ if TYPE_CHECKING:
     from hil.campaign.engines import Engine
     from hil.reporting import ReportFiles
 
-__all__ = ["CLOCKS", "CampaignRun", "Clock", "IdentRun", "Progress", "RunResult", "check_file", "ident", "load_session",
-           "prepare_campaign", "prepare_run", "read_log", "replay_capture", "replay_log", "report", "run", "run_async",
-           "run_campaign", "tune"]
+__all__ = ["CLOCKS", "CampaignRun", "Clock", "IdentRun", "Progress", "RunResult", "check_file", "doctor", "ident",
+           "load_session", "prepare_campaign", "prepare_run", "read_log", "replay_capture", "replay_log", "report",
+           "run", "run_async", "run_campaign", "tune"]
 
 
 @dataclasses.dataclass
@@ -316,3 +325,21 @@ def check_file(path: str | Path, kind: str | None = None) -> dict[str, Any]:
     from hil.checks import check_config_file  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     return check_config_file(Path(path), kind)
+
+
+def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Path = "/sys") -> list[Finding]:
+    """Is the hardware ready (`hil doctor`, docs/service.md)? Every check of every port: ``session``'s ports, or
+    with none every serial adapter in /dev/serial/by-id/ at the default 921 600 baud. ConfigError for a session
+    without ports."""
+    if session is None:
+        by_id = sorted(Path("/dev/serial/by-id").glob("*"))
+        ports = {p.name: str(p) for p in by_id}
+        bauds = dict.fromkeys(ports, PortConfig.model_fields["baudrate"].default)
+    else:
+        config = session if isinstance(session, SessionConfig) else load_session(session)
+        if config.ports is None:
+            raise ConfigError("ports: not set in the session file; a loopback run needs no hardware check")
+        links = {n: getattr(config.ports, n) for n in ("servo", "driver", "image", "hexapod")}
+        ports = {n: c.port for n, c in links.items() if c is not None}
+        bauds = {n: c.baudrate for n, c in links.items() if c is not None}
+    return check_ports(ports, bauds, sysfs=Path(sysfs))

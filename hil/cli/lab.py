@@ -1,4 +1,5 @@
-"""`hil watch` and `hil emulate`: the live telemetry viewer and the emulated lab on its own."""
+"""`hil watch`, `hil emulate` and `hil doctor`: the live telemetry viewer, the emulated lab on its own, and the
+hardware check."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from typing import Annotated, Literal
 import typer
 from pydantic import ValidationError
 
-from hil.cli._common import app, console, err_console, fail, finite
+from hil.cli._common import app, console, err_console, fail, finite, print_json
 
 
 @app.command()
@@ -61,3 +62,37 @@ def emulate(  # noqa: PLR0917 (typer maps parameters to options)
             args += [flag, str(value)]
     sys.stdout.flush()
     os.execv(sys.executable, args + list(ctx.args))  # the emulator gets our pid, so signals reach it directly
+
+
+@app.command()
+def doctor(
+    session: Annotated[Path | None, typer.Argument(
+        help="A session file: check its ports at their baud rates (default: every adapter in /dev/serial/by-id/).",
+        exists=False)] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="The findings as JSON on stdout.")] = False,
+) -> None:
+    """Is the hardware ready? Each port exists and is a serial port this user may open, no other bench holds it, a
+    USB-serial adapter's latency timer is 1 ms, and the baud rate carries the link's periodic messages. Exit 1 if
+    a check fails, each failure saying what to do."""
+    from rich.table import Table  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
+
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+
+    try:
+        findings = api.doctor(session)
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+    failed = [f for f in findings if not f.ok]
+    if json_out:
+        print_json({"ok": not failed, "findings": [vars(f) for f in findings]})
+    elif not findings:
+        console.print("no serial adapters in /dev/serial/by-id/; give the session file whose ports to check")
+    else:
+        table = Table("link", "check", "", "what was found", show_header=True, header_style="bold")
+        for f in findings:
+            table.add_row(f.link, f.check, "[green]ok[/]" if f.ok else "[bold red]FAIL[/]", f.detail)
+        console.print(table)
+        console.print(f"{len(findings) - len(failed)} of {len(findings)} checks passed"
+                      + ("" if not failed else "; fix what FAIL says, then run `hil doctor` again"))
+    raise typer.Exit(1 if failed else 0)

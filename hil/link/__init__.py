@@ -22,6 +22,7 @@ from hil.link._capture import (
     link_decoder,
     time_ordered,
 )
+from hil.link._doctor import Finding, check_port, check_ports
 from hil.link._ports import Holder, PortClaims, PortUnavailable, claim_ports, is_exclusive, set_exclusive
 from hil.link._selftest import main_sync
 from hil.link._transport import Link, LinkError, SerialLink, board_of
@@ -36,6 +37,7 @@ __all__ = [
     "CaptureDecode",
     "CaptureError",
     "CaptureReader",
+    "Finding",
     "Holder",
     "Link",
     "LinkError",
@@ -44,6 +46,8 @@ __all__ = [
     "SerialLink",
     "TimedFrame",
     "board_of",
+    "check_port",
+    "check_ports",
     "claim_ports",
     "decode_capture",
     "find_capture",

@@ -226,21 +226,35 @@ _RATE = re.compile(r"(\d+(?:\.\d+)?) (k?Hz)")
 BAUDS = (921_600, 2_000_000)
 
 
+def periodic_rate_hz(spec: MessageSpec) -> float | None:
+    """A periodic message's rate (its catalogue ``rate``, "1 kHz", "100 Hz"), None for one sent on demand."""
+    found = _RATE.search(spec.rate)
+    return None if not found else float(found[1]) * (1000 if found[2] == "kHz" else 1)
+
+
+def periodic_load_bits_per_s(cat: Catalogue = m.CATALOGUE) -> dict[str, float]:
+    """The periodic messages' load per link direction (``"servo → host"``), bits/s on the wire (8N1: 10 bit times
+    per byte): what a link's baud rate must carry."""
+    load: dict[str, float] = {}
+    for s in cat:
+        hz = periodic_rate_hz(s)
+        if hz is not None and s.sender is not None and s.receiver is not None:
+            load[direction(s)] = load.get(direction(s), 0.0) + (HEADER_SIZE + s.payload_size + CRC_SIZE) * hz * 10
+    return load
+
+
 def render_link_budget(cat: Catalogue) -> str:
     """Wire time and link load of the periodic messages (8N1: 10 bit times per byte)."""
     head = " | ".join(f"wire time at {b / 1e6:g} Mbaud" for b in BAUDS)
     out = [f"| message | frame bytes | rate | {head} |", "| --- | --- | --- |" + " --- |" * len(BAUDS)]
-    load: dict[str, float] = {}
     for s in cat:
-        found = _RATE.search(s.rate)
-        if not found:
+        hz = periodic_rate_hz(s)
+        if hz is None:
             continue
-        hz = float(found[1]) * (1000 if found[2] == "kHz" else 1)
         size = HEADER_SIZE + s.payload_size + CRC_SIZE
         times = " | ".join(f"{size * 10 / b * 1e6:.0f} us" for b in BAUDS)
         out.append(f"| {s.name} | {size} | {hz:g} Hz | {times} |")
-        if s.sender is not None and s.receiver is not None:
-            load[direction(s)] = load.get(direction(s), 0.0) + size * hz * 10
+    load = periodic_load_bits_per_s(cat)
     out += ["", "Periodic load per link direction (each board has its own full-duplex link; HEARTBEAT adds 36 B/s):"]
     for link, bits in sorted(load.items()):
         share = ", ".join(f"{100 * bits / b:.0f} % of {b / 1e6:g} Mbaud" for b in BAUDS)

@@ -2,7 +2,7 @@
 it is submitted and again just before it runs (docs/service.md, "Items").
 
 A submitted file must stand on its own: the service cannot see the client's other files, so a path in it that is
-relative is read next to nothing and refused by name. ``hil run --bench`` sends the session as loaded (its
+relative is read next to nothing and refused by name. A client sends a session as loaded (its
 controller, profile and limits inline), which always stands on its own.
 """
 
