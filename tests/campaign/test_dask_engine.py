@@ -190,13 +190,13 @@ def test_bad_engine_options_are_one_line_errors_before_anything_is_written(tmp_p
     out = tmp_path / "out"
     port = free_port()
     cases = [
-        ({"engine": "dask", "scheduler": "localhost:8786"}, r"^--scheduler: 'localhost:8786' is not a scheduler add"),
-        ({"engine": "dask", "scheduler": f"tcp://127.0.0.1:{port}"}, rf"^--scheduler tcp://127.0.0.1:{port}: cannot"),
-        ({"engine": "dask", "shared_dir": path}, r"^--shared-dir .*: not a directory"),
-        ({"engine": "dask", "workers": 0}, r"^--workers: 0"),
-        ({"scheduler": "tcp://lab:8786"}, r"^--scheduler: only with --engine dask"),
-        ({"engine": "dask", "hardware": True}, r"^--engine dask: --hardware"),
-        ({"engine": "slurm"}, r"^--engine: 'slurm' is not local or dask"),
+        ({"engine": "dask", "scheduler": "localhost:8786"}, r"^scheduler='localhost:8786': not a scheduler add"),
+        ({"engine": "dask", "scheduler": f"tcp://127.0.0.1:{port}"}, rf"^scheduler='tcp://127.0.0.1:{port}': cannot"),
+        ({"engine": "dask", "shared_dir": path}, r"^shared_dir='.*': not a directory"),
+        ({"engine": "dask", "workers": 0}, r"^workers=0: need at least 1"),
+        ({"scheduler": "tcp://lab:8786"}, r"^scheduler='tcp://lab:8786': only with engine='dask'"),
+        ({"engine": "dask", "hardware": True}, r"^engine='dask': hardware=True"),
+        ({"engine": "slurm"}, r"^engine='slurm': not local or dask"),
     ]
     for options, message in cases:
         with pytest.raises(hil.ConfigError, match=message):

@@ -184,7 +184,7 @@ def test_the_cli_replays_a_log_and_refuses_what_does_not_fit(lockstep_run: Captu
     assert table.exit_code == 0 and "drive minus logged (rms)" in table.stdout
     for args, message in (
         ([log, "--controller", "lqr"], "unknown controller 'lqr'"),
-        ([log, "--params", "omega_o_rad_s"], "--params: 'omega_o_rad_s' is not k=v"),
+        ([log, "--params", "omega_o_rad_s"], "--params omega_o_rad_s: 'omega_o_rad_s' is not k=v"),
         ([log, "--to-emulator", "--controller", "eso"], "--controller/--params replay a log"),
         ([str(lockstep_run.capture), "--controller", "eso"], "a capture; play it back with --to-emulator"),
         ([log, "--port", "servo=/dev/null"], "go with --to-emulator"),
