@@ -188,7 +188,8 @@ def test_the_cli_replays_a_log_and_refuses_what_does_not_fit(lockstep_run: Captu
         ([log, "--to-emulator", "--controller", "eso"], "--controller/--params replay a log"),
         ([str(lockstep_run.capture), "--controller", "eso"], "a capture; play it back with --to-emulator"),
         ([log, "--port", "servo=/dev/null"], "go with --to-emulator"),
-        ([str(lockstep_run.capture), "--to-emulator", "--port", "gimbal=/dev/null"], "is not LINK=PATH"),
+        ([str(lockstep_run.capture), "--to-emulator", "--port", "gimbal=/dev/null"],
+         "--port gimbal=/dev/null: not LINK=PATH"),
         ([log, "--to-emulator"], "not a capture"),
     ):
         bad = runner.invoke(app, ["replay", *args])
