@@ -110,5 +110,5 @@ def test_tiny_study_runs_and_resumes(tmp_path: Path) -> None:
     assert second.trials == 2 and second.trials_run == 1
     assert second.best_value is not None and second.best_value <= first.best_value
     text = (tmp_path / "plant.yaml").read_text()
-    assert text.startswith("# ") and "hil fit --targets" in text and "noise_std_dps" in text
+    assert text.startswith("# ") and "Made by: hil.fit.fit_targets(" in text and "noise_std_dps" in text
     assert "| raw |" in (tmp_path / "fit" / "residuals.md").read_text()
