@@ -304,7 +304,6 @@ class Store:
     @staticmethod
     def _renumber(db: sqlite3.Connection, uids: list[str]) -> None:
         """Positions 0..n-1 in this order (running items keep the front)."""
-        db.executemany("UPDATE queue SET position = ? WHERE uid = ?", [(-1 - i, u) for i, u in enumerate(uids)])
         running = [r[0] for r in db.execute("SELECT uid FROM queue WHERE started_at IS NOT NULL").fetchall()]
         order = running + [u for u in uids if u not in running]
         db.executemany("UPDATE queue SET position = ? WHERE uid = ?", [(i, u) for i, u in enumerate(order)])
