@@ -367,7 +367,7 @@ def one_line(source: str, err: ValidationError) -> str:
     where = ".".join(str(p) for p in first["loc"])
     msg = str(first["msg"]).removeprefix("Value error, ")
     got = first.get("input")
-    secret = any("password" in str(p) for p in first["loc"])  # a rejected password is not echoed
+    secret = any(word in str(p) for p in first["loc"] for word in ("password", "token"))  # never echoed
     shown = "" if isinstance(got, dict | list) or got is None or first["type"].startswith("value_error") or secret \
         else f" (got {_shown(got)})"
     return " ".join(f"{source}: {where + ': ' if where else ''}{msg}{shown}".split())

@@ -640,6 +640,8 @@ class SessionLog:
         }
         self.bad_values: dict[str, int] = {g.name: 0 for g in schema}
         self._coercers = {g.name: [_coercer(c.dtype) for c in g.channels] for g in schema}
+        self._structs = [row_struct(g) for g in schema]
+        self._last_rows: dict[int, bytes] = {}  # the last row of each group's last batch shipped (latest())
 
     # -- hot path --------------------------------------------------------------------------
 
@@ -682,6 +684,19 @@ class SessionLog:
             raw = raw[: DETAIL_LEN - 3] + b"..."
         self.append("events", (t, tick, kind.encode("ascii", "replace")[:KIND_LEN], raw))
 
+    def latest(self, group: str) -> dict[str, Any] | None:
+        """The last row appended to ``group`` (channel name -> value), or None before the first. For a live view
+        (the service's page) from any thread: it reads the buffer's tail, never the hot path's state."""
+        gi = self._names.index(group)
+        size = self._structs[gi].size
+        tail = bytes(self._bufs[gi][-size:])  # one copy: the loop thread may append or the flusher cut meanwhile
+        if len(tail) != size:
+            tail = self._last_rows.get(gi, b"")
+            if len(tail) != size:
+                return None
+        names = [c.name for c in self.schema[gi].channels]
+        return dict(zip(names, self._structs[gi].unpack(tail), strict=True))
+
     # -- flushing --------------------------------------------------------------------------
 
     def _take(self) -> dict[int, bytearray]:
@@ -692,6 +707,8 @@ class SessionLog:
             if n:
                 batches[gi] = buf[:n]
                 del buf[:n]
+                size = self._structs[gi].size
+                self._last_rows[gi] = bytes(batches[gi][n - n % size - size:n - n % size])
         return batches
 
     def _flusher(self) -> None:

@@ -8,11 +8,13 @@
   returning a :class:`RunResult`; campaigns, tuning and fitting run their sessions through it.
 - The emulated lab: :class:`EmulatorProcess` (``_loopback``, the emulator in its own process on ptys, realtime or
   lockstep) and the ``sim`` clock in this process (``_sim``: :func:`run_sim_session`, :class:`PlantTruth`).
+- The lab a long-running process holds (``_lab``: :class:`BenchLab`, :func:`serve_lab`): `hil serve`'s worker.
 
 Import from here; the underscored modules are this package's own.
 """
 
 from hil.session._control_loop import LATE_NS, ControlLoop, LoopStats
+from hil.session._lab import BenchLab, current_lab, serve_lab
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._loopback import DEFAULT_EMULATOR, EmulatorProcess, emulator_for_plant
 from hil.session._run import (
@@ -39,6 +41,7 @@ __all__ = [
     "HOST_ALIVE_S",
     "LATE_NS",
     "LINKS",
+    "BenchLab",
     "Clock",
     "ControlLoop",
     "DriveWriter",
@@ -58,6 +61,7 @@ __all__ = [
     "Watchdog",
     "as_session_config",
     "capture_for_session",
+    "current_lab",
     "emulator_for_plant",
     "link_fd",
     "prepare_run",
@@ -67,5 +71,6 @@ __all__ = [
     "run_async",
     "run_coroutine",
     "run_sim_session",
+    "serve_lab",
     "sim_ports",
 ]

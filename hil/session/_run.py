@@ -36,6 +36,7 @@ from hil.log import LogError
 from hil.log.frames import read_log_frames
 from hil.log.schema import estimated_log_bytes
 from hil.protocol import LINKS
+from hil.session._lab import current_lab
 from hil.session._loopback import EmulatorProcess
 from hil.session._session import Session, SessionResult
 from hil.session._sim import CAPTURE_REFUSED, run_sim_session
@@ -91,6 +92,10 @@ def prepare_run(config: SessionConfig | str | Path, *, loopback: bool = True, cl
     out_dir = Path(out) if out is not None else config.logging.dir
     require_writable_dir(out_dir, "out" if out is not None else "logging.dir")
     require_log_room(config, out_dir, "out" if out is not None else "logging.dir")
+    lab = current_lab()
+    if lab is not None:  # this process serves a lab (hil serve's worker): every session runs on its ports
+        _require_clock(config, lab.clock)
+        return config, lab.clock, out_dir
     if not loopback:
         if clock == "sim":
             raise ConfigError("clock='sim': runs the emulated lab in this process; needs loopback=True")
@@ -154,6 +159,15 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
             raise ConfigError(CAPTURE_REFUSED)
         require_writable_dir(capture_dir, "capture")
     hook = on_session or (lambda _s: None)
+    lab = current_lab()
+    if lab is not None:
+        session = Session(config, lab.ports, out_dir, progress=progress, emulated=lab.emulated, claims=lab.claims,
+                          log_attrs={"loopback": lab.emulated, "clock": lab.clock, **lab.extra},
+                          **_capture(capture_dir))
+        hook(session)
+        if lab.on_session is not None:
+            lab.on_session(session)
+        return _result(await _run_session(session), lab.clock, {})
     if clock_name == "sim":
         try:
             result, emulator = await run_sim_session(config, out_dir, progress=progress, on_session=hook)

@@ -74,11 +74,12 @@ _log = logging.getLogger("hil.session")
 LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[Link]]
 HOST_ALIVE_S = 0.1  # HOST_ALIVE on every link this often (docs/protocol.md, "Host liveness")
 EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
+EXIT_STOPPED = 3  # ended early on request, the normal way (:meth:`Session.stop`: the service's stop)
 
 
 @dataclass
 class SessionResult:
-    status: str  # completed | fault | interrupted
+    status: str  # completed | fault | interrupted | stopped
     exit_code: int
     log_path: Path | None
     stats: LoopStats
@@ -113,7 +114,7 @@ class Session:
                  log_attrs: dict[str, Any] | None = None, lockstep: bool = False,
                  open_link: LinkOpener | None = None, watchdog: bool = True, emulated: bool = False,
                  capture_dir: Path | None = None, truth: TruthSource | None = None,
-                 record_truth: Callable[[int], None] | None = None) -> None:
+                 record_truth: Callable[[int], None] | None = None, claims: PortClaims | None = None) -> None:
         """``lockstep``: the boards are an emulator in lockstep (its world waits for the bench). The bench then
         sends no HOST_ALIVE, which would land at wall-clock moments and change the bytes of the run; the
         emulator judges host liveness by the lockstep itself (docs/protocol.md, "Host liveness").
@@ -127,6 +128,8 @@ class Session:
         ``truth``: the plant's true state, which only the sim clock has (PlantTruth); a controller that needs
         it (``oracle``) without it is refused here, ConfigError naming ``controller.name``, before anything starts.
         ``record_truth``: called with each loop row's sample counter (the sim clock's truth file, hil.log.truth).
+        ``claims``: the ports already claimed by whoever holds them for longer than this session (the service's
+        worker, hil.session.BenchLab); the session then claims nothing and lets go of nothing.
 
         The loop runs in its own thread (_loop_thread) unless ``lockstep`` or ``open_link`` is given: lockstep and
         sim keep it on the event loop, where the boards wait for it and a run's bytes are reproducible."""
@@ -175,7 +178,9 @@ class Session:
                              "run on the lockstep clock for the same run over ptys")
         self.capture_dir = capture_dir
         self.capture: Capture | None = None  # opened with the first link, closed after the last (_shutdown)
-        self.claims: PortClaims | None = None  # the ports this session owns, from run() to the end of _shutdown
+        self.claims: PortClaims | None = claims  # the ports this session owns, from run() to the end of _shutdown
+        self._own_claims = claims is None  # else they are held for longer than the session (BenchLab)
+        self._stop_request: str | None = None  # why stop() ended the session early
         self._swing_t0_s = 0.0  # session time (board clock) at which the hexapod's profile clock read 0 ...
         self._profile_offset_s = 0.0  # ... and the session profile's time then (not 0 once a swing was resumed)
 
@@ -545,6 +550,15 @@ class Session:
             self.stop_reason = message
             self._finished.set_result(status)
 
+    def stop(self, reason: str = "stopped on request") -> None:
+        """End the session early the normal way (the service's stop): the swing is stopped while the loop still
+        stabilizes, then the driver is disabled, as at the end of the duration; status ``stopped``, exit code
+        EXIT_STOPPED. Call it on the session's event loop. :meth:`interrupt` disables the driver first instead."""
+        if self._finished is not None and not self._finished.done():
+            self._stop_request = reason
+            self.event("info", stop=reason)
+            self.finish("completed", reason)
+
     def interrupt(self, signum: int = signal.SIGINT) -> None:
         """End the session as SIGINT (or ``signum``) would: the driver disabled first, then the usual wind-down.
         For a caller that runs the session off the main thread (a notebook), where signals do not reach it; call
@@ -593,7 +607,7 @@ class Session:
         try:
             return await self._run()
         finally:
-            if self.claims is not None:
+            if self.claims is not None and self._own_claims:
                 self.claims.release()
                 self.claims = None
 
@@ -692,6 +706,8 @@ class Session:
                 self.loop_.stats.faults.append(log_error)
         if status == "fault" and self.exit_code == EXIT_OK:
             self.exit_code = EXIT_FAULT
+        if status == "completed" and self._stop_request is not None:
+            status, message, self.exit_code = "stopped", self._stop_request, EXIT_STOPPED
         stats = self.loop_.stats if self.loop_ else LoopStats()
         telemetry = dataclasses.asdict(self.telemetry.stats) if self.telemetry is not None else {}
         capture = self.capture.summary() if self.capture is not None else {}
