@@ -5,7 +5,7 @@ Creates `.venv` beside this file on first use (and again whenever pyproject.toml
 installs the project into it, then runs the command. Needs only python3 >= 3.11; no root.
 
     python3 dev.py demo            the loopback demo (README's main command)
-    python3 dev.py test [ARGS]     mosquitto, ruff, lint-imports, then the whole test suite (ARGS go to pytest)
+    python3 dev.py test [ARGS]     mosquitto and chromium, ruff, lint-imports, then the whole test suite (ARGS go to pytest)
     python3 dev.py bench           the benchmarks in benchmarks/ (results: docs/performance.md)
     python3 dev.py hil ARGS        any `hil` command inside the environment
 """
@@ -70,24 +70,34 @@ def warm_plant() -> None:
         say("the plant kernel did not compile (above); the emulator will try again when it starts")
 
 
-def ensure_mosquitto() -> None:
-    """Best effort: the telemetry tests want a real MQTT broker. Installs Debian's mosquitto when root with
-    apt-get; otherwise (or if that fails) the tests start amqtt, pure Python and slower, themselves."""
-    if shutil.which("mosquitto") or Path("/usr/sbin/mosquitto").exists():
+def ensure_debian_package(package: str, present: list[str], needed_by: str, otherwise: str) -> None:
+    """Best effort: install Debian's ``package`` when none of ``present`` exists and we are root with apt-get;
+    otherwise (or if that fails) say what the tests do instead (``otherwise``)."""
+    if any(shutil.which(p) or Path(p).exists() for p in present):
         return
     if not hasattr(os, "geteuid") or os.geteuid() != 0 or not shutil.which("apt-get"):
-        say("mosquitto not found and not root: the telemetry tests will use amqtt")
+        say(f"{package} not found and not root: {otherwise}")
         return
-    say("installing mosquitto for the telemetry tests (best effort)")
+    say(f"installing {package} for {needed_by} (best effort)")
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "env": env}
     try:
         ok = subprocess.call(["apt-get", "update", "-qq"], timeout=300, **quiet) == 0 and subprocess.call(
-            ["apt-get", "install", "-y", "-qq", "--no-install-recommends", "mosquitto"], timeout=300, **quiet) == 0
+            ["apt-get", "install", "-y", "-qq", "--no-install-recommends", *package.split()], timeout=600,
+            **quiet) == 0
     except subprocess.TimeoutExpired:
         ok = False
     if not ok:
-        say("mosquitto install failed: the telemetry tests will use amqtt")
+        say(f"{package} install failed: {otherwise}")
+
+
+def ensure_test_services() -> None:
+    """The telemetry tests want a real MQTT broker (else they start amqtt, pure Python and slower); the live
+    page's tests want Debian's headless Chromium and its driver (else they are skipped, and say so)."""
+    ensure_debian_package("mosquitto", ["mosquitto", "/usr/sbin/mosquitto"], "the telemetry tests",
+                          "the telemetry tests will use amqtt")
+    ensure_debian_package("chromium chromium-driver", ["chromedriver", "/usr/bin/chromedriver"],
+                          "the live page's browser tests", "the browser tests will be skipped")
 
 
 def main(argv: list[str]) -> int:
@@ -110,7 +120,7 @@ def main(argv: list[str]) -> int:
             say(f"running {script.relative_to(ROOT)}")
             rc |= run([PY, script, *rest])
         return rc
-    ensure_mosquitto()
+    ensure_test_services()
     say("ruff check")
     if run([PY, "-m", "ruff", "check", "."]) != 0:
         say("ruff found problems (above); `.venv/bin/ruff check --fix .` fixes most")

@@ -30,9 +30,9 @@ def _main(
 # each registers its commands, in the order `hil --help` lists them
 from hil.cli import session  # noqa: E402, I001
 from hil.cli import campaign, tune, fit, logs, check  # noqa: E402
-from hil.cli import lab, protocol, replay  # noqa: E402
+from hil.cli import lab, protocol, replay, service  # noqa: E402
 
-__all__ = ["app", "campaign", "check", "fit", "lab", "logs", "main", "protocol", "replay", "session", "tune"]
+__all__ = ["app", "campaign", "check", "fit", "lab", "logs", "main", "protocol", "replay", "service", "session", "tune"]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,6 +11,7 @@ import typer
 from rich.table import Table
 
 from hil.cli._common import app, check_out_dir, console, err_console, fail, finite, no_progress, note, print_json
+from hil.cli.service import bench_for, run_on_bench
 
 ClockOption = Literal["realtime", "lockstep", "sim"]
 
@@ -173,8 +174,21 @@ def run(  # noqa: PLR0917 (typer maps parameters to options)
     capture: Annotated[Path | None, typer.Option(
         help="Record every link's raw bytes with timestamps in this directory (docs/capture.md).")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
+    bench: Annotated[str | None, typer.Option(
+        help="Run it on a `hil serve` service at this URL (default $HIL_BENCH unless --loopback): it waits its "
+             "turn in the queue; the log comes back into --out.")] = None,
 ) -> None:
     """Run a bench session: connect, arm, swing, stabilize and track, log; print the summary."""
+    url = bench_for(bench, loopback)
+    if url is not None:
+        if clock is not None or capture is not None:
+            raise fail("--bench: the service runs on its own lab and clock; leave out --clock and --capture")
+        if out is not None:
+            check_out_dir(out, "--out")
+        load_session_or_exit(session)
+        result = run_on_bench(url, session, out, json_out)
+        print_result(result, json_out)
+        raise typer.Exit(result.exit_code)
     if capture is not None:
         check_out_dir(capture, "--capture")
     result = run_and_print(load_session_or_exit(session), out, loopback, clock, json_out, capture=capture)

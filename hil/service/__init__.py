@@ -1,12 +1,20 @@
-"""`hil serve`: the bench as a lab service (docs/service.md). A manager process (HTTP and WebSocket API, the
-queue, the history, the lease; its state in SQLite) and a worker process that owns the ports and runs one item at a
-time through the same session code as `hil run`.
+"""`hil serve`: the bench as a lab service (docs/service.md). A face, like the command line: a manager process
+(HTTP and WebSocket API, the queue, the history, the lease; its state in SQLite) and a worker process that owns
+the ports and runs one item at a time through the same code as `hil run` (hil.api).
 
-This package so far holds the queue and the history (:class:`Store`) the lease (:class:`LeaseBook`) and
-the check of what a client submits (:func:`check_item`)."""
+- :class:`Store` (``_store``): the queue and the history; :class:`LeaseBook` (``_lease``): who holds the bench;
+  :func:`check_item` (``_items``): what a client submits, checked by its kind's own loader.
+- :func:`build_app` (``_manager``): the Starlette app, its routes (``_api_models``: the bodies, the OpenAPI
+  document) and its WebSocket; :class:`Gate` (``_auth``): tokens and roles.
+- The worker (``_worker``, ``python -m hil.service._worker``): the lab's ports, the items, the live values.
+- :class:`Bench` (``_client``): the client (`hil run --bench`, `hil queue`, `hil bench`, notebooks).
+"""
 
+from hil.service._auth import AuthError, Caller, Gate, TokenFile, is_loopback_host, load_tokens
+from hil.service._client import Bench, BenchError, bench_url, item_text, session_yaml
 from hil.service._items import CheckedItem, ItemError, check_item
 from hil.service._lease import Lease, LeaseBook, LeaseError
+from hil.service._manager import API_ROUTES, Manager, ServiceOptions, build_app, record_view
 from hil.service._store import (
     EXIT_STATUSES,
     ITEM_KINDS,
@@ -16,5 +24,7 @@ from hil.service._store import (
     StoreError,
 )
 
-__all__ = ["EXIT_STATUSES", "ITEM_KINDS", "CheckedItem", "HistoryRecord", "ItemError", "Lease", "LeaseBook",
-           "LeaseError", "QueuedItem", "Store", "StoreError", "check_item"]
+__all__ = ["API_ROUTES", "EXIT_STATUSES", "ITEM_KINDS", "AuthError", "Bench", "BenchError", "Caller", "CheckedItem",
+           "Gate", "HistoryRecord", "ItemError", "Lease", "LeaseBook", "LeaseError", "Manager", "QueuedItem",
+           "ServiceOptions", "Store", "StoreError", "TokenFile", "bench_url", "build_app", "check_item",
+           "is_loopback_host", "item_text", "load_tokens", "record_view", "session_yaml"]

@@ -1,0 +1,284 @@
+"""`hil serve`, `hil queue ...`, `hil bench ...`, and the `--bench URL` of `hil run`, `hil ident` and
+`hil campaign`: the lab service and its clients, through :mod:`hil.service` (docs/service.md)."""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.table import Table
+
+from hil.cli._common import CONTEXT, app, console, err_console, fail, no_progress, note, print_json
+
+queue_app = typer.Typer(help="The service's queue: list, add, remove, move, clear, start, stop.",
+                        no_args_is_help=True, context_settings=CONTEXT, rich_markup_mode="markdown")
+bench_app = typer.Typer(help="The service's bench: status, the lease, stop or abort the running item.",
+                        no_args_is_help=True, context_settings=CONTEXT, rich_markup_mode="markdown")
+app.add_typer(queue_app, name="queue")
+app.add_typer(bench_app, name="bench")
+
+BenchOption = Annotated[str | None, typer.Option(
+    "--bench", envvar="HIL_BENCH", show_envvar=True, help="The service's URL, e.g. http://bench-pc:8765.")]
+JsonOption = Annotated[bool, typer.Option("--json", help="Print the answer as JSON.")]
+EXIT_BAD_INPUT = 2
+
+
+@app.command()
+def serve(  # noqa: PLR0917 (typer maps parameters to options)
+    loopback: Annotated[bool, typer.Option("--loopback", help="Serve the emulated lab (realtime clock).")] = False,
+    lab: Annotated[Path | None, typer.Option(
+        help="Without --loopback: a session file whose ports: are the lab's (the service holds them).")] = None,
+    host: Annotated[str, typer.Option(help="Address to listen on; beyond localhost needs --token-file.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=1, max=65535, help="TCP port.")] = 8765,
+    state_dir: Annotated[Path, typer.Option(help="The queue, the history (SQLite) and the runs' logs.")] = Path(
+        "runs/service"),
+    token_file: Annotated[Path | None, typer.Option(
+        help="YAML: tokens with their user and role (viewer | operator); docs/service.md.")] = None,
+    emulator: Annotated[Path | None, typer.Option(
+        help="With --loopback: the emulated lab's config (default the shipped one).")] = None,
+    seed: Annotated[int, typer.Option(help="With --loopback: the emulated lab's seed.")] = 0,
+) -> None:
+    """Serve the bench to the lab: the queue, the history, the lease, a live page at http://HOST:PORT/, and a
+    worker that owns the boards' ports and runs one item at a time as `hil run` does. Ctrl-C stops it (a running
+    item is aborted, the driver disabled first)."""
+    import uvicorn  # noqa: PLC0415  (the web server: loaded only when serving)
+
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.service import Gate, ServiceOptions, build_app, is_loopback_host, load_tokens  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+
+    if loopback == (lab is not None):
+        raise fail("--loopback or --lab SESSION.yaml: serve the emulated lab, or the lab whose ports a session names")
+    if lab is not None and not lab.is_file():
+        raise fail(f"--lab {lab}: no such file")
+    tokens = None
+    if token_file is not None:
+        try:
+            tokens = load_tokens(token_file)
+        except ConfigError as exc:
+            raise fail(str(exc)) from None
+    elif not is_loopback_host(host):
+        raise fail(f"--host {host}: serving beyond this machine needs --token-file FILE (tokens with roles; "
+                   "docs/service.md)")
+    check_free_port(host, port)
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise fail(f"--state-dir {state_dir}: {exc.strerror or exc}") from None
+    options = ServiceOptions(state_dir=state_dir.absolute(), loopback=loopback, lab=lab.absolute() if lab else None,
+                             emulator=emulator.absolute() if emulator else None, seed=seed, host=host, port=port)
+    shown = "localhost" if host in ("127.0.0.1", "::1") else host
+    url = f"http://{shown}:{port}/"
+
+    def ready(_manager: Any) -> None:
+        what = "the emulated lab" if loopback else f"the lab of {lab}"
+        err_console.print(f"[bold]hil serve[/]: {what} at {url} (state in {state_dir}); Ctrl-C stops it",
+                          highlight=False)
+
+    app_ = build_app(options, Gate(tokens), on_ready=ready)
+    config = uvicorn.Config(app_, host=host, port=port, log_level="warning", access_log=False, lifespan="on",
+                            ws_max_size=1 << 20)
+    uvicorn.Server(config).run()
+
+
+def check_free_port(host: str, port: int) -> None:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise fail(f"--port {port}: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+
+
+def client(url: str | None):  # type: ignore[no-untyped-def]
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.service import Bench  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+
+    try:
+        return Bench(url)
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+
+
+def call(fn, *args: Any, **kwargs: Any) -> Any:  # type: ignore[no-untyped-def]
+    """A client call; the service's refusal as one line (exit 2 for bad input, 1 otherwise)."""
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.service import BenchError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+
+    try:
+        return fn(*args, **kwargs)
+    except BenchError as exc:
+        raise fail(str(exc), code=EXIT_BAD_INPUT if exc.status in (400, 404, 409, 422) else 1) from None
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+
+
+def show(data: Any, json_out: bool, text: str | None = None) -> None:
+    if json_out:
+        print_json(data)
+    elif text is not None:
+        console.print(text, highlight=False)
+
+
+# --- hil queue -------------------------------------------------------------------------------------
+
+
+@queue_app.command("list")
+def queue_list(bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """The queue in order (the running item first) and whether it runs."""
+    data = call(client(bench).queue)
+    if json_out:
+        print_json(data)
+        return
+    t = Table(title=f"queue ({'running' if data['running'] else 'stopped'})")
+    for col in ("#", "uid", "kind", "name", "user", "submitted", "state"):
+        t.add_column(col)
+    for i, item in enumerate(data["items"]):
+        t.add_row(str(i), item["uid"][:12], item["kind"], item["name"], item["user"], item["submitted_at"],
+                  "running" if item["started_at"] else "waiting")
+    console.print(t)
+
+
+@queue_app.command("add")
+def queue_add(  # noqa: PLR0917 (typer maps parameters to options)
+    file: Annotated[Path, typer.Argument(help="A session, ident or campaign YAML.")],
+    kind: Annotated[str, typer.Option(help="session | ident | campaign")] = "session",
+    axis: Annotated[str | None, typer.Option(help="ident: the axis (el | az).")] = None,
+    position: Annotated[int | None, typer.Option(min=0, help="Place in the queue (0 first; default last).")] = None,
+    bench: BenchOption = None, json_out: JsonOption = False,
+) -> None:
+    """Submit a file; it is checked here and by the service (exit 2 with its one line if it does not load)."""
+    item = call(client(bench).add, file, kind=kind, options={"axis": axis} if axis else {}, position=position)
+    show(item, json_out, f"queued {item['uid']} ({item['kind']} {item['name']}, user {item['user']})")
+
+
+@queue_app.command("remove")
+def queue_remove(uid: Annotated[str, typer.Argument(help="The item's uid.")], bench: BenchOption = None,
+                 json_out: JsonOption = False) -> None:
+    """Take a waiting item off the queue."""
+    show(call(client(bench).remove, uid), json_out, f"removed {uid}")
+
+
+@queue_app.command("move")
+def queue_move(uid: Annotated[str, typer.Argument(help="The item's uid.")],
+               position: Annotated[int, typer.Argument(min=0, help="New place (0 first).")],
+               bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Move a waiting item."""
+    show(call(client(bench).move, uid, position), json_out, f"moved {uid} to {position}")
+
+
+@queue_app.command("clear")
+def queue_clear(bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Take every waiting item off the queue."""
+    data = call(client(bench).clear)
+    show(data, json_out, f"removed {data['removed']} items")
+
+
+@queue_app.command("start")
+def queue_start(stop_on_failure: Annotated[bool, typer.Option(
+        "--stop-on-failure", help="Stop the queue after an item that did not complete.")] = False,
+        bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Run the queue's items one after another."""
+    show(call(client(bench).start, stop_on_failure), json_out, "the queue runs")
+
+
+@queue_app.command("stop")
+def queue_stop(bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Start no further item (the running one goes on: `hil bench stop` ends it)."""
+    show(call(client(bench).stop_queue), json_out, "the queue is stopped; the running item (if any) goes on")
+
+
+# --- hil bench -------------------------------------------------------------------------------------
+
+
+@bench_app.command("status")
+def bench_status(bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """The service, its worker and boards, the running item, the queue and the lease."""
+    s = call(client(bench).status)
+    if json_out:
+        print_json(s)
+        return
+    w, q, lease, running = s["worker"], s["queue"], s["lease"], s["running"]
+    console.print(f"[bold]{s['service']['lab']}[/]  worker {w['state']}" + (f": {w['error']}" if w.get("error")
+                                                                           else ""), highlight=False)
+    for name, board in (w.get("boards") or {}).items():
+        console.print(f"  {name:8s} {board['port']}  connected {board['connected']}  armed {board['armed']}",
+                      highlight=False)
+    if w.get("safe"):
+        console.print(f"  between items: {w['safe']}", highlight=False)
+    if running:
+        total = running.get("total") or 0
+        done = f"{running.get('cycles', 0) / total:.0%}" if total else "starting"
+        console.print(f"running: {running['name']} ({running['kind']}, {running['user']}) {done}", highlight=False)
+    console.print(f"queue: {'running' if q['running'] else 'stopped'}, {q['waiting']} waiting", highlight=False)
+    console.print("lease: " + (f"{lease['holder']}, {lease['remaining_s']:.0f} s left" if lease else "none"),
+                  highlight=False)
+
+
+@bench_app.command("lease")
+def bench_lease(ttl: Annotated[float, typer.Option(min=5, help="Seconds until it lapses unless renewed.")] = 300.0,
+                bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Take (or renew) the lease: only your items run while you hold it."""
+    lease = call(client(bench).lease, ttl)
+    show(lease, json_out, f"leased to {lease['holder']} for {lease['ttl_s']:g} s (renew before it lapses)")
+
+
+@bench_app.command("release")
+def bench_release(bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Release your lease."""
+    show(call(client(bench).release), json_out, "lease released")
+
+
+@bench_app.command("break")
+def bench_break(reason: Annotated[str, typer.Option(help="Why (it goes into the lease history).")],
+                bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Break another operator's lease."""
+    data = call(client(bench).break_lease, reason)
+    show(data, json_out, f"broke {data['broken']['holder']}'s lease")
+
+
+@bench_app.command("stop")
+def bench_stop(reason: Annotated[str, typer.Option(help="Why (it goes into the log).")] = "",
+               bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Stop the running item the normal way: the swing stopped while stabilizing, then the driver disabled."""
+    show(call(client(bench).stop, reason), json_out, "stopping the running item")
+
+
+@bench_app.command("abort")
+def bench_abort(reason: Annotated[str, typer.Option(help="Why (it goes into the log).")] = "",
+                bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Abort the running item: the driver disabled first."""
+    show(call(client(bench).abort, reason), json_out, "aborting the running item")
+
+
+# --- `hil run|ident|campaign --bench URL` --------------------------------------------------------
+
+
+def bench_for(bench: str | None, loopback: bool) -> str | None:
+    """The service a run goes to: ``--bench``, else ``$HIL_BENCH`` unless ``--loopback`` asks for a local run."""
+    return bench or (None if loopback else os.environ.get("HIL_BENCH") or None)
+
+
+def run_on_bench(url: str, file: Path, out: Path | None, json_out: bool, *, kind: str = "session",
+                 options: dict[str, Any] | None = None) -> Any:
+    """Submit ``file`` to the service, follow it with a progress bar, download the log; the RunResult."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
+
+    bench = client(url)
+    with Progress(TextColumn("[bold]{task.fields[what]}[/]"), BarColumn(), TimeRemainingColumn(),
+                  console=err_console, transient=True, disable=no_progress(json_out)) as bar:
+        task = bar.add_task("run", total=None, what=f"{file.name} on {bench.url}")
+
+        def on_view(view: dict[str, Any]) -> None:
+            if view["state"] == "queued":
+                bar.update(task, what=f"{file.name}: waiting in {bench.url}'s queue (place {view['position']})")
+            elif view.get("total"):
+                bar.update(task, total=view["total"], completed=view.get("cycles", 0),
+                           what=f"{file.name} on {bench.url}")
+
+        result = call(bench.run, file, out=out, on_view=on_view, kind=kind, options=options)
+    note(f"ran on {bench.url} as {bench.user}")
+    return result

@@ -1,0 +1,90 @@
+"""The bodies the service's API takes, as pydantic models, and the OpenAPI document built from them and the route
+table (``GET /openapi.json``; docs/service.md shows every call with curl)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from hil.service._lease import MAX_TTL_S, MIN_TTL_S
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class SubmitItem(_Body):
+    """An item: the text of a YAML file the command line takes, with its file name (errors name it)."""
+
+    kind: Literal["session", "ident", "campaign"] = "session"
+    file_name: str = Field(min_length=1, max_length=255, description="the file's name, e.g. demo.yaml")
+    body: str = Field(description="the file's text (a session as loaded: controller, profile and limits inline)")
+    options: dict[str, Any] = Field(default_factory=dict, description="ident: {axis: el|az}")
+    position: int | None = Field(default=None, ge=0, description="where in the queue (default: at its end)")
+
+
+class MoveItem(_Body):
+    position: int = Field(ge=0, description="0: first among the waiting items")
+
+
+class StartQueue(_Body):
+    stop_on_failure: bool = Field(default=False, description="stop the queue after an item that did not complete")
+
+
+class EndItem(_Body):
+    uid: str | None = Field(default=None, description="the running item's uid (refused if another one runs)")
+    reason: str = Field(default="", max_length=500)
+
+
+class TakeLease(_Body):
+    ttl_s: float = Field(default=300.0, ge=MIN_TTL_S, le=MAX_TTL_S,
+                         description="the lease lapses unless renewed (taken again) within this time")
+
+
+class BreakLease(_Body):
+    reason: str = Field(min_length=1, max_length=500, description="why; it goes into the lease history")
+
+
+def openapi_document(routes: list[tuple[Any, ...]], version: str) -> dict[str, Any]:
+    """OpenAPI 3.1 for ``routes`` ((method, path, handler, operator action, body model, summary) each): every
+    route with its parameters, its body's JSON schema and its errors."""
+    paths: dict[str, dict[str, Any]] = {}
+    schemas: dict[str, Any] = {}
+    for method, path, _handler, operator, model, summary in routes:
+        op: dict[str, Any] = {"summary": summary, "operationId": f"{method.lower()}_{_op_name(path)}",
+                              "responses": {"200": {"description": "JSON (a file for /log and /report)"},
+                                            "401": {"description": "no valid token (a service with tokens)"},
+                                            "404": {"description": "no such item"}}}
+        params = [{"name": p, "in": "path", "required": True, "schema": {"type": "string"}}
+                  for p in _path_params(path)]
+        if path == "/api/history":
+            params.append({"name": "limit", "in": "query", "required": False, "schema": {"type": "integer"}})
+        if params:
+            op["parameters"] = params
+        if operator is not None:
+            op["responses"]["403"] = {"description": f"{operator}: needs the operator role"}
+            op["responses"]["409"] = {"description": "not now (the lease, a running item)"}
+            op["description"] = f"Operators only ({operator})."
+        if model is not None:
+            schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            schemas.update(schema.pop("$defs", {}))
+            schemas[model.__name__] = schema
+            op["requestBody"] = {"required": False, "content": {"application/json": {
+                "schema": {"$ref": f"#/components/schemas/{model.__name__}"}}}}
+            op["responses"]["422"] = {"description": "bad input: one line naming the field or the file"}
+        paths.setdefault(path, {})[method.lower()] = op
+    return {"openapi": "3.1.0",
+            "info": {"title": "hil serve", "version": version,
+                     "description": "The bench as a lab service (docs/service.md). Authenticate with "
+                                    "Authorization: Bearer TOKEN when the service has tokens. The live feed is the "
+                                    "WebSocket /ws (status and live messages)."},
+            "paths": paths, "components": {"schemas": schemas}}
+
+
+def _path_params(path: str) -> list[str]:
+    return [part[1:-1] for part in path.split("/") if part.startswith("{")]
+
+
+def _op_name(path: str) -> str:
+    return "_".join(p.strip("{}") for p in path.split("/") if p and p != "api").replace(".", "_") or "index"

@@ -1,0 +1,250 @@
+"""The service's client: :class:`Bench` for notebooks and scripts, and what `hil run --bench`, `hil queue` and
+`hil bench` call (docs/service.md, "Clients").
+
+``Bench(url, token=...)``: ``url`` default ``$HIL_BENCH``, ``token`` default ``$HIL_BENCH_TOKEN``. Its
+:meth:`Bench.run` and :meth:`Bench.run_async` take what :func:`hil.run` takes and return the same
+:class:`hil.RunResult` (its log downloaded next to you, so ``result.log`` is the same ``LogFrames``): a notebook
+switches from the emulator to the lab by changing one line::
+
+    result = hil.run("profiles/sessions/demo.yaml")                                   # the emulated lab, here
+    result = hil.Bench("http://bench-pc:8765", token=TOKEN).run("profiles/sessions/demo.yaml")  # the lab's bench
+
+Plain HTTP with the standard library (no client dependency); the token goes in a header and nowhere else.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import getpass
+import json
+import os
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from hil.api import RunResult
+from hil.campaign import load_campaign
+from hil.config import ConfigError, SessionConfig, load_session
+from hil.session import LoopStats, SessionResult
+
+BENCH_ENV = "HIL_BENCH"
+TOKEN_ENV = "HIL_BENCH_TOKEN"
+POLL_S = 0.25
+FINAL = ("done",)
+
+
+class BenchError(RuntimeError):
+    """The service refused a request or cannot be reached: one line (``status``: the HTTP status, 0 unreachable;
+    422 is bad input, as exit code 2 is at the command line)."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+def bench_url(url: str | None) -> str:
+    """``url``, or ``$HIL_BENCH``; ConfigError naming both when neither is set or the URL is not http(s)."""
+    url = url or os.environ.get(BENCH_ENV, "")
+    if not url:
+        raise ConfigError(f"bench: no service given; pass its URL, or set {BENCH_ENV}")
+    parsed = urllib.parse.urlparse(url)
+    if parsed.scheme not in ("http", "https") or not parsed.netloc:
+        raise ConfigError(f"bench={url!r}: not an http:// or https:// URL of a `hil serve`")
+    return url.rstrip("/")
+
+
+class Bench:
+    """A `hil serve` service (docs/service.md): its queue, history, lease, and runs that return RunResults."""
+
+    def __init__(self, url: str | None = None, token: str | None = None, *, user: str | None = None,
+                 timeout_s: float = 30.0) -> None:
+        self.url = bench_url(url)
+        self._token = token if token is not None else os.environ.get(TOKEN_ENV) or None
+        try:
+            default_user = getpass.getuser()
+        except (KeyError, OSError):
+            default_user = "local"
+        self.user = user or default_user
+        self.timeout_s = timeout_s
+
+    def __repr__(self) -> str:  # never the token
+        return f"Bench({self.url!r}, user={self.user!r})"
+
+    # --- HTTP ---------------------------------------------------------------------------------------
+
+    def call(self, method: str, path: str, body: dict[str, Any] | None = None) -> Any:
+        """One API call; the JSON answer, or BenchError with the service's one line."""
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(self.url + path, data=data, method=method, headers=self._headers())
+        if data is not None:
+            request.add_header("Content-Type", "application/json")
+        try:
+            with urllib.request.urlopen(request, timeout=self.timeout_s) as response:
+                raw = response.read()
+        except urllib.error.HTTPError as exc:
+            raise BenchError(exc.code, _detail(exc)) from None
+        except (urllib.error.URLError, OSError) as exc:
+            reason = getattr(exc, "reason", exc)
+            raise BenchError(0, f"{self.url}: cannot reach the service ({reason}); is `hil serve` running "
+                                "there?") from None
+        return json.loads(raw) if raw else None
+
+    def _headers(self) -> dict[str, str]:
+        headers = {"X-Hil-User": self.user, "Accept": "application/json"}
+        if self._token:
+            headers["Authorization"] = f"Bearer {self._token}"
+        return headers
+
+    def download(self, path: str, dest: Path) -> Path:
+        request = urllib.request.Request(self.url + path, headers=self._headers())
+        try:
+            with urllib.request.urlopen(request, timeout=self.timeout_s) as response:
+                tmp = dest.with_name(dest.name + ".part")
+                with tmp.open("wb") as f:
+                    while chunk := response.read(1 << 20):
+                        f.write(chunk)
+                tmp.replace(dest)
+        except urllib.error.HTTPError as exc:
+            raise BenchError(exc.code, _detail(exc)) from None
+        except (urllib.error.URLError, OSError) as exc:
+            raise BenchError(0, f"{self.url}: cannot download {path}: {getattr(exc, 'reason', exc)}") from None
+        return dest
+
+    # --- the API, one method a call -----------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        return self.call("GET", "/api/status")  # type: ignore[no-any-return]
+
+    def queue(self) -> dict[str, Any]:
+        return self.call("GET", "/api/queue")  # type: ignore[no-any-return]
+
+    def add(self, file: str | Path | SessionConfig, *, kind: str = "session", options: dict[str, Any] | None = None,
+            position: int | None = None) -> dict[str, Any]:
+        """Submit a session, ident or campaign file (checked here first, as the CLI would, then by the service)."""
+        file_name, body = item_text(file, kind)
+        return self.call("POST", "/api/queue/items",  # type: ignore[no-any-return]
+                         {"kind": kind, "file_name": file_name, "body": body, "options": options or {},
+                          **({"position": position} if position is not None else {})})
+
+    def remove(self, uid: str) -> dict[str, Any]:
+        return self.call("DELETE", f"/api/queue/items/{uid}")  # type: ignore[no-any-return]
+
+    def move(self, uid: str, position: int) -> dict[str, Any]:
+        return self.call("POST", f"/api/queue/items/{uid}/move", {"position": position})  # type: ignore[no-any-return]
+
+    def clear(self) -> dict[str, Any]:
+        return self.call("POST", "/api/queue/clear", {})  # type: ignore[no-any-return]
+
+    def start(self, stop_on_failure: bool = False) -> dict[str, Any]:
+        return self.call("POST", "/api/queue/start", {"stop_on_failure": stop_on_failure})  # type: ignore[no-any-return]
+
+    def stop_queue(self) -> dict[str, Any]:
+        return self.call("POST", "/api/queue/stop", {})  # type: ignore[no-any-return]
+
+    def item(self, uid: str) -> dict[str, Any]:
+        return self.call("GET", f"/api/items/{uid}")  # type: ignore[no-any-return]
+
+    def history(self, limit: int = 100) -> list[dict[str, Any]]:
+        return self.call("GET", f"/api/history?limit={int(limit)}")["records"]  # type: ignore[no-any-return]
+
+    def stop(self, reason: str = "", uid: str | None = None) -> dict[str, Any]:
+        """Stop the running item the normal way (the swing stopped while stabilizing, then the driver disabled)."""
+        return self.call("POST", "/api/bench/stop", {"reason": reason, "uid": uid})  # type: ignore[no-any-return]
+
+    def abort(self, reason: str = "", uid: str | None = None) -> dict[str, Any]:
+        """Abort the running item: the driver disabled first."""
+        return self.call("POST", "/api/bench/abort", {"reason": reason, "uid": uid})  # type: ignore[no-any-return]
+
+    def lease(self, ttl_s: float = 300.0) -> dict[str, Any]:
+        """Take (or renew) the lease: only your items run until it lapses (renew within ``ttl_s``)."""
+        return self.call("POST", "/api/lease", {"ttl_s": ttl_s})  # type: ignore[no-any-return]
+
+    def release(self) -> dict[str, Any]:
+        return self.call("DELETE", "/api/lease")  # type: ignore[no-any-return]
+
+    def break_lease(self, reason: str) -> dict[str, Any]:
+        return self.call("POST", "/api/lease/break", {"reason": reason})  # type: ignore[no-any-return]
+
+    # --- a run, as hil.run ---------------------------------------------------------------------------
+
+    def wait(self, uid: str, *, progress: Callable[[dict[str, Any]], None] | None = None,
+             poll_s: float = POLL_S) -> dict[str, Any]:
+        """Follow an item until it is done; its history record. ``progress`` gets each view of it meanwhile."""
+        while True:
+            view = self.item(uid)
+            if view["state"] in FINAL:
+                return view
+            if progress is not None:
+                progress(view)
+            time.sleep(poll_s)
+
+    def run(self, config: SessionConfig | str | Path, *, out: str | Path | None = None,
+            progress: Callable[[int, int], None] | None = None,
+            on_view: Callable[[dict[str, Any]], None] | None = None, kind: str = "session",
+            options: dict[str, Any] | None = None) -> RunResult:
+        """Run a session on the service's lab, as :func:`hil.run` runs it here: submit, wait its turn, follow,
+        download the log into ``out`` (default the session's ``logging.dir``). ``progress(cycles, total)`` as
+        hil.run's; ``on_view`` gets the item's every view (its place in the queue while it waits)."""
+        config = config if isinstance(config, SessionConfig) else load_session(config)
+        out_dir = Path(out) if out is not None else config.logging.dir
+        out_dir.mkdir(parents=True, exist_ok=True)
+        item = self.add(config, kind=kind, options=options)
+
+        def follow(view: dict[str, Any]) -> None:
+            if on_view is not None:
+                on_view(view)
+            if progress is not None and view.get("state") == "running" and view.get("total"):
+                progress(int(view.get("cycles", 0)), int(view["total"]))
+
+        record = self.wait(item["uid"], progress=follow)
+        return self.result(record, out_dir)
+
+    async def run_async(self, config: SessionConfig | str | Path, **options: Any) -> RunResult:
+        """:meth:`run`, awaitable inside a running event loop (a notebook's)."""
+        return await asyncio.to_thread(self.run, config, **options)
+
+    def result(self, record: dict[str, Any], out_dir: Path) -> RunResult:
+        """A history record as a :class:`hil.RunResult`, its log downloaded into ``out_dir``."""
+        log_path = None
+        if record.get("links", {}).get("log"):
+            name = Path(record.get("log_path") or f"{record['uid']}.h5").name
+            log_path = self.download(record["links"]["log"], out_dir / name)
+        status = record["status"]
+        code = record.get("exit_code")
+        exit_code = int(code) if code is not None else (2 if status == "invalid" else 1)
+        message = record.get("message", "")
+        session = SessionResult(status, exit_code, log_path, LoopStats(), message)
+        return RunResult(status=status, exit_code=exit_code, message=message, log_path=log_path,
+                         clock=f"bench {self.url}", session=session)
+
+
+def item_text(file: str | Path | SessionConfig, kind: str) -> tuple[str, str]:
+    """(file name, text) of an item, as the service wants it: a session as loaded here (its controller, profile
+    and limits inline, so it stands on its own); a campaign file as it is, after it loads here. ConfigError for
+    a file that does not load, as the command line says it."""
+    if isinstance(file, SessionConfig):
+        return f"{file.name}.yaml", session_yaml(file)
+    path = Path(file)
+    if kind == "campaign":
+        load_campaign(path)
+        return path.name, path.read_text()
+    return path.name, session_yaml(load_session(path))
+
+
+def session_yaml(config: SessionConfig) -> str:
+    """A loaded session as YAML that loads back to the same session anywhere (its parts inline)."""
+    return yaml.safe_dump(config.model_dump(mode="json", exclude_none=True), sort_keys=False)
+
+
+def _detail(exc: urllib.error.HTTPError) -> str:
+    try:
+        body = json.loads(exc.read() or b"{}")
+        return str(body.get("detail", "")) or f"HTTP {exc.code}"
+    except (ValueError, OSError):
+        return f"HTTP {exc.code} {exc.reason}"

@@ -1,0 +1,604 @@
+"""The service's manager: the HTTP and WebSocket API, the queue, the history and the lease (docs/service.md).
+
+It owns the state (hil.service.Store, SQLite in the state directory) and the worker process
+(hil.service._worker), which owns the ports. Nothing here touches a board: the manager tells the worker what to
+run, stop or abort, and passes the worker's live values on to the pages. A slow page or a stuck client costs only
+its own buffer (each WebSocket has its own, bounded; newer values replace older ones), never the worker's time.
+
+The queue runs when started (``POST /api/queue/start``), one item at a time, the first waiting item whose user
+may run now (the lease holder's, when a lease is held); it goes on after a failed item unless started with
+``stop_on_failure``. An item is checked when submitted (422 with the loader's one line) and again by the worker
+just before it runs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import os
+import sys
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+from starlette.applications import Starlette
+from starlette.requests import HTTPConnection, Request
+from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.routing import Mount, Route, WebSocketRoute
+from starlette.staticfiles import StaticFiles
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from hil._version import __version__
+from hil.service._api_models import (
+    BreakLease,
+    EndItem,
+    MoveItem,
+    StartQueue,
+    SubmitItem,
+    TakeLease,
+    openapi_document,
+)
+from hil.service._auth import AuthError, Caller, Gate
+from hil.service._items import ItemError, check_item
+from hil.service._lease import LeaseBook, LeaseError
+from hil.service._store import HistoryRecord, Store, StoreError
+
+_log = logging.getLogger("hil.service")
+STATIC = Path(__file__).parent / "static"
+WS_SEND_HZ = 25.0  # pages get the live values this often (each message carries every point since the last)
+WS_MAX_POINTS = 250  # a page that cannot keep up loses its oldest points beyond this
+STATUS_EVERY_S = 1.0  # and the status at least this often (the lease's remaining time, the queue)
+WORKER_RESTART_S = 2.0
+
+
+@dataclass
+class ServiceOptions:
+    """What `hil serve` was started with."""
+
+    state_dir: Path
+    loopback: bool = True
+    lab: Path | None = None  # the lab's session file (its ports), without loopback
+    emulator: Path | None = None  # the emulated lab's config, with loopback (default: the shipped one)
+    seed: int = 0
+    host: str = "127.0.0.1"
+    port: int = 8765
+
+
+class Page:
+    """One WebSocket client: its own bounded buffer of live points, sent WS_SEND_HZ times a second."""
+
+    def __init__(self, ws: WebSocket, caller: Caller) -> None:
+        self.ws = ws
+        self.caller = caller
+        self.points: deque[dict[str, Any]] = deque(maxlen=WS_MAX_POINTS)
+        self.status_due = True
+        self.wake = asyncio.Event()
+
+
+class Manager:
+    """The service's state and its worker. :meth:`start` / :meth:`close` from the app's lifespan."""
+
+    def __init__(self, options: ServiceOptions, gate: Gate) -> None:
+        self.options = options
+        self.gate = gate
+        self.store, self.interrupted = Store.open(options.state_dir)
+        self.lease = LeaseBook(self.store)
+        self.worker: asyncio.subprocess.Process | None = None
+        self.worker_state = "starting"  # starting | ready | down
+        self.worker_info: dict[str, Any] = {}
+        self.worker_error = ""
+        self.running_uid: str | None = None
+        self.progress: dict[str, Any] = {}
+        self.ending: str | None = None  # stop | abort asked of the running item
+        self.pages: set[Page] = set()
+        self.wake = asyncio.Event()
+        self._tasks: list[asyncio.Task[Any]] = []
+        self._closing = False
+        self.started_at = time.time()
+        self.items_run = 0
+
+    # --- the queue's settings ----------------------------------------------------------------------
+
+    @property
+    def queue_running(self) -> bool:
+        return bool(self.store.setting("queue_running", True))  # a new service runs what is submitted
+
+    @property
+    def stop_on_failure(self) -> bool:
+        return bool(self.store.setting("stop_on_failure", False))
+
+    # --- lifecycle ----------------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        for record in self.interrupted:
+            _log.warning("item %s (%s) was running when the service stopped: recorded interrupted", record.uid,
+                         record.name)
+        self._tasks = [asyncio.create_task(self._worker_task(), name="hil-serve-worker"),
+                       asyncio.create_task(self._queue_task(), name="hil-serve-queue"),
+                       asyncio.create_task(self._status_task(), name="hil-serve-status")]
+
+    async def close(self) -> None:
+        self._closing = True
+        worker = self.worker
+        if worker is not None and worker.returncode is None:
+            with contextlib.suppress(OSError, ConnectionError):
+                self._send_worker({"op": "quit"})
+            try:
+                await asyncio.wait_for(worker.wait(), 30.0)
+            except TimeoutError:
+                worker.kill()
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        self.store.close()
+
+    # --- the worker ---------------------------------------------------------------------------------
+
+    def _worker_argv(self) -> list[str]:
+        o = self.options
+        argv = [sys.executable, "-m", "hil.service._worker", "--state-dir", str(o.state_dir), "--seed", str(o.seed)]
+        if o.loopback:
+            argv.append("--loopback")
+            if o.emulator is not None:
+                argv += ["--emulator", str(o.emulator)]
+        elif o.lab is not None:
+            argv += ["--lab", str(o.lab)]
+        return argv
+
+    async def _worker_task(self) -> None:
+        """Run the worker; when it dies, the running item ends as a fault and a new worker starts."""
+        while not self._closing:
+            self.worker_state = "starting"
+            with (self.options.state_dir / "worker.log").open("ab") as err:
+                self.worker = await asyncio.create_subprocess_exec(
+                    *self._worker_argv(), stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+                    stderr=err, limit=16 << 20)
+            assert self.worker.stdout is not None
+            while True:
+                line = await self.worker.stdout.readline()
+                if not line:
+                    break
+                try:
+                    msg = json.loads(line)
+                except ValueError:
+                    continue
+                self._on_worker(msg)
+            code = await self.worker.wait()
+            self.worker_state = "down"
+            if self.running_uid is not None:
+                self._finish(self.running_uid, {"status": "fault", "exit_code": 1,
+                                                "message": f"the worker process ended (exit code {code}) while it ran",
+                                                "log": None, "summary": {}})
+            self._changed()
+            if self._closing:
+                return
+            if self.worker_error:
+                _log.error("the worker cannot serve: %s", self.worker_error)
+            await asyncio.sleep(WORKER_RESTART_S)
+
+    def _send_worker(self, msg: dict[str, Any]) -> None:
+        worker = self.worker
+        if worker is None or worker.stdin is None or worker.returncode is not None:
+            raise StoreError("the worker is not running")
+        worker.stdin.write((json.dumps(msg) + "\n").encode())
+
+    def _on_worker(self, msg: dict[str, Any]) -> None:
+        ev = msg.pop("ev", "")
+        if ev == "ready":
+            self.worker_state, self.worker_info, self.worker_error = "ready", msg, ""
+            _log.info("the worker holds the lab's ports: %s", msg.get("ports"))
+            self._changed()
+        elif ev == "fatal":
+            self.worker_error = str(msg.get("message", ""))
+            self._changed()
+        elif ev in ("status",):
+            self.worker_info.update(msg)
+        elif ev == "live":
+            self.progress = {"uid": msg.get("uid"), "cycles": msg.get("cycles", 0), "total": msg.get("total", 0)}
+            msg["wall_ms"] = time.time() * 1000.0
+            for page in self.pages:
+                page.points.append(msg)
+                page.wake.set()
+        elif ev == "started":
+            self._changed()
+        elif ev == "done":
+            uid = str(msg.get("uid"))
+            if uid == self.running_uid:
+                self._finish(uid, msg)
+
+    def _finish(self, uid: str, done: dict[str, Any]) -> None:
+        status = str(done.get("status", "fault"))
+        summary = {"exit_code": done.get("exit_code"), "report": done.get("report"),
+                   "metrics": done.get("summary") or {}}
+        try:
+            self.store.finish(uid, status, str(done.get("message", "")), log_path=done.get("log"), summary=summary)
+        except StoreError as exc:
+            _log.error("item %s: %s", uid, exc)
+        self.running_uid, self.ending, self.progress = None, None, {}
+        self.items_run += 1
+        if status != "completed" and self.stop_on_failure:
+            self.store.set_setting("queue_running", False)
+        self._changed()
+
+    # --- the queue ----------------------------------------------------------------------------------
+
+    async def _queue_task(self) -> None:
+        while True:
+            self.wake.clear()
+            self._start_next()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.wake.wait(), 1.0)  # also a lease that lapses by itself
+
+    def _start_next(self) -> None:
+        if self.running_uid is not None or self.worker_state != "ready" or not self.queue_running:
+            return
+        lease = self.lease.current()
+        item = self.store.start_next(None if lease is None else {lease.holder})
+        if item is None:
+            return
+        self.running_uid = item.uid
+        self.progress = {"uid": item.uid, "cycles": 0, "total": 0}
+        try:
+            self._send_worker({"op": "run", "item": {"uid": item.uid, "kind": item.kind, "file_name": item.file_name,
+                                                     "body": item.body, "user": item.user,
+                                                     "options": item.options}})
+        except (StoreError, OSError, ConnectionError) as exc:
+            self._finish(item.uid, {"status": "fault", "message": f"not started: {exc}"})
+        self._changed()
+
+    def _changed(self) -> None:
+        self.wake.set()
+        for page in self.pages:
+            page.status_due = True
+            page.wake.set()
+
+    async def _status_task(self) -> None:
+        while True:
+            await asyncio.sleep(STATUS_EVERY_S)
+            for page in self.pages:
+                page.status_due = True
+                page.wake.set()
+
+    # --- what the API shows -------------------------------------------------------------------------
+
+    def status(self, caller: Caller | None = None) -> dict[str, Any]:
+        now = time.time()
+        lease = self.lease.current()
+        items = self.store.items()
+        running = next((i for i in items if i.started_at is not None), None)
+        info = self.worker_info
+        boards = info.get("boards", {})
+        return {
+            "service": {"version": __version__, "loopback": self.options.loopback, "pid": os.getpid(),
+                        "started_at": self.started_at, "lab": "emulated lab (realtime clock)" if self.options.loopback
+                        else str(self.options.lab), "auth": "open (localhost)" if self.gate.open else "tokens"},
+            "you": None if caller is None else {"user": caller.user, "role": caller.role},
+            "worker": {"state": self.worker_state, "error": self.worker_error or None, "ports": info.get("ports", {}),
+                       "holder": info.get("holder"), "boards": boards,
+                       "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"},
+            "queue": {"running": self.queue_running, "stop_on_failure": self.stop_on_failure,
+                      "waiting": sum(1 for i in items if i.started_at is None)},
+            "running": None if running is None else {**running.public(), **self.progress, "uid": running.uid,
+                                                     "ending": self.ending},
+            "lease": None if lease is None else lease.public(now),
+        }
+
+    def item_view(self, uid: str) -> dict[str, Any]:
+        try:
+            item = self.store.item(uid)
+        except StoreError:
+            record = self.store.record(uid)  # StoreError: in neither
+            return {"state": "done", **record_view(record)}
+        state = "running" if item.started_at is not None else "queued"
+        extra = self.progress if state == "running" else {}
+        return {"state": state, **item.public(), **extra}
+
+
+def record_view(record: HistoryRecord) -> dict[str, Any]:
+    """A history record as the API shows it, with the links to its files."""
+    out = record.public()
+    summary = out.pop("summary") or {}
+    out["exit_code"] = summary.get("exit_code")
+    out["summary"] = summary.get("metrics", {})
+    base = f"/api/history/{record.uid}"
+    out["links"] = {"record": base, **({"log": f"{base}/log"} if record.log_path else {}),
+                    **({"report": f"{base}/report"} if summary.get("report") else {})}
+    out["report_path"] = summary.get("report")
+    return out
+
+
+# --- the HTTP API ---------------------------------------------------------------------------------
+
+
+def token_of(conn: HTTPConnection) -> str | None:
+    auth = conn.headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip()
+    return conn.cookies.get("hil_token") or conn.query_params.get("token")
+
+
+def error(status: int, message: str) -> JSONResponse:
+    return JSONResponse({"detail": message}, status_code=status)
+
+
+Handler = Callable[[Request, Manager, Caller], Awaitable[Response]]
+
+
+def endpoint(handler: Handler, *, operator: str | None = None) -> Callable[[Request], Awaitable[Response]]:
+    """A route: the caller authenticated (and an operator, for ``operator``: what it does), errors as one line."""
+
+    async def route(request: Request) -> Response:
+        manager: Manager = request.app.state.manager
+        try:
+            caller = manager.gate.caller(token_of(request), request.headers.get("x-hil-user"))
+            if operator is not None:
+                manager.gate.require_operator(caller, operator)
+            return await handler(request, manager, caller)
+        except AuthError as exc:
+            return error(exc.status, str(exc))
+        except (ItemError, ValidationError) as exc:
+            return error(422, str(exc) if isinstance(exc, ItemError) else _pydantic_line(exc))
+        except LeaseError as exc:
+            return error(409, str(exc))
+        except StoreError as exc:
+            return error(404 if "not in the" in str(exc) else 409, str(exc))
+    return route
+
+
+def _pydantic_line(exc: ValidationError) -> str:
+    first = exc.errors()[0]
+    where = ".".join(str(p) for p in first["loc"])
+    return f"body: {where}: {first['msg']}"
+
+
+async def body_as(request: Request, model: type[BaseModel]) -> Any:
+    raw = await request.body()
+    if len(raw) > 2 << 20:
+        raise ItemError(f"body: {len(raw)} bytes, more than {2 << 20}")
+    try:
+        data = json.loads(raw) if raw.strip() else {}
+    except ValueError:
+        raise ItemError("body: not JSON") from None
+    return model.model_validate(data)
+
+
+async def get_status(request: Request, m: Manager, caller: Caller) -> Response:
+    return JSONResponse(m.status(caller))
+
+
+async def get_queue(request: Request, m: Manager, caller: Caller) -> Response:
+    return JSONResponse({"running": m.queue_running, "stop_on_failure": m.stop_on_failure,
+                         "items": [i.public() for i in m.store.items()]})
+
+
+async def add_item(request: Request, m: Manager, caller: Caller) -> Response:
+    sub: SubmitItem = await body_as(request, SubmitItem)
+    checked = check_item(sub.kind, sub.file_name, sub.body)
+    item = m.store.add(sub.kind, checked.name, caller.user, Path(sub.file_name).name, sub.body,
+                       options=sub.options, position=sub.position)
+    m._changed()
+    return JSONResponse(item.public(), status_code=201)
+
+
+async def remove_item(request: Request, m: Manager, caller: Caller) -> Response:
+    item = m.store.remove(request.path_params["uid"])
+    m._changed()
+    return JSONResponse(item.public())
+
+
+async def move_item(request: Request, m: Manager, caller: Caller) -> Response:
+    move: MoveItem = await body_as(request, MoveItem)
+    item = m.store.move(request.path_params["uid"], move.position)
+    m._changed()
+    return JSONResponse(item.public())
+
+
+async def clear_queue(request: Request, m: Manager, caller: Caller) -> Response:
+    n = m.store.clear()
+    m._changed()
+    return JSONResponse({"removed": n})
+
+
+async def start_queue(request: Request, m: Manager, caller: Caller) -> Response:
+    start: StartQueue = await body_as(request, StartQueue)
+    m.store.set_setting("stop_on_failure", start.stop_on_failure)
+    m.store.set_setting("queue_running", True)
+    m._changed()
+    return JSONResponse({"running": True, "stop_on_failure": start.stop_on_failure})
+
+
+async def stop_queue(request: Request, m: Manager, caller: Caller) -> Response:
+    m.store.set_setting("queue_running", False)
+    m._changed()
+    return JSONResponse({"running": False, "note": "the running item (if any) goes on; stop or abort it"})
+
+
+async def get_item(request: Request, m: Manager, caller: Caller) -> Response:
+    return JSONResponse(m.item_view(request.path_params["uid"]))
+
+
+async def get_history(request: Request, m: Manager, caller: Caller) -> Response:
+    try:
+        limit = int(request.query_params.get("limit", "100"))
+    except ValueError:
+        raise ItemError("limit: not an integer") from None
+    return JSONResponse({"records": [record_view(r) for r in m.store.history(max(1, min(limit, 10_000)))]})
+
+
+async def get_record(request: Request, m: Manager, caller: Caller) -> Response:
+    return JSONResponse(record_view(m.store.record(request.path_params["uid"])))
+
+
+async def get_log(request: Request, m: Manager, caller: Caller) -> Response:
+    record = m.store.record(request.path_params["uid"])
+    if not record.log_path or not Path(record.log_path).is_file():
+        raise StoreError(f"item {record.uid!r}: its log is not in the history (status {record.status})")
+    return FileResponse(record.log_path, filename=Path(record.log_path).name, media_type="application/x-hdf5")
+
+
+async def get_report(request: Request, m: Manager, caller: Caller) -> Response:
+    record = m.store.record(request.path_params["uid"])
+    report = (record.summary or {}).get("report")
+    if not report or not Path(report).is_file():
+        raise StoreError(f"item {record.uid!r}: no report is in the history")
+    return FileResponse(report, media_type="text/html")
+
+
+async def end_item(request: Request, m: Manager, caller: Caller) -> Response:
+    how = "abort" if request.url.path.endswith("/abort") else "stop"
+    end: EndItem = await body_as(request, EndItem)
+    if m.running_uid is None:
+        raise StoreError("no item is running")
+    if end.uid is not None and end.uid != m.running_uid:
+        raise StoreError(f"item {end.uid!r}: not the running item")
+    if m.ending != "abort":
+        m.ending = how
+    m._send_worker({"op": how, "reason": f"{how} by {caller.user}" + (f": {end.reason}" if end.reason else "")})
+    m._changed()
+    return JSONResponse({"uid": m.running_uid, "ending": m.ending})
+
+
+async def get_lease(request: Request, m: Manager, caller: Caller) -> Response:
+    lease = m.lease.current()
+    return JSONResponse({"lease": None if lease is None else lease.public(time.time()),
+                         "events": m.store.lease_events(20)})
+
+
+async def take_lease(request: Request, m: Manager, caller: Caller) -> Response:
+    take: TakeLease = await body_as(request, TakeLease)
+    lease = m.lease.take(caller.user, take.ttl_s)
+    m._changed()
+    return JSONResponse(lease.public(time.time()))
+
+
+async def release_lease(request: Request, m: Manager, caller: Caller) -> Response:
+    m.lease.release(caller.user)
+    m._changed()
+    return JSONResponse({"lease": None})
+
+
+async def break_lease(request: Request, m: Manager, caller: Caller) -> Response:
+    brk: BreakLease = await body_as(request, BreakLease)
+    broken = m.lease.break_(caller.user, brk.reason)
+    m._changed()
+    return JSONResponse({"broken": broken.public(time.time()), "by": caller.user})
+
+
+async def openapi(request: Request, m: Manager, caller: Caller) -> Response:
+    return JSONResponse(openapi_document(API_ROUTES, __version__))
+
+
+async def index(request: Request) -> Response:
+    return FileResponse(STATIC / "index.html", media_type="text/html")
+
+
+async def live_socket(ws: WebSocket) -> None:
+    """The page's feed: ``status`` messages (on every change, and every STATUS_EVERY_S) and ``live`` messages
+    (the running item's points since the last message, WS_SEND_HZ times a second)."""
+    manager: Manager = ws.app.state.manager
+    try:
+        caller = manager.gate.caller(token_of(ws), ws.headers.get("x-hil-user"))
+    except AuthError as exc:
+        await ws.close(code=4401, reason=str(exc)[:120])
+        return
+    await ws.accept()
+    page = Page(ws, caller)
+    manager.pages.add(page)
+    receiver = asyncio.create_task(_drain(ws))
+    period = 1.0 / WS_SEND_HZ
+    try:
+        while not receiver.done():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(page.wake.wait(), STATUS_EVERY_S)
+            page.wake.clear()
+            if page.status_due:
+                page.status_due = False
+                await ws.send_text(json.dumps({"type": "status", **manager.status(caller)}, default=str))
+            if page.points:
+                points = list(page.points)
+                page.points.clear()
+                await ws.send_text(json.dumps({"type": "live", "points": points}, default=_nan_free))
+            await asyncio.sleep(period)
+    except (WebSocketDisconnect, RuntimeError, ConnectionError):
+        pass
+    finally:
+        manager.pages.discard(page)
+        receiver.cancel()
+
+
+def _nan_free(value: Any) -> Any:
+    return None if isinstance(value, float) and not math.isfinite(value) else str(value)
+
+
+async def _drain(ws: WebSocket) -> None:
+    """Read (and ignore) what the page sends, so a close is noticed."""
+    with contextlib.suppress(WebSocketDisconnect, RuntimeError):
+        while True:
+            msg = await ws.receive()
+            if msg.get("type") == "websocket.disconnect":
+                return
+
+
+# (method, path, handler, operator action or None, request model, summary): the one table the app and
+# /openapi.json are both built from
+API_ROUTES: list[tuple[str, str, Handler, str | None, type[BaseModel] | None, str]] = [
+    ("GET", "/api/status", get_status, None, None, "The service, the worker and its boards, the queue, the lease."),
+    ("GET", "/api/queue", get_queue, None, None, "The queue in order (the running item first)."),
+    ("POST", "/api/queue/items", add_item, "submit", SubmitItem,
+     "Submit an item (the text of a session, ident or campaign YAML); 422 with the loader's one line."),
+    ("DELETE", "/api/queue/items/{uid}", remove_item, "remove an item", None, "Take a waiting item off the queue."),
+    ("POST", "/api/queue/items/{uid}/move", move_item, "move an item", MoveItem,
+     "Move a waiting item to a position (0 first)."),
+    ("POST", "/api/queue/clear", clear_queue, "clear the queue", None, "Take every waiting item off the queue."),
+    ("POST", "/api/queue/start", start_queue, "start the queue", StartQueue,
+     "Run the queue's items one after another."),
+    ("POST", "/api/queue/stop", stop_queue, "stop the queue", None,
+     "Start no further item (the running one goes on)."),
+    ("GET", "/api/items/{uid}", get_item, None, None, "One item: queued, running (with its progress) or done."),
+    ("GET", "/api/history", get_history, None, None, "The history, newest first (?limit=N)."),
+    ("GET", "/api/history/{uid}", get_record, None, None, "One history record with its summary metrics."),
+    ("GET", "/api/history/{uid}/log", get_log, None, None, "The item's log file (HDF5)."),
+    ("GET", "/api/history/{uid}/report", get_report, None, None, "The item's campaign report (HTML)."),
+    ("POST", "/api/bench/stop", end_item, "stop the running item", EndItem,
+     "Stop the running item the normal way (the swing stopped while stabilizing, then the driver disabled)."),
+    ("POST", "/api/bench/abort", end_item, "abort the running item", EndItem,
+     "Abort the running item: the driver disabled first."),
+    ("GET", "/api/lease", get_lease, None, None, "The lease in force and its recent history."),
+    ("POST", "/api/lease", take_lease, "take the lease", TakeLease,
+     "Take (or renew) the lease for ttl_s seconds; 409 if another operator holds it."),
+    ("DELETE", "/api/lease", release_lease, "release the lease", None, "Release your lease."),
+    ("POST", "/api/lease/break", break_lease, "break the lease", BreakLease,
+     "Break another operator's lease, with a reason that goes into the lease history."),
+    ("GET", "/openapi.json", openapi, None, None, "This API, as OpenAPI 3.1."),
+]
+
+
+def build_app(options: ServiceOptions, gate: Gate, *, on_ready: Callable[[Manager], None] | None = None) -> Starlette:
+    """The Starlette app of one service: the API routes, the WebSocket, the page and its static files."""
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: Starlette) -> AsyncIterator[None]:
+        manager = Manager(options, gate)
+        app.state.manager = manager
+        await manager.start()
+        if on_ready is not None:
+            on_ready(manager)
+        try:
+            yield
+        finally:
+            await manager.close()
+
+    routes: list[Any] = [Route(path, endpoint(handler, operator=op), methods=[method])
+                         for method, path, handler, op, _model, _summary in API_ROUTES]
+    routes += [WebSocketRoute("/ws", live_socket), Route("/", index, methods=["GET"]),
+               Mount("/static", app=StaticFiles(directory=STATIC), name="static")]
+    return Starlette(routes=routes, lifespan=lifespan)

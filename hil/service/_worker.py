@@ -1,0 +1,452 @@
+"""The service's worker process: it owns the lab's ports and runs one item at a time through the same code as
+`hil run`, `hil ident` and `hil campaign` (hil.api), while the manager (hil.service._manager) talks to the world.
+
+It claims the boards' ports once, when it starts (TIOCEXCL plus a lock naming the service, hil.link), and holds
+them while it serves: a `hil run` or another `hil serve` on them is refused. With ``loopback`` it first starts the
+emulated lab on the realtime clock (hil.session.EmulatorProcess) and claims its ports. Every session of this
+process then runs on that lab (hil.session.serve_lab). Between items the boards are as every session leaves
+them: driver disabled, stream idle, hexapod stopped at home.
+
+The manager speaks to it over its stdin and stdout, one JSON object a line (docs/service.md, "The worker"):
+
+* in: ``{"op": "run", "item": {...}}``, ``{"op": "stop", "reason": ...}`` (the normal wind-down),
+  ``{"op": "abort", "reason": ...}`` (driver disabled first), ``{"op": "quit"}``;
+* out: ``ready`` (ports, holder), ``fatal`` (it cannot serve: why), ``started``, ``live`` (the running item's
+  latest values, decimated here to :data:`LIVE_HZ`), ``done`` (status, exit code, message, log, summary).
+
+Nothing the manager does can stall the loop: the item runs in its own thread with its own event loop (the
+session's 1 kHz loop in a thread of its own again), the worker never waits on the manager (its lines go out
+through a writer thread; live values that cannot go out are replaced by newer ones), and when the manager goes
+away (its end of stdin closes: a crash, SIGKILL) the running item is aborted, the driver disabled first, and the
+worker exits. The boards' host timeout covers a worker killed outright.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import math
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hil import api
+from hil.config import ConfigError, PortConfig, load_session
+from hil.link import Holder as PortHolder
+from hil.link import LinkError, PortClaims, PortUnavailable, claim_ports
+from hil.protocol import LINKS
+from hil.service._items import ItemError, check_item
+from hil.session import BenchLab, EmulatorProcess, Session, serve_lab
+
+LIVE_HZ = 50.0  # the running item's latest values, sent to the manager this often (the page wants >= 20 Hz)
+CLAIM_WAIT_S = 15.0  # a worker that restarts waits this long for its predecessor to let go of the ports
+LIVE_CHANNELS = {
+    "loop": ("t_s", "rate_err_el_dps", "rate_err_az_dps", "drive_el_counts", "drive_az_counts", "gyro_y_dps",
+             "gyro_z_dps"),
+    "image": ("miss_x_px", "miss_y_px", "track_valid"),
+    "hexapod": ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"),
+}
+EXIT_INVALID = 2
+
+
+class Outbox:
+    """The worker's lines to the manager, written by a thread of their own so that nothing here waits on the
+    manager: control lines are all kept, in order; a live line waits in a slot of one, replaced by a newer."""
+
+    def __init__(self, stream: Any) -> None:
+        self.stream = stream
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self.live: str | None = None
+        self.dropped_live = 0
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self.thread = threading.Thread(target=self._write, name="hil-worker-out", daemon=True)
+        self.thread.start()
+
+    def send(self, event: str, **body: Any) -> None:
+        self.lines.put(json.dumps({"ev": event, **body}, default=str, allow_nan=False))
+        self._wake.set()
+
+    def send_live(self, body: dict[str, Any]) -> None:
+        line = json.dumps({"ev": "live", **body}, default=str, allow_nan=False)
+        with self._lock:
+            if self.live is not None:
+                self.dropped_live += 1
+            self.live = line
+        self._wake.set()
+
+    def close(self) -> None:
+        self.lines.put(None)
+        self._wake.set()
+        self.thread.join(timeout=5.0)
+
+    def _write(self) -> None:
+        while True:
+            self._wake.wait()
+            self._wake.clear()
+            while True:
+                try:
+                    line = self.lines.get_nowait()
+                except queue.Empty:
+                    break
+                if line is None:
+                    return
+                if not self._put(line):
+                    return
+            with self._lock:
+                live, self.live = self.live, None
+            if live is not None and not self._put(live):
+                return
+
+    def _put(self, line: str) -> bool:
+        try:
+            self.stream.write(line + "\n")
+            self.stream.flush()
+        except (OSError, ValueError):  # the manager is gone: stdin's EOF ends the worker
+            return False
+        return True
+
+
+def finite(value: Any) -> Any:
+    """JSON has no NaN: a non-finite float becomes None."""
+    return value if not isinstance(value, float) or math.isfinite(value) else None
+
+
+@dataclass
+class Running:
+    """The item that runs now: the session it runs (once it exists), that session's event loop, and what the
+    manager asked for (``end``: stop or abort)."""
+
+    uid: str
+    kind: str
+    session: Session | None = None
+    loop: asyncio.AbstractEventLoop | None = None
+    cycles: int = 0
+    total: int = 0
+    end: str | None = None
+    end_reason: str = ""
+    child: subprocess.Popen[str] | None = None
+    started_s: float = field(default_factory=time.monotonic)
+
+
+class Worker:
+    """One worker: the lab it holds (:meth:`open_lab`), the item it runs, the lines it sends."""
+
+    def __init__(self, *, state_dir: Path, loopback: bool, lab_session: Path | None, emulator: Path | None,
+                 seed: int, outbox: Outbox) -> None:
+        self.state_dir = state_dir
+        self.loopback = loopback
+        self.lab_session = lab_session
+        self.emulator_config = emulator
+        self.seed = seed
+        self.out = outbox
+        self.emulator: EmulatorProcess | None = None
+        self.lab: BenchLab | None = None
+        self.claims: PortClaims | None = None
+        self.running: Running | None = None
+        self.item_task: asyncio.Task[None] | None = None
+
+    # --- the lab -----------------------------------------------------------------------------------
+
+    def open_lab(self) -> dict[str, str]:
+        """Start the emulated lab (``loopback``) or read the lab's ports (``lab_session``), then claim them; the
+        ports (link -> path). PortUnavailable or ConfigError: the service cannot serve."""
+        if self.loopback:
+            self.emulator = EmulatorProcess(self.emulator_config, clock="realtime", seed=self.seed)
+            try:
+                started = self.emulator.start()
+            except LinkError as exc:
+                raise ConfigError(f"the emulated lab did not start: {exc}") from None
+            ports = {name: path for name, path in started.items() if name in LINKS}
+        else:
+            assert self.lab_session is not None
+            config = load_session(self.lab_session)
+            if config.ports is None:
+                raise ConfigError(f"{self.lab_session}: ports: not set; the lab's session file names its ports")
+            ports = {name: port.port for name in LINKS if (port := getattr(config.ports, name)) is not None}
+        deadline = time.monotonic() + CLAIM_WAIT_S
+        while True:  # a restarted service's previous worker may still be winding its item down
+            try:
+                self.claims = claim_ports(ports, f"hil serve (pid {os.getppid()})")
+                break
+            except PortUnavailable:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        self.lab = BenchLab({name: PortConfig(port=path) for name, path in ports.items()}, self.claims,
+                            emulated=self.loopback, description="emulated lab (realtime)" if self.loopback else
+                            str(self.lab_session), on_session=self._on_session)
+        serve_lab(self.lab)
+        return ports
+
+    def close_lab(self) -> None:
+        serve_lab(None)
+        if self.claims is not None:
+            self.claims.release()
+            self.claims = None
+        if self.emulator is not None:
+            self.emulator.stop()
+            self.emulator = None
+
+    def _on_session(self, session: Session) -> None:
+        """A session of the running item exists (from its own thread and event loop)."""
+        running = self.running
+        if running is None:
+            return
+        running.session, running.loop = session, asyncio.get_running_loop()
+        if running.end is not None:  # asked to end before the session existed
+            self._end_session(running)
+
+    # --- items ------------------------------------------------------------------------------------
+
+    def run(self, item: dict[str, Any]) -> None:
+        if self.item_task is not None and not self.item_task.done():
+            self.out.send("done", uid=item.get("uid"), status="invalid", exit_code=EXIT_INVALID,
+                          message="an item is already running", log=None, summary={})
+            return
+        self.item_task = asyncio.get_running_loop().create_task(self._run_item(item))
+
+    async def _run_item(self, item: dict[str, Any]) -> None:
+        uid, kind = str(item["uid"]), str(item["kind"])
+        self.running = running = Running(uid, kind)
+        out_dir = self.state_dir / "runs" / uid
+        try:
+            checked = check_item(kind, str(item["file_name"]), str(item["body"]))  # again, just before it runs
+        except ItemError as exc:
+            self.out.send("done", uid=uid, status="invalid", exit_code=EXIT_INVALID, message=str(exc), log=None,
+                          summary={})
+            self.running = None
+            return
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if self.lab is not None:  # who ran it goes into the log's provenance (never a token)
+            self.lab.extra = {"service_user": str(item.get("user", "")), "service_item": uid}
+        self.out.send("started", uid=uid, out_dir=str(out_dir))
+        options = dict(item.get("options") or {})
+        try:
+            if kind == "campaign":
+                done = await self._run_campaign(running, Path(item["file_name"]).name, str(item["body"]), out_dir,
+                                                options)
+            else:
+                done = await asyncio.to_thread(self._run_session, running, checked.config, kind, out_dir, options)
+        except (ConfigError, ValueError) as exc:  # refused before anything reached a board, or not fitted
+            done = {"status": "invalid" if isinstance(exc, ConfigError) else "fault",
+                    "exit_code": EXIT_INVALID if isinstance(exc, ConfigError) else 1,
+                    "message": " ".join(str(exc).split()), "log": None, "summary": {}}
+        except Exception as exc:  # a bug must end the item, not the worker: the lab stays served
+            done = {"status": "fault", "exit_code": 1, "message": f"{type(exc).__name__}: {exc}", "log": None,
+                    "summary": {}}
+        if running.end == "abort" and done["status"] in ("interrupted", "fault", "stopped", "completed"):
+            done["status"] = "aborted" if done["status"] != "completed" else "completed"
+        self.running = None
+        self.out.send("done", uid=uid, **done)
+
+    def _run_session(self, running: Running, config: Any, kind: str, out_dir: Path,
+                     options: dict[str, Any]) -> dict[str, Any]:
+        """A session or an ident item, in this thread (its own event loop), on the lab."""
+        progress = self._progress(running)
+        if kind == "ident":
+            axis = options.get("axis", "el")
+            ident = api.ident(config, axis=axis, out=out_dir, progress=progress)
+            result = ident.run
+            extra = {"ident": ident.report} if ident.report else {}
+        else:
+            result = api.run(config, out=out_dir, progress=progress)
+            extra = {}
+        summary = result.summary() if result.log_path is not None else {}
+        return {"status": result.status, "exit_code": result.exit_code, "message": result.message,
+                "log": str(result.log_path) if result.log_path else None,
+                "summary": _json_safe({**summary, **extra}), "report": None}
+
+    async def _run_campaign(self, running: Running, file_name: str, body: str, out_dir: Path,
+                            options: dict[str, Any]) -> dict[str, Any]:
+        """A campaign item: `hil campaign` as a child process (its cells are child processes of their own). On
+        the emulated lab its cells run on their own emulators, as `hil campaign` runs them; on the lab's hardware
+        the worker lets go of the ports while it runs (each cell claims them) and claims them again after."""
+        spec = out_dir / file_name
+        spec.write_text(body)
+        cmd = [sys.executable, "-m", "hil", "campaign", str(spec), "--out", str(out_dir / "campaign"), "--json"]
+        hardware = not self.loopback
+        if hardware:
+            cmd.append("--hardware")
+            if self.claims is not None:
+                self.claims.release()
+        try:
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                    start_new_session=True)
+            running.child = proc
+            if running.end is not None:
+                self._end_child(running)
+            stdout, stderr = await asyncio.to_thread(proc.communicate)
+        finally:
+            if hardware and self.lab is not None:
+                self.claims = await asyncio.to_thread(claim_ports, {n: p.port for n, p in self.lab.ports.items()},
+                                                      f"hil serve (pid {os.getppid()})")
+                self.lab.claims = self.claims
+        code = proc.returncode
+        try:
+            summary = json.loads(stdout) if stdout.strip() else {}
+        except ValueError:
+            summary = {}
+        status = ("completed" if code == 0 else "invalid" if code == EXIT_INVALID else
+                  "stopped" if running.end == "stop" else "aborted" if running.end == "abort" else "fault")
+        report = out_dir / "campaign" / "report.html"
+        message = "" if code == 0 else (stderr.strip().splitlines() or [f"exit code {code}"])[-1]
+        if code == 1 and summary and not summary.get("passed", True):
+            status, message = "completed", "the campaign ran; its acceptance failed"
+        return {"status": status, "exit_code": code, "message": message, "log": None,
+                "summary": _json_safe(summary), "report": str(report) if report.is_file() else None}
+
+    def _progress(self, running: Running) -> Any:
+        def progress(cycles: int, total: int) -> None:
+            running.cycles, running.total = cycles, total
+        return progress
+
+    def end(self, how: str, reason: str) -> None:
+        """Stop (the normal wind-down) or abort (the driver disabled first) the running item."""
+        running = self.running
+        if running is None:
+            return
+        if running.end != "abort":  # an abort outranks a stop
+            running.end, running.end_reason = how, reason
+        if running.child is not None:
+            self._end_child(running)
+        elif running.session is not None:
+            self._end_session(running)
+
+    def _end_session(self, running: Running) -> None:
+        session, loop = running.session, running.loop
+        if session is None or loop is None:
+            return
+        with contextlib.suppress(RuntimeError):  # its loop closed meanwhile: the session is over anyway
+            if running.end == "abort":
+                loop.call_soon_threadsafe(session.interrupt, signal.SIGINT)
+            else:
+                loop.call_soon_threadsafe(session.stop, running.end_reason or "stopped")
+
+    @staticmethod
+    def _end_child(running: Running) -> None:
+        with contextlib.suppress(ProcessLookupError):
+            assert running.child is not None
+            os.killpg(running.child.pid, signal.SIGINT)  # the campaign ends its cells the safe way
+
+    # --- live values ------------------------------------------------------------------------------
+
+    async def live_task(self) -> None:
+        """The running item's latest values, LIVE_HZ times a second, read from its log's buffers (never from
+        the loop's own state)."""
+        period = 1.0 / LIVE_HZ
+        while True:
+            await asyncio.sleep(period)
+            running = self.running
+            if running is None:
+                continue
+            body: dict[str, Any] = {"uid": running.uid, "cycles": running.cycles, "total": running.total}
+            session = running.session
+            log = session.log if session is not None else None
+            if log is not None:
+                for group, names in LIVE_CHANNELS.items():
+                    row = log.latest(group)
+                    if row is not None:
+                        body[group] = {name: finite(float(row[name])) for name in names}
+                loop = session.loop_ if session is not None else None
+                body["armed"] = bool(loop is not None and loop.armed)
+            self.out.send_live(body)
+
+    def status(self) -> dict[str, Any]:
+        lab = self.lab
+        running = self.running
+        session = running.session if running is not None else None
+        armed = bool(session is not None and session.loop_ is not None and session.loop_.armed)
+        boards = {name: {"port": port.port, "connected": name in (session.links if session else {}),
+                         "identified": True, "armed": armed and name == "driver"}
+                  for name, port in (lab.ports.items() if lab else [])}
+        return {"boards": boards, "emulated": self.loopback,
+                "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"}
+
+
+def _json_safe(obj: Any) -> Any:
+    """``obj`` with NaN and infinities as None and paths as text: JSON for the manager."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, float):
+        return finite(obj)
+    if isinstance(obj, int | str | bool) or obj is None:
+        return obj
+    return str(obj)
+
+
+async def serve(worker: Worker) -> int:
+    """Open the lab, then obey the manager's lines until it says quit or goes away."""
+    try:
+        ports = await asyncio.to_thread(worker.open_lab)
+    except (ConfigError, PortUnavailable, OSError) as exc:
+        worker.out.send("fatal", message=" ".join(str(exc).split()))
+        await asyncio.to_thread(worker.close_lab)
+        return EXIT_INVALID
+    holder = PortHolder.this_process(f"hil serve (pid {os.getppid()})")
+    worker.out.send("ready", ports=ports, holder=holder.describe(), pid=os.getpid(), **worker.status())
+    live = asyncio.get_running_loop().create_task(worker.live_task())
+    reader = asyncio.StreamReader(limit=4 << 20)
+    loop = asyncio.get_running_loop()
+    await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(reader), sys.stdin)
+    try:
+        while True:
+            line = await reader.readline()
+            if not line:  # the manager is gone: nothing may stay armed
+                worker.end("abort", "the service's manager went away")
+                break
+            try:
+                msg = json.loads(line)
+            except ValueError:
+                continue
+            op = msg.get("op")
+            if op == "run":
+                worker.run(msg["item"])
+            elif op in ("stop", "abort"):
+                worker.end(op, str(msg.get("reason", op)))
+            elif op == "status":
+                worker.out.send("status", **worker.status())
+            elif op == "quit":
+                worker.end("abort", "the service is stopping")
+                break
+        if worker.item_task is not None:
+            await worker.item_task
+    finally:
+        live.cancel()
+        await asyncio.to_thread(worker.close_lab)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m hil.service._worker", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--state-dir", type=Path, required=True)
+    parser.add_argument("--loopback", action="store_true")
+    parser.add_argument("--lab", type=Path, default=None)
+    parser.add_argument("--emulator", type=Path, default=None)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the manager ends the worker (quit, or its stdin closing)
+    stdout = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1)
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # a stray print must not corrupt the manager's lines
+    outbox = Outbox(stdout)
+    worker = Worker(state_dir=args.state_dir, loopback=args.loopback, lab_session=args.lab, emulator=args.emulator,
+                    seed=args.seed, outbox=outbox)
+    try:
+        return asyncio.run(serve(worker))
+    finally:
+        outbox.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
