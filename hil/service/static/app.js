@@ -1,0 +1,534 @@
+// The live page of `hil serve` (docs/service.md, "The live page"): plain JS, no build step, nothing from the
+// network but this service. The status and the running item's live points come over the WebSocket /ws; the
+// queue and the history from the HTTP API when the status says they changed (and now and then besides).
+"use strict";
+
+(function () {
+  const WINDOW_S = 10; // the charts' sliding window
+  const LAG_KEEP = 2000;
+  const STALE_MS = 5000; // the service sends its status every second: silence this long is a dead socket
+  const BACKOFF_MS = [500, 1000, 2000, 4000, 8000, 10000];
+
+  const page = { points: 0, lastCycles: 0, lagMs: [], errors: [], frames: 0, last: null, charts: {},
+                 status: null, connected: false };
+  window.hilPage = page;
+
+  const token = new URLSearchParams(location.search).get("token");
+  if (token) {
+    // plain links (the log, the record, the report) carry no header: the service also takes this cookie
+    document.cookie = "hil_token=" + encodeURIComponent(token) + "; path=/; SameSite=Strict";
+  }
+
+  const $ = (id) => document.getElementById(id);
+
+  function noteError(what) {
+    page.errors.push(String(what));
+    if (page.errors.length > 100) page.errors.splice(0, page.errors.length - 100);
+  }
+  window.addEventListener("error", (e) => noteError(e.message || e));
+  window.addEventListener("unhandledrejection", (e) => noteError(e.reason && e.reason.message || e.reason));
+
+  // --- little helpers ---------------------------------------------------------------------------
+
+  function el(tag, attrs, ...children) {
+    const node = document.createElement(tag);
+    for (const [k, v] of Object.entries(attrs || {})) {
+      if (v === undefined || v === null) continue;
+      if (k === "class") node.className = v;
+      else if (k === "text") node.textContent = v;
+      else node.setAttribute(k, v);
+    }
+    for (const c of children) node.append(c);
+    return node;
+  }
+
+  function when(iso) {
+    if (!iso) return "";
+    const d = new Date(iso);
+    if (isNaN(d)) return String(iso);
+    const time = d.toLocaleTimeString([], { hour12: false });
+    const today = new Date();
+    return d.toDateString() === today.toDateString() ? time : d.toISOString().slice(0, 10) + " " + time;
+  }
+
+  function span(seconds) {
+    if (seconds === null || seconds === undefined || !isFinite(seconds)) return "";
+    seconds = Math.max(0, Math.round(seconds));
+    const h = Math.floor(seconds / 3600), m = Math.floor(seconds / 60) % 60, s = seconds % 60;
+    const two = (n) => String(n).padStart(2, "0");
+    return h ? `${h}:${two(m)}:${two(s)}` : `${m}:${two(s)}`;
+  }
+
+  function num(v, digits) {
+    return typeof v === "number" && isFinite(v) ? v.toFixed(digits) : "";
+  }
+
+  async function api(method, path, body) {
+    const headers = { Accept: "application/json" };
+    if (token) headers.Authorization = "Bearer " + token;
+    if (body !== undefined) headers["Content-Type"] = "application/json";
+    const res = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body),
+                                    cache: "no-store" });
+    let data = null;
+    try { data = await res.json(); } catch (_) { data = null; }
+    if (!res.ok) throw new Error((data && data.detail) || `${method} ${path}: HTTP ${res.status}`);
+    return data;
+  }
+
+  function showNotice(text) {
+    const n = $("notice");
+    n.textContent = text || "";
+    n.hidden = !text;
+  }
+
+  // --- the charts -------------------------------------------------------------------------------
+
+  const COLORS = { a: "#1f6fb4", b: "#e0701b", c: "#2a9d48", d: "#c0392b", e: "#7d4cb0", f: "#8c5a2b" };
+
+  function timeSeries() {
+    return { label: "time", value: (u, v) => (v === null || v === undefined ? "" :
+      new Date(v * 1000).toLocaleTimeString([], { hour12: false }) + "." +
+      String(Math.floor((v * 1000) % 1000)).padStart(3, "0")) };
+  }
+
+  function line(label, color, scale, dash) {
+    return { label, stroke: color, width: 1.5, scale: scale || "y", dash, spanGaps: false,
+             value: (u, v) => (v === null || v === undefined ? "–" : v.toFixed(Math.abs(v) >= 100 ? 0 : 2)) };
+  }
+
+  // a y range with a little room; a flat trace (a hexapod axis at home) gets +-1 unit, not 0..100
+  function yRange(u, min, max) {
+    if (min === null || max === null || !isFinite(min) || !isFinite(max)) return [-1, 1];
+    if (max - min < 1e-9) return [min - 1, max + 1];
+    return uPlot.rangeNum(min, max, 0.1, true);
+  }
+
+  function yAxis(label, scale, side) {
+    return { scale: scale || "y", label, labelSize: 18, size: 60, side: side || 3,
+             grid: { show: side !== 1, stroke: "#e6e8eb", width: 1 }, ticks: { stroke: "#d0d4d9", width: 1 } };
+  }
+
+  const clock = (v) => new Date(v * 1000).toLocaleTimeString([], { hour12: false });
+  const xAxis = { label: "time of day (h:m:s)", labelSize: 18, grid: { stroke: "#e6e8eb", width: 1 },
+                  ticks: { stroke: "#d0d4d9", width: 1 }, space: 70,
+                  values: (u, splits) => splits.map((v) => (v === null || v === undefined ? "" : clock(v))) };
+
+  // each chart: its uPlot series and, for each, where a live point keeps the value
+  const CHARTS = {
+    rate: { target: "chart-rate", series: [line("el (deg/s)", COLORS.a), line("az (deg/s)", COLORS.b)],
+            axes: [yAxis("rate error (deg/s)")],
+            get: [(p) => p.loop && p.loop.rate_err_el_dps, (p) => p.loop && p.loop.rate_err_az_dps] },
+    drive: { target: "chart-drive", series: [line("el (counts)", COLORS.a), line("az (counts)", COLORS.b)],
+             axes: [yAxis("drive (counts)")],
+             get: [(p) => p.loop && p.loop.drive_el_counts, (p) => p.loop && p.loop.drive_az_counts] },
+    miss: { target: "chart-miss", series: [line("x (px)", COLORS.a), line("y (px)", COLORS.b)],
+            axes: [yAxis("miss distance (px)")],
+            get: [(p) => p.image && p.image.miss_x_px, (p) => p.image && p.image.miss_y_px] },
+    pose: { target: "chart-pose",
+            series: [line("x (mm)", COLORS.a, "mm"), line("y (mm)", COLORS.b, "mm"), line("z (mm)", COLORS.c, "mm"),
+                     line("roll (deg)", COLORS.d, "deg", [5, 3]), line("pitch (deg)", COLORS.e, "deg", [5, 3]),
+                     line("yaw (deg)", COLORS.f, "deg", [5, 3])],
+            axes: [yAxis("position (mm)", "mm"), yAxis("rotation (deg)", "deg", 1)],
+            scales: { mm: { auto: true, range: yRange }, deg: { auto: true, range: yRange } },
+            get: [(p) => p.hexapod && p.hexapod.x_mm, (p) => p.hexapod && p.hexapod.y_mm,
+                  (p) => p.hexapod && p.hexapod.z_mm, (p) => p.hexapod && p.hexapod.roll_deg,
+                  (p) => p.hexapod && p.hexapod.pitch_deg, (p) => p.hexapod && p.hexapod.yaw_deg] },
+  };
+
+  const buffers = { uid: null, x: [], cols: {} }; // the sliding window, shared x (the manager's wall clock, s)
+  let pending = []; // points received, not yet plotted
+
+  function chartWidth(node) {
+    return Math.max(280, Math.floor(node.parentElement.clientWidth - 4));
+  }
+
+  function makeCharts() {
+    for (const [name, spec] of Object.entries(CHARTS)) {
+      const node = $(spec.target);
+      const opts = {
+        width: chartWidth(node), height: 210,
+        scales: Object.assign({
+          x: { time: true, range: (u, min, max) => {
+            const hi = max === null || max === undefined ? Date.now() / 1000 : max;
+            return [hi - WINDOW_S, hi];
+          } },
+          y: { auto: true, range: yRange },
+        }, spec.scales || {}),
+        series: [timeSeries(), ...spec.series],
+        axes: [xAxis, ...spec.axes],
+        legend: { live: true },
+        cursor: { drag: { x: false, y: false } },
+      };
+      buffers.cols[name] = spec.series.map(() => []);
+      page.charts[name] = new uPlot(opts, [buffers.x, ...buffers.cols[name]], node);
+    }
+    const resize = () => {
+      for (const [name, spec] of Object.entries(CHARTS)) {
+        const u = page.charts[name];
+        const w = chartWidth($(spec.target));
+        if (u && Math.abs(u.width - w) > 2) u.setSize({ width: w, height: 210 });
+      }
+    };
+    if (window.ResizeObserver) new ResizeObserver(resize).observe($("charts-card"));
+    else window.addEventListener("resize", resize);
+  }
+
+  function clearBuffers(uid) {
+    buffers.uid = uid;
+    buffers.x.length = 0;
+    for (const cols of Object.values(buffers.cols)) for (const c of cols) c.length = 0;
+  }
+
+  const finiteOrNull = (v) => (typeof v === "number" && isFinite(v) ? v : null);
+
+  let frameRequested = false, fallbackTimer = null;
+
+  function schedule() {
+    if (frameRequested) return;
+    frameRequested = true;
+    requestAnimationFrame(flush);
+    // a hidden tab gets no animation frames: still keep the window (and the counts) up to date
+    fallbackTimer = setTimeout(flush, 250);
+  }
+
+  function flush() {
+    if (!frameRequested) return;
+    frameRequested = false;
+    clearTimeout(fallbackTimer);
+    const batch = pending;
+    pending = [];
+    if (!batch.length) return;
+    try {
+      plot(batch);
+    } catch (e) {
+      noteError("plot: " + (e && e.message || e));
+    }
+  }
+
+  function plot(batch) {
+    const now = Date.now();
+    let last = null;
+    for (const p of batch) {
+      if (p.uid !== buffers.uid) clearBuffers(p.uid);
+      const t = p.wall_ms / 1000;
+      if (buffers.x.length && t <= buffers.x[buffers.x.length - 1]) continue; // uPlot wants x increasing
+      buffers.x.push(t);
+      for (const [name, spec] of Object.entries(CHARTS)) {
+        const cols = buffers.cols[name];
+        spec.get.forEach((get, i) => cols[i].push(finiteOrNull(get(p))));
+      }
+      page.lagMs.push(now - p.wall_ms);
+      page.points += 1;
+      if (typeof p.cycles === "number") page.lastCycles = p.cycles;
+      last = p;
+    }
+    if (page.lagMs.length > LAG_KEEP) page.lagMs.splice(0, page.lagMs.length - LAG_KEEP);
+    if (!last) return;
+    // the sliding window: drop what is older than WINDOW_S (plus a margin, so the left edge stays drawn)
+    const oldest = buffers.x[buffers.x.length - 1] - WINDOW_S - 1;
+    let cut = 0;
+    while (cut < buffers.x.length && buffers.x[cut] < oldest) cut++;
+    if (cut) {
+      buffers.x.splice(0, cut);
+      for (const cols of Object.values(buffers.cols)) for (const c of cols) c.splice(0, cut);
+    }
+    for (const name of Object.keys(CHARTS)) {
+      const u = page.charts[name];
+      u.setData([buffers.x, ...buffers.cols[name]]);
+      // the legend reads the latest values unless the cursor is on the chart
+      if (!(u.cursor.left >= 0)) u.setLegend({ idx: buffers.x.length - 1 });
+    }
+    page.frames += 1;
+    page.last = { uid: last.uid, cycles: last.cycles, wall_ms: last.wall_ms, armed: last.armed };
+    for (const [name, spec] of Object.entries(CHARTS)) {
+      spec.series.forEach((s, i) => { page.last[name + ":" + s.label] = buffers.cols[name][i][buffers.x.length - 1]; });
+    }
+    showLoopState(last);
+  }
+
+  function showLoopState(p) {
+    const st = page.status;
+    if (!st || !st.running || st.running.uid !== p.uid) return;
+    const running = st.running;
+    const total = running.total || p.total || 0;
+    showProgress(p.cycles || 0, total);
+    const armed = p.armed === undefined ? "" : p.armed ? "loop armed" : "loop not armed";
+    $("run-state").textContent = [armed, endingText(running.ending)].filter(Boolean).join(" · ");
+  }
+
+  // --- the status -------------------------------------------------------------------------------
+
+  function endingText(ending) {
+    return ending === "stop" ? "stop asked: winding down" : ending === "abort" ? "abort asked: driver disabled first" : "";
+  }
+
+  function showProgress(cycles, total) {
+    const frac = total > 0 ? Math.min(1, cycles / total) : 0;
+    $("run-bar").style.width = (100 * frac).toFixed(1) + "%";
+    $("run-progress").textContent = total > 0
+      ? `${cycles.toLocaleString()} / ${total.toLocaleString()} cycles (${(100 * frac).toFixed(0)} %)` +
+        (cycles > total ? " · winding down" : "")
+      : cycles > 0 ? `${cycles.toLocaleString()} cycles` : "starting";
+  }
+
+  function badge(text, kind) {
+    return el("span", { class: "badge " + (kind || ""), text });
+  }
+
+  function yesNo(value, yes, no, badWhenNo) {
+    if (value === true) return badge(yes, "ok");
+    if (value === false) return badge(no, badWhenNo ? "bad" : "off");
+    return badge("?", "off");
+  }
+
+  let lastSig = { queue: null, history: null };
+
+  function onStatus(st) {
+    page.status = st;
+    const svc = st.service || {};
+    $("service").textContent = [svc.lab, svc.version ? "hil " + svc.version : "", svc.auth].filter(Boolean).join(" · ");
+    const you = st.you;
+    $("you").textContent = you ? `you: ${you.user} (${you.role})` : "";
+    const operator = !!(you && you.role === "operator");
+
+    // the worker
+    const w = st.worker || {};
+    const ws = $("worker-state");
+    ws.textContent = w.state || "?";
+    ws.className = "badge " + (w.state === "ready" ? "ok" : w.state === "starting" ? "warn" : "bad");
+    $("worker-error").hidden = !w.error;
+    $("worker-error").textContent = w.error ? "cannot serve: " + w.error : "";
+    $("worker-holder").textContent = w.holder ? "holds the ports: " + w.holder : "";
+
+    // the boards
+    const tbody = $("boards").querySelector("tbody");
+    tbody.replaceChildren();
+    for (const [name, b] of Object.entries(w.boards || {})) {
+      tbody.append(el("tr", { "data-board": name, "data-connected": String(b.connected),
+                              "data-identified": String(b.identified), "data-armed": String(b.armed) },
+        el("th", { text: name }), el("td", { class: "port", text: b.port || "" }),
+        el("td", {}, yesNo(b.connected, "connected", "not connected")),
+        el("td", {}, yesNo(b.identified, "identified", "not identified", true)),
+        el("td", {}, b.armed ? badge("armed", "armed") : badge("disarmed", "off"))));
+    }
+    if (!Object.keys(w.boards || {}).length) {
+      tbody.append(el("tr", {}, el("td", { colspan: "5", class: "muted",
+                                           text: w.state === "ready" ? "no boards" : "the worker is " + (w.state || "?") })));
+    }
+
+    // the lease
+    const lease = st.lease;
+    $("lease").replaceChildren(lease
+      ? el("span", {}, "held by ", el("strong", { text: lease.holder }), ` · ${span(lease.remaining_s)} left` +
+          (lease.ttl_s ? ` (TTL ${span(lease.ttl_s)})` : "") + ": only the holder's items start")
+      : "none: every user's items run in queue order");
+
+    // the running item
+    const r = st.running;
+    const msg = $("action-msg");
+    if (msg.dataset.uid && (!r || r.uid !== msg.dataset.uid)) {
+      msg.textContent = "";
+      delete msg.dataset.uid;
+    }
+    $("idle").hidden = !!r;
+    $("running").hidden = !r;
+    $("safe").textContent = w.safe ? "Between items: " + w.safe + "." : "";
+    if (r) {
+      $("run-name").textContent = r.name || r.uid;
+      $("run-kind").textContent = r.kind ? "(" + r.kind + ")" : "";
+      $("run-user").textContent = r.user || "";
+      $("run-started").textContent = when(r.started_at);
+      $("run-uid").textContent = r.uid;
+      if (!(page.last && page.last.uid === r.uid)) showProgress(r.cycles || 0, r.total || 0);
+      if (!(page.last && page.last.uid === r.uid)) $("run-state").textContent = endingText(r.ending);
+      $("controls").hidden = !operator;
+      $("stop").disabled = !!r.ending;
+      $("abort").disabled = r.ending === "abort";
+      $("live-note").textContent = "(last 10 s of " + (r.name || r.uid) + ")";
+    } else {
+      $("controls").hidden = true;
+      if (buffers.uid) $("live-note").textContent = "(the last item's final 10 s; nothing running)";
+    }
+
+    // the queue and the history, when they changed
+    const q = st.queue || {};
+    $("queue-state").textContent = (q.running ? "started" : "stopped: nothing new starts") +
+      (q.stop_on_failure ? " · stops on a failure" : "") + ` · ${q.waiting || 0} waiting`;
+    const qsig = `${r ? r.uid : ""}|${q.waiting}`;
+    if (qsig !== lastSig.queue) { lastSig.queue = qsig; refreshQueue(); }
+    const hsig = r ? r.uid : "";
+    if (hsig !== lastSig.history) { lastSig.history = hsig; refreshHistory(); }
+  }
+
+  // --- the queue and the history (HTTP) ---------------------------------------------------------
+
+  function single(fn) { // one request at a time; a call meanwhile runs once more after it
+    let busy = false, again = false;
+    return async function run() {
+      if (busy) { again = true; return; }
+      busy = true;
+      try { await fn(); } catch (e) { noteError(e.message || e); } finally {
+        busy = false;
+        if (again) { again = false; run(); }
+      }
+    };
+  }
+
+  const refreshQueue = single(async () => {
+    const data = await api("GET", "/api/queue");
+    const waiting = (data.items || []).filter((i) => !i.started_at);
+    const tbody = $("queue").querySelector("tbody");
+    tbody.replaceChildren(...waiting.map((i, n) => el("tr", { "data-uid": i.uid },
+      el("td", { text: String(n + 1) }), el("td", { text: i.name }), el("td", { text: i.kind }),
+      el("td", { text: i.user }), el("td", { text: when(i.submitted_at) }))));
+    $("queue-empty").hidden = waiting.length > 0;
+    $("queue").hidden = waiting.length === 0;
+  });
+
+  const STATUS_CLASS = { completed: "ok", stopped: "warn", aborted: "bad", fault: "bad", interrupted: "off",
+                         invalid: "off" };
+
+  const refreshHistory = single(async () => {
+    const data = await api("GET", "/api/history?limit=50");
+    const records = data.records || [];
+    const tbody = $("history").querySelector("tbody");
+    tbody.replaceChildren(...records.map((r) => {
+      const links = r.links || {};
+      const files = el("td", { class: "links" });
+      files.append(el("a", { href: links.record || `/api/history/${r.uid}`, target: "_blank", rel: "noopener",
+                             text: "record", title: "the record and its summary metrics (JSON)" }));
+      if (links.log) files.append(" ", el("a", { href: links.log, class: "log", text: "log",
+                                                 title: "the session's log (HDF5)" }));
+      if (links.report) files.append(" ", el("a", { href: links.report, target: "_blank", rel: "noopener",
+                                                    class: "report", text: "report" }));
+      const took = r.started_at && r.ended_at ? (new Date(r.ended_at) - new Date(r.started_at)) / 1000 : null;
+      const sigma = r.summary && r.summary.rate_error_el_dps ? r.summary.rate_error_el_dps.std : null;
+      return el("tr", { "data-uid": r.uid, "data-status": r.status },
+        el("td", { text: r.name }), el("td", { text: r.kind }), el("td", { text: r.user }),
+        el("td", {}, badge(r.status, STATUS_CLASS[r.status] || "off")),
+        el("td", { text: when(r.started_at) }), el("td", { text: when(r.ended_at) }), el("td", { text: span(took) }),
+        el("td", { class: "num", text: r.exit_code === null || r.exit_code === undefined ? "" : String(r.exit_code) }),
+        el("td", { class: "num", text: sigma === null ? "" : num(sigma, 2) + " deg/s" }),
+        el("td", { class: "message", text: r.message || "", title: r.message || "" }), files);
+    }));
+    const last = records[0];
+    $("last-item").replaceChildren(...(last ? ["The last item: ", el("strong", { text: last.name }), " by " + last.user + " ",
+      badge(last.status, STATUS_CLASS[last.status] || "off"), " at " + when(last.ended_at)] : []));
+    $("history-empty").hidden = records.length > 0;
+    $("history").hidden = records.length === 0;
+  });
+
+  setInterval(() => { if (page.connected) { refreshQueue(); refreshHistory(); } }, 15000);
+
+  // --- stop and abort ---------------------------------------------------------------------------
+
+  async function end(how) {
+    const r = page.status && page.status.running;
+    if (!r) return;
+    if (how === "abort" && !window.confirm(`Abort ${r.name}? The driver is disabled first; the item ends as aborted.`)) {
+      return;
+    }
+    const msg = $("action-msg");
+    msg.dataset.uid = r.uid;
+    msg.textContent = how === "stop" ? "asking to stop…" : "asking to abort…";
+    try {
+      await api("POST", "/api/bench/" + how, { reason: "from the live page", uid: r.uid });
+      msg.textContent = how === "stop" ? `stop asked of ${r.name}: it winds down` :
+        `abort asked of ${r.name}: the driver is disabled first`;
+    } catch (e) {
+      msg.textContent = `${how}: ${e.message || e}`;
+    }
+  }
+  $("stop").addEventListener("click", () => end("stop"));
+  $("abort").addEventListener("click", () => end("abort"));
+
+  // --- the WebSocket ----------------------------------------------------------------------------
+
+  let socket = null, attempt = 0, lastMessage = 0, retryTimer = null;
+
+  function setConnected(ok, text) {
+    page.connected = ok;
+    document.body.classList.toggle("disconnected", !ok);
+    const c = $("conn");
+    c.textContent = text;
+    c.className = "badge " + (ok ? "ok" : "bad");
+  }
+
+  function connect() {
+    retryTimer = null;
+    const url = (location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws" +
+      (token ? "?token=" + encodeURIComponent(token) : "");
+    let ws;
+    try {
+      ws = new WebSocket(url);
+    } catch (e) {
+      noteError(e.message || e);
+      retry("disconnected");
+      return;
+    }
+    socket = ws;
+    ws.onopen = () => {
+      attempt = 0;
+      lastMessage = Date.now();
+      setConnected(true, "connected");
+      showNotice("");
+      lastSig = { queue: null, history: null };
+    };
+    ws.onmessage = (ev) => {
+      lastMessage = Date.now();
+      let msg;
+      try { msg = JSON.parse(ev.data); } catch (e) { noteError("a message that is not JSON"); return; }
+      if (msg.type === "status") {
+        try { onStatus(msg); } catch (e) { noteError("status: " + (e && e.message || e)); }
+      } else if (msg.type === "live" && Array.isArray(msg.points)) {
+        for (const p of msg.points) if (p && typeof p.wall_ms === "number") pending.push(p);
+        schedule();
+      }
+    };
+    let opened = false;
+    ws.addEventListener("open", () => { opened = true; });
+    ws.onclose = () => {
+      if (socket !== ws) return;
+      socket = null;
+      retry("disconnected");
+      if (!opened) whyRefused();
+    };
+    ws.onerror = () => {}; // onclose follows
+  }
+
+  // a socket the service refuses (no valid token) closes before it opens, without saying why: ask the API
+  async function whyRefused() {
+    let res;
+    try {
+      res = await fetch("/api/status", { headers: token ? { Authorization: "Bearer " + token } : {}, cache: "no-store" });
+    } catch (_) {
+      return; // the service is not there: "disconnected" says it
+    }
+    if (res.status === 401 || res.status === 403) {
+      let detail = "";
+      try { detail = (await res.json()).detail || ""; } catch (_) { detail = ""; }
+      showNotice(`The service refused this page (HTTP ${res.status}${detail ? ": " + detail : ""}). ` +
+                 "Open it as http://HOST:PORT/?token=YOUR_TOKEN.");
+      $("conn").textContent = "not authorized: retrying";
+    }
+  }
+
+  function retry(why) {
+    const wait = BACKOFF_MS[Math.min(attempt, BACKOFF_MS.length - 1)];
+    attempt += 1;
+    setConnected(false, `${why}: reconnecting in ${(wait / 1000).toFixed(wait < 1000 ? 1 : 0)} s`);
+    if (!retryTimer) retryTimer = setTimeout(connect, wait);
+  }
+
+  setInterval(() => { // a socket that went silent (a suspended laptop, a dead link) is closed and opened again
+    if (socket && page.connected && Date.now() - lastMessage > STALE_MS) {
+      const ws = socket;
+      socket = null;
+      try { ws.close(); } catch (_) { /* closing anyway */ }
+      retry("disconnected (no message for 5 s)");
+    }
+  }, 1000);
+
+  makeCharts();
+  connect();
+})();
