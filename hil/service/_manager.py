@@ -17,7 +17,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
 import os
 import sys
 import time
@@ -136,9 +135,7 @@ class Manager:
                 worker.kill()
         for task in self._tasks:
             task.cancel()
-        for task in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
+        await asyncio.wait(self._tasks, timeout=5.0)
         self.store.close()
 
     # --- the worker ---------------------------------------------------------------------------------
@@ -200,8 +197,10 @@ class Manager:
         elif ev == "fatal":
             self.worker_error = str(msg.get("message", ""))
             self._changed()
-        elif ev in ("status",):
-            self.worker_info.update(msg)
+        elif ev == "status":
+            if msg != {k: self.worker_info.get(k) for k in msg}:
+                self.worker_info.update(msg)
+                self._changed()
         elif ev == "live":
             self.progress = {"uid": msg.get("uid"), "cycles": msg.get("cycles", 0), "total": msg.get("total", 0)}
             msg["wall_ms"] = time.time() * 1000.0
@@ -232,11 +231,12 @@ class Manager:
     # --- the queue ----------------------------------------------------------------------------------
 
     async def _queue_task(self) -> None:
-        while True:
+        while not self._closing:
             self.wake.clear()
             self._start_next()
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self.wake.wait(), 1.0)  # also a lease that lapses by itself
+                async with asyncio.timeout(1.0):  # also a lease that lapses by itself
+                    await self.wake.wait()
 
     def _start_next(self) -> None:
         if self.running_uid is not None or self.worker_state != "ready" or not self.queue_running:
@@ -262,8 +262,11 @@ class Manager:
             page.wake.set()
 
     async def _status_task(self) -> None:
-        while True:
+        while not self._closing:
             await asyncio.sleep(STATUS_EVERY_S)
+            if self.worker_state == "ready":  # the boards' state, for the next status
+                with contextlib.suppress(StoreError, OSError, ConnectionError):
+                    self._send_worker({"op": "status"})
             for page in self.pages:
                 page.status_due = True
                 page.wake.set()
@@ -507,7 +510,8 @@ async def live_socket(ws: WebSocket) -> None:
     manager: Manager = ws.app.state.manager
     try:
         caller = manager.gate.caller(token_of(ws), ws.headers.get("x-hil-user"))
-    except AuthError as exc:
+    except AuthError as exc:  # accepted, then closed: a browser sees the code and the reason (not a bare 403)
+        await ws.accept()
         await ws.close(code=4401, reason=str(exc)[:120])
         return
     await ws.accept()
@@ -526,17 +530,13 @@ async def live_socket(ws: WebSocket) -> None:
             if page.points:
                 points = list(page.points)
                 page.points.clear()
-                await ws.send_text(json.dumps({"type": "live", "points": points}, default=_nan_free))
+                await ws.send_text(json.dumps({"type": "live", "points": points}))  # NaN is None already
             await asyncio.sleep(period)
     except (WebSocketDisconnect, RuntimeError, ConnectionError):
         pass
     finally:
         manager.pages.discard(page)
         receiver.cancel()
-
-
-def _nan_free(value: Any) -> Any:
-    return None if isinstance(value, float) and not math.isfinite(value) else str(value)
 
 
 async def _drain(ws: WebSocket) -> None:

@@ -154,6 +154,7 @@ class Worker:
         self.claims: PortClaims | None = None
         self.running: Running | None = None
         self.item_task: asyncio.Task[None] | None = None
+        self.identified: set[str] = set()  # boards that answered IDENT in the last session (its links opened)
 
     # --- the lab -----------------------------------------------------------------------------------
 
@@ -366,8 +367,10 @@ class Worker:
         running = self.running
         session = running.session if running is not None else None
         armed = bool(session is not None and session.loop_ is not None and session.loop_.armed)
-        boards = {name: {"port": port.port, "connected": name in (session.links if session else {}),
-                         "identified": True, "armed": armed and name == "driver"}
+        links = session.links if session is not None else {}
+        self.identified |= set(links)
+        boards = {name: {"port": port.port, "connected": name in links, "identified": name in self.identified,
+                         "armed": armed and name in ("driver", "servo")}
                   for name, port in (lab.ports.items() if lab else [])}
         return {"boards": boards, "emulated": self.loopback,
                 "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"}
