@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import ValidationError
 
 from hil.analysis import SweptSine, bode_plot, identify_log, summarize_log
+from hil.boards import check_boards
 from hil.config import (
     ConfigError,
     PortConfig,
@@ -46,6 +47,7 @@ from hil.session import (
     read_log,
     run,
     run_async,
+    run_coroutine,
 )
 
 if TYPE_CHECKING:
@@ -327,19 +329,44 @@ def check_file(path: str | Path, kind: str | None = None) -> dict[str, Any]:
     return check_config_file(Path(path), kind)
 
 
-def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Path = "/sys") -> list[Finding]:
+def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Path = "/sys", boards: bool = True,
+           listen_s: float = 2.0) -> list[Finding]:
     """Is the hardware ready (`hil doctor`, docs/service.md)? Every check of every port: ``session``'s ports, or
     with none every serial adapter in /dev/serial/by-id/ at the default 921 600 baud. ConfigError for a session
-    without ports."""
+    without ports.
+
+    With a session and ``boards`` (the default), the boards are asked too (hil.boards.check_boards), on each port
+    whose own checks passed: an ``ident`` finding per link the session opens (the board's IDENT and its catalogue
+    fingerprint against this bench's), and a ``servo stream`` finding: the stream started, listened to ``listen_s``
+    and stopped, its rate and jitter against 1 kHz and the session's ``safety.watchdog_ms``. The motor driver is
+    never enabled and the hexapod never moved. ``boards=False`` checks the ports alone, without a byte sent."""
+    if not (math.isfinite(listen_s) and listen_s > 0):
+        raise ConfigError(f"listen_s={listen_s!r}: not a finite number of seconds above 0")
     if session is None:
         by_id = sorted(Path("/dev/serial/by-id").glob("*"))
         ports = {p.name: str(p) for p in by_id}
         bauds = dict.fromkeys(ports, PortConfig.model_fields["baudrate"].default)
-    else:
-        config = session if isinstance(session, SessionConfig) else load_session(session)
-        if config.ports is None:
-            raise ConfigError("ports: not set in the session file; a loopback run needs no hardware check")
-        links = {n: getattr(config.ports, n) for n in ("servo", "driver", "image", "hexapod")}
-        ports = {n: c.port for n, c in links.items() if c is not None}
-        bauds = {n: c.baudrate for n, c in links.items() if c is not None}
-    return check_ports(ports, bauds, sysfs=Path(sysfs))
+        return check_ports(ports, bauds, sysfs=Path(sysfs))
+    config = session if isinstance(session, SessionConfig) else load_session(session)
+    if config.ports is None:
+        raise ConfigError("ports: not set in the session file; a loopback run needs no hardware check")
+    links = {n: getattr(config.ports, n) for n in ("servo", "driver", "image", "hexapod")}
+    ports = {n: c.port for n, c in links.items() if c is not None}
+    bauds = {n: c.baudrate for n, c in links.items() if c is not None}
+    findings = check_ports(ports, bauds, sysfs=Path(sysfs))
+    if not boards:
+        return findings
+    # the links a session opens: the hexapod's only for a driver that talks over it
+    opened = [n for n in ports if n != "hexapod" or config.hexapod.driver_class.uses_link]
+    free = {n: ports[n] for n in opened
+            if all(f.ok for f in findings if f.link == n and f.check in ("port", "holder"))}
+    for name in opened:
+        if name not in free:
+            findings.append(Finding(name, "ident", False, "not asked: this port failed its own checks"))
+    if "servo" in opened and "servo" not in free:
+        findings.append(Finding("servo", "servo stream", False, "not listened to: the servo port failed its checks"))
+    if free:
+        findings += run_coroutine(check_boards, free, bauds, listen_s=listen_s,
+                                  watchdog_ms=config.safety.watchdog_ms)
+    order = list(ports)
+    return sorted(findings, key=lambda f: order.index(f.link))  # each link's rows together, in the checks' order

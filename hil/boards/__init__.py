@@ -3,7 +3,8 @@
 ``ServoBoard`` (gyro and encoders, the loop's clock), ``DriverBoard`` (the power stage), ``ImageBoard`` (miss
 distance) and the hexapod: ``HexapodDriver`` is a table's interface, ``ProtocolHexapod`` the bench's own protocol
 (entry point ``hil.boards:ProtocolHexapod``, docs/hexapod-drivers.md), ``GuardedHexapod`` holds it to the one-way
-safety rule through the session's ``Interlock``."""
+safety rule through the session's ``Interlock``. ``check_boards`` and ``listen_to_stream`` are `hil doctor`'s checks
+that need the boards to answer (IDENT and its catalogue fingerprint, the servo stream's rate and jitter)."""
 
 from hil.boards._clients import (
     HEXAPOD_DRIVERS,
@@ -19,6 +20,7 @@ from hil.boards._clients import (
     installed_hexapod_drivers,
     load_hexapod_driver,
 )
+from hil.boards._doctor import check_boards, listen_to_stream
 
 __all__ = [
     "HEXAPOD_DRIVERS",
@@ -31,6 +33,8 @@ __all__ = [
     "InterlockClosed",
     "ProtocolHexapod",
     "ServoBoard",
+    "check_boards",
     "installed_hexapod_drivers",
+    "listen_to_stream",
     "load_hexapod_driver",
 ]

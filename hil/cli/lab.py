@@ -67,20 +67,26 @@ def emulate(  # noqa: PLR0917 (typer maps parameters to options)
 @app.command()
 def doctor(
     session: Annotated[Path | None, typer.Argument(
-        help="A session file: check its ports at their baud rates (default: every adapter in /dev/serial/by-id/).",
+        help="A session file: check its ports at their baud rates, and ask its boards (default: every adapter in "
+             "/dev/serial/by-id/, the ports alone).",
         exists=False)] = None,
+    boards: Annotated[bool, typer.Option(
+        "--boards/--no-boards", help="Ask the session's boards: IDENT and its catalogue fingerprint, and a 2 s listen "
+                                     "to the servo stream (--no-boards: the ports alone, nothing sent).")] = True,
     json_out: Annotated[bool, typer.Option("--json", help="The findings as JSON on stdout.")] = False,
 ) -> None:
     """Is the hardware ready? Each port exists and is a serial port this user may open, no other bench holds it, a
-    USB-serial adapter's latency timer is 1 ms, and the baud rate carries the link's periodic messages. Exit 1 if
-    a check fails, each failure saying what to do."""
+    USB-serial adapter's latency timer is 1 ms, and the baud rate carries the link's periodic messages; with a
+    session file, each board answers IDENT with the catalogue fingerprint this bench expects, and a 2 s listen to
+    the servo stream reports its rate and jitter (the driver is never enabled, the hexapod never moved). Exit 1 if a
+    check fails, each failure saying what to do."""
     from rich.table import Table  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
     from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
-        findings = api.doctor(session)
+        findings = api.doctor(session, boards=boards)
     except ConfigError as exc:
         raise fail(str(exc)) from None
     failed = [f for f in findings if not f.ok]

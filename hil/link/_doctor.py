@@ -9,8 +9,9 @@ from __future__ import annotations
 import grp
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from hil.link._ports import Holder, PortClaim, PortUnavailable, check_serial_port
 from hil.protocol.docgen import periodic_load_bits_per_s
@@ -24,12 +25,14 @@ UDEV_RULE = ('ACTION=="add", SUBSYSTEM=="usb-serial", DRIVER=="ftdi_sio", ATTR{l
 
 @dataclass(frozen=True)
 class Finding:
-    """One check of one link: passed or not, what was found, and what to do about it."""
+    """One check of one link: passed or not, what was found, and what to do about it; ``values``: what was measured,
+    for a script (the servo stream's rate and jitter, a board's firmware and fingerprint), empty for most checks."""
 
     link: str
     check: str
     ok: bool
     detail: str
+    values: Mapping[str, Any] = field(default_factory=dict)
 
 
 def check_port(name: str, port: str, *, baud: int, sysfs: Path = SYSFS) -> list[Finding]:
