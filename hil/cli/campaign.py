@@ -14,6 +14,7 @@ import typer
 from rich.table import Table
 
 from hil.cli._common import app, console, err_console, fail, no_progress, note, print_json
+from hil.cli.service import call, client
 
 
 def campaign_json(run: Any) -> dict[str, Any]:
@@ -135,6 +136,8 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
         "there (default: they come back as bytes)."))] = None,
     report_too: Annotated[bool, typer.Option("--report/--no-report", help="Write the report at the end.")] = True,
     json_out: Annotated[bool, typer.Option("--json", help="Print the outcome as JSON.")] = False,
+    bench: Annotated[str | None, typer.Option(
+        help="Run it as one item of a `hil serve` service at this URL (its cells on the service's machine).")] = None,
 ) -> None:
     """Run a swing campaign: profiles x controllers x seeds, each cell a session with its own log; then the
     summary table, the acceptance verdict, and the report. Cells run here (--engine local) or on a dask cluster
@@ -147,6 +150,8 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     from hil.campaign.runner import CampaignInterrupted, interrupted  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
     from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
+    if bench is not None:
+        raise typer.Exit(campaign_on_bench(bench, file, json_out))
     try:
         config, out_dir, _ = api.prepare_campaign(file, out=out, hardware=hardware, clock=clock, engine=engine,
                                                   scheduler=scheduler, workers=workers, shared_dir=shared_dir,
@@ -188,6 +193,31 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
             note(f"report: {run.report.markdown}\n        {run.report.html}  ({len(run.report.pngs)} plots)")
         note(f"campaign: {out_dir}")
     raise typer.Exit(0 if run.passed else 1)
+
+
+def campaign_on_bench(url: str, file: Path, json_out: bool) -> int:
+    """Submit the campaign to the service, wait for it, print its outcome and where its report is; its exit code."""
+    from rich.progress import Progress, TextColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
+
+    bench = client(url)
+    item = call(bench.add, file, kind="campaign")
+    with Progress(TextColumn(f"[bold]{file.name}[/] on {bench.url}: {{task.fields[state]}}"), console=err_console,
+                  transient=True, disable=no_progress(json_out)) as bar:
+        task = bar.add_task("campaign", state="queued")
+        record = call(bench.wait, item["uid"], progress=lambda v: bar.update(task, state=v["state"]))
+    if json_out:
+        print_json(record)
+    else:
+        summary = record.get("summary") or {}
+        colour = "green" if record["exit_code"] == 0 else "red"
+        verdict = {True: "PASS", False: "FAIL"}.get(summary.get("passed"), "")
+        console.print(f"[bold {colour}]{record['status']}[/] {verdict} {record.get('message', '')}".rstrip(),
+                      highlight=False)
+        if record["links"].get("report"):
+            note(f"report: {bench.url}{record['links']['report']}")
+        note(f"item {record['uid']} on {bench.url}")
+    code = record.get("exit_code")
+    return int(code) if code is not None else 1
 
 
 def print_campaign(result) -> None:  # type: ignore[no-untyped-def]

@@ -264,7 +264,8 @@ def bench_for(bench: str | None, loopback: bool) -> str | None:
 
 def run_on_bench(url: str, file: Path, out: Path | None, json_out: bool, *, kind: str = "session",
                  options: dict[str, Any] | None = None) -> Any:
-    """Submit ``file`` to the service, follow it with a progress bar, download the log; the RunResult."""
+    """Submit ``file`` to the service, follow it with a progress bar, download the log; the RunResult and the
+    item's history record."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     bench = client(url)
@@ -279,6 +280,7 @@ def run_on_bench(url: str, file: Path, out: Path | None, json_out: bool, *, kind
                 bar.update(task, total=view["total"], completed=view.get("cycles", 0),
                            what=f"{file.name} on {bench.url}")
 
-        result = call(bench.run, file, out=out, on_view=on_view, kind=kind, options=options)
-    note(f"ran on {bench.url} as {bench.user}")
-    return result
+        result, record = call(bench.run_item, file, out=out, on_view=on_view, kind=kind, options=options)
+    if not json_out:
+        note(f"ran on {bench.url} as {bench.user} (item {record['uid']})")
+    return result, record

@@ -186,7 +186,7 @@ def run(  # noqa: PLR0917 (typer maps parameters to options)
         if out is not None:
             check_out_dir(out, "--out")
         load_session_or_exit(session)
-        result = run_on_bench(url, session, out, json_out)
+        result, _record = run_on_bench(url, session, out, json_out)
         print_result(result, json_out)
         raise typer.Exit(result.exit_code)
     if capture is not None:
@@ -224,6 +224,8 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
     clock: Annotated[ClockOption | None, typer.Option(
         help="Emulator clock with --loopback (default: the session's).")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print the fit as JSON.")] = False,
+    bench: Annotated[str | None, typer.Option(
+        help="Identify on a `hil serve` service at this URL (default $HIL_BENCH unless --loopback).")] = None,
 ) -> None:
     """Frequency-sweep identification (seed 000 Figs. 8-9): a swept sine on the rate command of the closed rate
     loop, the plant's frequency response from the log (indirect closed-loop method), a Bode plot, and the fit of
@@ -235,6 +237,26 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
     from hil.control.registry import K_M_DEFAULT  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     base = load_session_or_exit(session)
+    url = bench_for(bench, loopback)
+    if url is not None:
+        if clock is not None:
+            raise fail("--bench: the service runs on its own lab and clock; leave out --clock")
+        options = {"axis": axis, "f_start_hz": f_start_hz, "f_stop_hz": f_stop_hz, "sweep_s": sweep_s,
+                   "amplitude_dps": amplitude_dps, "offset_dps": offset_dps}
+        result, record = run_on_bench(url, session, out, json_out, kind="ident", options=options)
+        report = record["summary"].get("ident")
+        if report and result.log_path is not None:
+            report = {**report, "log": str(result.log_path), "log_on_service": report.get("log")}
+        if json_out and report:
+            print_json(report)
+        else:
+            print_result(result, json_out)
+            if report:
+                console.print(f"k_m {report['k_m_dps2_per_count']:.5f} deg/s^2 per count "
+                              f"({report['k_m_vs_default_pct']:+.1f} % vs the controllers' default), gyro bandwidth "
+                              f"{_fmt(report.get('gyro_bandwidth_hz'), 1)} Hz, delay {_fmt(report.get('delay_ms'), 2)}"
+                              " ms (on the service; its Bode plot stays there)", highlight=False)
+        raise typer.Exit(result.exit_code if report or result.exit_code else 1)
     with Progress(TextColumn(f"[bold]{base.name}[/] swept sine on {axis}"), BarColumn(),
                   TextColumn("{task.fields[sim]:.1f} s"), TimeRemainingColumn(), console=err_console,
                   transient=True, disable=no_progress(json_out)) as bar:

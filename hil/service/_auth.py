@@ -34,7 +34,7 @@ class TokenEntry(BaseModel):
 
 
 class TokenFile(BaseModel):
-    """``--token-file``: the service's tokens (docs/service.md)."""
+    """The token file `hil serve` is given: the service's tokens (docs/service.md)."""
 
     model_config = ConfigDict(extra="forbid")
     tokens: list[TokenEntry] = Field(min_length=1)

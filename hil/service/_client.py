@@ -1,5 +1,5 @@
-"""The service's client: :class:`Bench` for notebooks and scripts, and what `hil run --bench`, `hil queue` and
-`hil bench` call (docs/service.md, "Clients").
+"""The service's client: :class:`Bench` for notebooks and scripts, and what the command line's runs on a
+service, `hil queue` and `hil bench` call (docs/service.md, "Clients").
 
 ``Bench(url, token=...)``: ``url`` default ``$HIL_BENCH``, ``token`` default ``$HIL_BENCH_TOKEN``. Its
 :meth:`Bench.run` and :meth:`Bench.run_async` take what :func:`hil.run` takes and return the same
@@ -191,6 +191,13 @@ class Bench:
         """Run a session on the service's lab, as :func:`hil.run` runs it here: submit, wait its turn, follow,
         download the log into ``out`` (default the session's ``logging.dir``). ``progress(cycles, total)`` as
         hil.run's; ``on_view`` gets the item's every view (its place in the queue while it waits)."""
+        return self.run_item(config, out=out, progress=progress, on_view=on_view, kind=kind, options=options)[0]
+
+    def run_item(self, config: SessionConfig | str | Path, *, out: str | Path | None = None,
+                 progress: Callable[[int, int], None] | None = None,
+                 on_view: Callable[[dict[str, Any]], None] | None = None, kind: str = "session",
+                 options: dict[str, Any] | None = None) -> tuple[RunResult, dict[str, Any]]:
+        """:meth:`run`, and the item's history record (its summary: an ident's fit under ``ident``)."""
         config = config if isinstance(config, SessionConfig) else load_session(config)
         out_dir = Path(out) if out is not None else config.logging.dir
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -203,7 +210,7 @@ class Bench:
                 progress(int(view.get("cycles", 0)), int(view["total"]))
 
         record = self.wait(item["uid"], progress=follow)
-        return self.result(record, out_dir)
+        return self.result(record, out_dir), record
 
     async def run_async(self, config: SessionConfig | str | Path, **options: Any) -> RunResult:
         """:meth:`run`, awaitable inside a running event loop (a notebook's)."""
@@ -226,14 +233,15 @@ class Bench:
 
 def item_text(file: str | Path | SessionConfig, kind: str) -> tuple[str, str]:
     """(file name, text) of an item, as the service wants it: a session as loaded here (its controller, profile
-    and limits inline, so it stands on its own); a campaign file as it is, after it loads here. ConfigError for
-    a file that does not load, as the command line says it."""
+    and limits inline, so it stands on its own); a campaign as loaded here, the files it names (its session and
+    profiles) as absolute paths, which the service must have too. ConfigError for a file that does not load, as
+    the command line says it."""
     if isinstance(file, SessionConfig):
         return f"{file.name}.yaml", session_yaml(file)
     path = Path(file)
-    if kind == "campaign":
-        load_campaign(path)
-        return path.name, path.read_text()
+    if kind == "campaign":  # its files named by absolute paths: the service reads them from its own disk
+        campaign = load_campaign(path)
+        return path.name, yaml.safe_dump(campaign.model_dump(mode="json", exclude_none=True), sort_keys=False)
     return path.name, session_yaml(load_session(path))
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.campaign import load_campaign
-from hil.config import load_session
+from hil.config import load_session, require_regular_file
 from hil.service._store import ITEM_KINDS, StoreError
 
 MAX_ITEM_BYTES = 1 << 20
@@ -55,4 +55,20 @@ def check_item(kind: str, file_name: str, body: str) -> CheckedItem:
         except ValueError as exc:
             message = " ".join(str(exc).split()).replace(str(path), file_name).replace(f"{tmp}/", "")
             raise ItemError(message) from None
+    if kind == "campaign":
+        _require_campaign_files(file_name, config)
     return CheckedItem(kind, str(config.name), config)
+
+
+def _require_campaign_files(file_name: str, config: Any) -> None:
+    """The files a campaign names (its session, its profiles) are on this machine: a submitted campaign names them
+    by absolute path (hil.service.Bench sends it as loaded); ItemError naming the field otherwise."""
+    named = [("session", config.session)] + [(f"profiles.{i}.path", p.path) for i, p in enumerate(config.profiles)]
+    for field_name, path in named:
+        if not Path(path).is_absolute():
+            raise ItemError(f"{file_name}: {field_name}: {path} is relative; a submitted campaign names its files by "
+                            "absolute path (submit it with hil.service.Bench, which does)")
+        try:
+            require_regular_file(Path(path))
+        except ValueError as exc:
+            raise ItemError(f"{file_name}: {field_name}: {exc} on the service's machine") from None

@@ -56,6 +56,7 @@ LIVE_CHANNELS = {
     "hexapod": ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"),
 }
 EXIT_INVALID = 2
+IDENT_OPTIONS = ("axis", "f_start_hz", "f_stop_hz", "sweep_s", "amplitude_dps", "offset_dps")  # hil.api.ident's
 
 
 class Outbox:
@@ -255,8 +256,8 @@ class Worker:
         """A session or an ident item, in this thread (its own event loop), on the lab."""
         progress = self._progress(running)
         if kind == "ident":
-            axis = options.get("axis", "el")
-            ident = api.ident(config, axis=axis, out=out_dir, progress=progress)
+            chosen = {k: v for k, v in options.items() if k in IDENT_OPTIONS}
+            ident = api.ident(config, out=out_dir, progress=progress, **chosen)
             result = ident.run
             extra = {"ident": ident.report} if ident.report else {}
         else:
@@ -299,7 +300,7 @@ class Worker:
             summary = {}
         status = ("completed" if code == 0 else "invalid" if code == EXIT_INVALID else
                   "stopped" if running.end == "stop" else "aborted" if running.end == "abort" else "fault")
-        report = out_dir / "campaign" / "report.html"
+        report = Path(str((summary.get("report") or {}).get("html", out_dir / "campaign" / "report" / "report.html")))
         message = "" if code == 0 else (stderr.strip().splitlines() or [f"exit code {code}"])[-1]
         if code == 1 and summary and not summary.get("passed", True):
             status, message = "completed", "the campaign ran; its acceptance failed"

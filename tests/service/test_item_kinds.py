@@ -1,0 +1,50 @@
+"""The other kinds of item, from the command line: `hil ident --bench` (the swept sine on the service's lab, the
+fit in the record) and `hil campaign --bench` (one item, its cells run by the service, its report linked)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hil.service import BenchError
+from tests.service.conftest import Service, short_session
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def hil(*args: str, timeout: float = 900) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "hil", *args], capture_output=True, text=True, timeout=timeout,
+                          cwd=REPO, check=False)
+
+
+def test_ident_on_the_bench_fits_the_plant_and_brings_the_log_back(service: Service, tmp_path: Path) -> None:
+    run = hil("ident", str(short_session(tmp_path)), "--bench", service.url, "--axis", "el", "--sweep-s", "4",
+              "--f-start-hz", "2", "--f-stop-hz", "60", "--out", str(tmp_path / "ident"), "--json")
+    assert run.returncode == 0, run.stderr
+    fit = json.loads(run.stdout)
+    assert fit["axis"] == "el" and 0.005 < fit["k_m_dps2_per_count"] < 0.1  # the emulated plant's k_m: 0.023
+    assert list((tmp_path / "ident").glob("*.h5"))  # the log came back
+
+
+def test_a_campaign_runs_as_one_item_and_links_its_report(service: Service, tmp_path: Path) -> None:
+    run = hil("campaign", str(REPO / "profiles/campaigns/static-gyro-noise.yaml"), "--bench", service.url, "--json")
+    record = json.loads(run.stdout)
+    assert record["kind"] == "campaign" and record["status"] == "completed", record
+    assert run.returncode == record["exit_code"] == (0 if record["summary"]["passed"] else 1)
+    assert len(record["summary"]["cells"]) == 3
+    assert record["report_path"].endswith("report.html")
+    html = service.bench().download(record["links"]["report"], tmp_path / "report.html").read_text()
+    assert "static-gyro-noise" in html or "Static gyro noise" in html
+    assert html.count("data:image/png;base64,") >= 1  # one file: its plots inside
+
+
+def test_a_campaign_whose_files_are_not_on_the_service_is_refused_naming_the_field(service: Service,
+                                                                                     tmp_path: Path) -> None:
+    text = (REPO / "profiles/campaigns/static-gyro-noise.yaml").read_text()
+    with pytest.raises(BenchError) as err:  # as written: its session is relative to a folder the service lacks
+        service.bench().call("POST", "/api/queue/items", {"kind": "campaign", "file_name": "c.yaml", "body": text})
+    assert err.value.status == 422 and str(err.value).startswith("c.yaml: session:")
