@@ -5,7 +5,7 @@ Creates `.venv` beside this file on first use (and again whenever pyproject.toml
 installs the project into it, then runs the command. Needs only python3 >= 3.11; no root.
 
     python3 dev.py demo            the loopback demo (README's main command)
-    python3 dev.py test [ARGS]     mosquitto and chromium, ruff, lint-imports, then the whole test suite (ARGS go to pytest)
+    python3 dev.py test [ARGS]     mosquitto and chromium, ruff, lint-imports, the whole test suite (ARGS: pytest's)
     python3 dev.py bench           the benchmarks in benchmarks/ (results: docs/performance.md)
     python3 dev.py hil ARGS        any `hil` command inside the environment
 """

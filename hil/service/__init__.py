@@ -7,7 +7,8 @@ the ports and runs one item at a time through the same code as `hil run` (hil.ap
 - :func:`build_app` (``_manager``): the Starlette app, its routes (``_api_models``: the bodies, the OpenAPI
   document) and its WebSocket; :class:`Gate` (``_auth``): tokens and roles.
 - The worker (``_worker``, ``python -m hil.service._worker``): the lab's ports, the items, the live values.
-- :class:`Bench` (``_client``): the client (notebooks, and the command line's runs on a service, `hil queue`, `hil bench`).
+- :class:`Bench` (``_client``): the client (notebooks; the command line's runs on a service, `hil queue`,
+  `hil bench`).
 """
 
 from hil.service._auth import AuthError, Caller, Gate, TokenFile, is_loopback_host, load_tokens
