@@ -49,7 +49,8 @@ PTY_MAJORS = range(136, 144)  # Linux: the device numbers of pseudo-terminals' f
 
 
 async def check_boards(ports: Mapping[str, str], bauds: Mapping[str, int], *, listen_s: float = LISTEN_S,
-                       ident_timeout_s: float = IDENT_TIMEOUT_S, watchdog_ms: float = WATCHDOG_MS) -> list[Finding]:
+                       ident_timeout_s: float = IDENT_TIMEOUT_S, watchdog_ms: float = WATCHDOG_MS,
+                       claimed: bool = False) -> list[Finding]:
     """Ask each board who it is, then listen to the servo stream: an ``ident`` :class:`Finding` per link of
     ``ports`` (link name -> device, at ``bauds[name]``; the links are servo, driver, image and hexapod), then, if
     ``ports`` has the servo link, one ``servo stream`` finding (:func:`listen_to_stream`, ``listen_s`` long, a gap
@@ -58,7 +59,8 @@ async def check_boards(ports: Mapping[str, str], bauds: Mapping[str, int], *, li
 
     Each port is claimed and opened as a session opens it, and closed and released before this returns, whatever
     happens; a port that cannot be claimed or opened is that link's failed ``ident`` finding. ``ident_timeout_s``:
-    the most IDENT_REQ waits for its answer (its resends included)."""
+    the most IDENT_REQ waits for its answer (its resends included). ``claimed``: this process already holds the
+    ports' claims (`hil serve`'s worker, between items); they are then opened without claiming them again."""
     if not (math.isfinite(listen_s) and listen_s > 0):
         raise ValueError(f"listen_s={listen_s!r}: not a finite number of seconds above 0")
     if not (math.isfinite(ident_timeout_s) and ident_timeout_s > 0):
@@ -66,7 +68,7 @@ async def check_boards(ports: Mapping[str, str], bauds: Mapping[str, int], *, li
     unknown = sorted(set(ports) - set(CLIENTS))
     if unknown:
         raise ValueError(f"ports={unknown!r}: not a board's link (the links are {', '.join(CLIENTS)})")
-    held = _Held()
+    held = _Held(claimed)
     clients: dict[str, BoardClient] = {}
     findings: list[Finding] = []
     try:
@@ -103,7 +105,8 @@ def is_pty(port: str) -> bool:
 class _Held:
     """The ports the doctor holds (claimed, then opened) and the interlock of its board clients."""
 
-    def __init__(self) -> None:
+    def __init__(self, claimed: bool = False) -> None:
+        self.claimed = claimed  # the ports are this process's already (hil serve's worker)
         self.interlock = Interlock()  # closed on the way out: nothing here streams again once the doctor is done
         self.claims: list[PortClaims] = []
         self.links: list[SerialLink] = []
@@ -112,7 +115,8 @@ class _Held:
                     timeout_s: float) -> tuple[Finding, BoardClient | None]:
         """One link's ``ident`` finding and, when the board answered as expected, its client (its link open)."""
         try:
-            self.claims.append(claim_ports({name: port}, HOLDER))
+            if not self.claimed:
+                self.claims.append(claim_ports({name: port}, HOLDER))
         except PortUnavailable as exc:
             return Finding(name, "ident", False, f"not asked: {exc}"), None
         try:

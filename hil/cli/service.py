@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import socket
+import time
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -209,6 +210,12 @@ def bench_status(bench: BenchOption = None, json_out: JsonOption = False) -> Non
                       highlight=False)
     if w.get("safe"):
         console.print(f"  between items: {w['safe']}", highlight=False)
+    doctor = w.get("doctor")
+    if doctor:
+        bad = [f for f in doctor["findings"] if not f["ok"]]
+        console.print(f"  hardware checks: {len(doctor['findings']) - len(bad)} of {len(doctor['findings'])} passed"
+                      + "".join(f"\n    [red]{f['link']} {f['check']}[/]: {f['detail']}" for f in bad),
+                      highlight=False)
     if running:
         total = running.get("total") or 0
         done = f"{running.get('cycles', 0) / total:.0%}" if total else "starting"
@@ -216,6 +223,32 @@ def bench_status(bench: BenchOption = None, json_out: JsonOption = False) -> Non
     console.print(f"queue: {'running' if q['running'] else 'stopped'}, {q['waiting']} waiting", highlight=False)
     console.print("lease: " + (f"{lease['holder']}, {lease['remaining_s']:.0f} s left" if lease else "none"),
                   highlight=False)
+
+
+@bench_app.command("doctor")
+def bench_doctor(bench: BenchOption = None, json_out: JsonOption = False) -> None:
+    """Run `hil doctor`'s checks on the service's ports (between items): ports, each board's IDENT, the stream."""
+    bench_ = client(bench)
+    before = (call(bench_.status)["worker"].get("doctor") or {}).get("at")
+    call(bench_.doctor)
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline:
+        doctor = call(bench_.status)["worker"].get("doctor") or {}
+        if doctor.get("at") != before:
+            break
+        time.sleep(0.3)
+    else:
+        raise fail("the checks did not report within 30 s; see the service's worker.log", code=1)
+    if json_out:
+        print_json(doctor)
+    else:
+        t = Table(title=f"hardware checks on {bench_.url}")
+        for col in ("link", "check", "ok", "detail"):
+            t.add_column(col)
+        for f in doctor["findings"]:
+            t.add_row(f["link"], f["check"], "[green]ok[/]" if f["ok"] else "[red]FAIL[/]", f["detail"])
+        console.print(t)
+    raise typer.Exit(0 if doctor.get("ok") else 1)
 
 
 @bench_app.command("lease")

@@ -161,6 +161,10 @@ class Bench:
         """Abort the running item: the driver disabled first."""
         return self.call("POST", "/api/bench/abort", {"reason": reason, "uid": uid})  # type: ignore[no-any-return]
 
+    def doctor(self) -> dict[str, Any]:
+        """Run `hil doctor`'s checks on the service's ports (between items); the status then shows them."""
+        return self.call("POST", "/api/bench/doctor", {})  # type: ignore[no-any-return]
+
     def lease(self, ttl_s: float = 300.0) -> dict[str, Any]:
         """Take (or renew) the lease: only your items run until it lapses (renew within ``ttl_s``)."""
         return self.call("POST", "/api/lease", {"ttl_s": ttl_s})  # type: ignore[no-any-return]

@@ -93,6 +93,7 @@ class Manager:
         self.worker_state = "starting"  # starting | ready | down
         self.worker_info: dict[str, Any] = {}
         self.worker_error = ""
+        self.doctor_error = ""
         self.running_uid: str | None = None
         self.progress: dict[str, Any] = {}
         self.ending: str | None = None  # stop | abort asked of the running item
@@ -201,6 +202,11 @@ class Manager:
             if msg != {k: self.worker_info.get(k) for k in msg}:
                 self.worker_info.update(msg)
                 self._changed()
+        elif ev == "doctor":
+            self.doctor_error = str(msg.get("error", ""))
+            if not self.doctor_error:
+                self.worker_info["doctor"] = msg
+            self._changed()
         elif ev == "live":
             self.progress = {"uid": msg.get("uid"), "cycles": msg.get("cycles", 0), "total": msg.get("total", 0)}
             msg["wall_ms"] = time.time() * 1000.0
@@ -286,7 +292,7 @@ class Manager:
                         else str(self.options.lab), "auth": "open (localhost)" if self.gate.open else "tokens"},
             "you": None if caller is None else {"user": caller.user, "role": caller.role},
             "worker": {"state": self.worker_state, "error": self.worker_error or None, "ports": info.get("ports", {}),
-                       "holder": info.get("holder"), "boards": boards,
+                       "holder": info.get("holder"), "boards": boards, "doctor": info.get("doctor"),
                        "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"},
             "queue": {"running": self.queue_running, "stop_on_failure": self.stop_on_failure,
                       "waiting": sum(1 for i in items if i.started_at is None)},
@@ -470,6 +476,14 @@ async def end_item(request: Request, m: Manager, caller: Caller) -> Response:
     return JSONResponse({"uid": m.running_uid, "ending": m.ending})
 
 
+async def run_doctor(request: Request, m: Manager, caller: Caller) -> Response:
+    if m.running_uid is not None:
+        raise StoreError("an item is running; the hardware checks run between items")
+    m._send_worker({"op": "doctor"})
+    return JSONResponse({"note": "the checks run now (about 3 s); GET /api/status shows them (worker.doctor)"},
+                        status_code=202)
+
+
 async def get_lease(request: Request, m: Manager, caller: Caller) -> Response:
     lease = m.lease.current()
     return JSONResponse({"lease": None if lease is None else lease.public(time.time()),
@@ -573,6 +587,8 @@ API_ROUTES: list[tuple[str, str, Handler, str | None, type[BaseModel] | None, st
      "Stop the running item the normal way (the swing stopped while stabilizing, then the driver disabled)."),
     ("POST", "/api/bench/abort", end_item, "abort the running item", EndItem,
      "Abort the running item: the driver disabled first."),
+    ("POST", "/api/bench/doctor", run_doctor, "check the hardware", None,
+     "Run hil doctor's checks on the held ports between items (ports, IDENT, a 2 s listen to the stream)."),
     ("GET", "/api/lease", get_lease, None, None, "The lease in force and its recent history."),
     ("POST", "/api/lease", take_lease, "take the lease", TakeLease,
      "Take (or renew) the lease for ttl_s seconds; 409 if another operator holds it."),

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -40,9 +41,10 @@ from pathlib import Path
 from typing import Any
 
 from hil import api
-from hil.config import ConfigError, PortConfig, load_session
+from hil.boards import check_boards
+from hil.config import ConfigError, PortConfig, SessionConfig, load_session
 from hil.link import Holder as PortHolder
-from hil.link import LinkError, PortClaims, PortUnavailable, claim_ports
+from hil.link import LinkError, PortClaims, PortUnavailable, check_ports, claim_ports
 from hil.protocol import LINKS
 from hil.service._items import ItemError, check_item
 from hil.session import BenchLab, EmulatorProcess, Session, serve_lab
@@ -155,7 +157,9 @@ class Worker:
         self.claims: PortClaims | None = None
         self.running: Running | None = None
         self.item_task: asyncio.Task[None] | None = None
-        self.identified: set[str] = set()  # boards that answered IDENT in the last session (its links opened)
+        self.identified: set[str] = set()  # boards that answered IDENT (the doctor's, or a session's links opened)
+        self.lab_config: SessionConfig | None = None
+        self.doctor_report: dict[str, Any] | None = None
 
     # --- the lab -----------------------------------------------------------------------------------
 
@@ -171,7 +175,7 @@ class Worker:
             ports = {name: path for name, path in started.items() if name in LINKS}
         else:
             assert self.lab_session is not None
-            config = load_session(self.lab_session)
+            config = self.lab_config = load_session(self.lab_session)
             if config.ports is None:
                 raise ConfigError(f"{self.lab_session}: ports: not set; the lab's session file names its ports")
             ports = {name: port.port for name in LINKS if (port := getattr(config.ports, name)) is not None}
@@ -207,6 +211,22 @@ class Worker:
         running.session, running.loop = session, asyncio.get_running_loop()
         if running.end is not None:  # asked to end before the session existed
             self._end_session(running)
+
+    async def doctor(self, listen_s: float = 2.0) -> dict[str, Any]:
+        """`hil doctor`'s checks on the ports this worker holds (between items only): each port, each board's
+        IDENT and fingerprint, a listen to the servo stream. The driver is never enabled, the hexapod never moved."""
+        assert self.lab is not None
+        ports = {name: port.port for name, port in self.lab.ports.items()}
+        bauds = {name: port.baudrate for name, port in self.lab.ports.items()}
+        findings = [f for f in await asyncio.to_thread(check_ports, ports, bauds) if f.check != "holder"]  # it is us
+        uses_link = self.lab_config is None or self.lab_config.hexapod.driver_class.uses_link
+        asked = {name: port for name, port in ports.items() if (name != "hexapod" or uses_link)
+                 and all(f.ok for f in findings if f.link == name and f.check == "port")}
+        findings += await check_boards(asked, bauds, listen_s=listen_s, claimed=True)
+        self.identified = {f.link for f in findings if f.check == "ident" and f.ok}
+        self.doctor_report = {"at": time.time(), "ok": all(f.ok for f in findings),
+                              "findings": [_json_safe(dataclasses.asdict(f)) for f in findings]}
+        return self.doctor_report
 
     # --- items ------------------------------------------------------------------------------------
 
@@ -373,7 +393,7 @@ class Worker:
         boards = {name: {"port": port.port, "connected": name in links, "identified": name in self.identified,
                          "armed": armed and name in ("driver", "servo")}
                   for name, port in (lab.ports.items() if lab else [])}
-        return {"boards": boards, "emulated": self.loopback,
+        return {"boards": boards, "emulated": self.loopback, "doctor": self.doctor_report,
                 "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"}
 
 
@@ -398,6 +418,10 @@ async def serve(worker: Worker) -> int:
         worker.out.send("fatal", message=" ".join(str(exc).split()))
         await asyncio.to_thread(worker.close_lab)
         return EXIT_INVALID
+    try:
+        await worker.doctor()
+    except (LinkError, OSError, ValueError) as exc:  # the checks report; a check that cannot run is said so
+        worker.doctor_report = {"at": time.time(), "ok": False, "findings": [], "error": str(exc)}
     holder = PortHolder.this_process(f"hil serve (pid {os.getppid()})")
     worker.out.send("ready", ports=ports, holder=holder.describe(), pid=os.getpid(), **worker.status())
     live = asyncio.get_running_loop().create_task(worker.live_task())
@@ -421,6 +445,12 @@ async def serve(worker: Worker) -> int:
                 worker.end(op, str(msg.get("reason", op)))
             elif op == "status":
                 worker.out.send("status", **worker.status())
+            elif op == "doctor":
+                if worker.running is not None or (worker.item_task is not None and not worker.item_task.done()):
+                    worker.out.send("doctor", error="an item is running; the checks run between items")
+                else:
+                    worker.out.send("doctor", **await worker.doctor())
+                    worker.out.send("status", **worker.status())
             elif op == "quit":
                 worker.end("abort", "the service is stopping")
                 break

@@ -49,6 +49,24 @@ def test_a_session_runs_through_the_service_and_comes_back_as_a_run_result(servi
     assert status["running"] is None and status["worker"]["safe"].startswith("driver disabled")
 
 
+def test_the_status_carries_the_hardware_checks_and_they_run_again_on_request(service: Service) -> None:
+    first = service.bench().status()["worker"]["doctor"]
+    checks = {(f["link"], f["check"]): f for f in first["findings"]}
+    assert first["ok"], [f for f in first["findings"] if not f["ok"]]
+    for link in ("servo", "driver", "image", "hexapod"):
+        assert checks[(link, "ident")]["values"]["catalogue_fingerprint"] == checks[("servo", "ident")]["values"][
+            "catalogue_fingerprint"]
+    stream = checks[("servo", "servo stream")]
+    assert 990 <= stream["values"]["board_rate_hz"] <= 1010
+    run = subprocess.run([sys.executable, "-m", "hil", "bench", "doctor", "--bench", service.url, "--json"],
+                         capture_output=True, text=True, timeout=120, cwd=REPO, check=False)
+    assert run.returncode == 0, run.stderr
+    again = json.loads(run.stdout)
+    assert again["at"] > first["at"] and again["ok"]
+    boards = service.bench().status()["worker"]["boards"]
+    assert all(b["identified"] for b in boards.values())
+
+
 def test_a_bad_item_is_refused_when_submitted_with_the_loaders_one_line(service: Service, tmp_path: Path) -> None:
     bench = service.bench()
     good = short_session(tmp_path)
