@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from hil._version import __version__
 
-__all__ = ["CampaignRun", "ConfigError", "IdentRun", "RunResult", "SessionConfig", "__version__", "check_file",
+__all__ = ["Bench", "CampaignRun", "ConfigError", "IdentRun", "RunResult", "SessionConfig", "__version__", "check_file",
            "load_campaign", "load_session", "read_log", "replay_capture", "replay_log", "report", "run", "run_async",
            "run_campaign"]
 
@@ -37,9 +37,11 @@ if TYPE_CHECKING:
         run_campaign,
     )
     from hil.config import ConfigError, SessionConfig, load_session
+    from hil.service import Bench
 
 # hil.api.ident is not here: identification itself is hil.analysis (hil/analysis/_ident.py)
-_FROM = {"CampaignRun": "hil.api", "IdentRun": "hil.api", "replay_capture": "hil.api", "replay_log": "hil.api",
+_FROM = {"Bench": "hil.service", "CampaignRun": "hil.api", "IdentRun": "hil.api", "replay_capture": "hil.api",
+         "replay_log": "hil.api",
          "RunResult": "hil.api", "check_file": "hil.api", "load_campaign": "hil.api",
          "read_log": "hil.api", "report": "hil.api", "run": "hil.api", "run_async": "hil.api",
          "run_campaign": "hil.api", "ConfigError": "hil.config", "SessionConfig": "hil.config",

@@ -204,7 +204,12 @@ def demo(
     from hil.config import PROFILES  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     config = load_session_or_exit(PROFILES / "sessions" / "demo.yaml")
-    raise typer.Exit(run_and_print(config, out, True, None, json_out).exit_code)
+    result = run_and_print(config, out, True, None, json_out)
+    if not json_out:
+        note("next, the same lab as a service, for a browser and other terminals (docs/service.md):\n"
+             "  .venv/bin/hil serve --loopback        then open http://localhost:8765/\n"
+             "  .venv/bin/hil run profiles/sessions/demo.yaml --bench http://localhost:8765")
+    raise typer.Exit(result.exit_code)
 
 
 @app.command()

@@ -90,6 +90,9 @@ def test_stop_winds_down_normally_and_abort_disables_first(service: Service, tmp
     for how, status, code in (("stop", "stopped", 3), ("abort", "aborted", 130)):
         item = bench.add(short_session(tmp_path, 30.0, name=f"long-{how}"))
         wait_for(lambda uid=item["uid"]: bench.item(uid).get("cycles", 0) > 500, timeout_s=180)
+        with pytest.raises(BenchError) as err:  # the hardware checks wait for the boards to be free
+            bench.doctor()
+        assert err.value.status == 409 and "between items" in str(err.value)
         getattr(bench, how)(reason="test")
         record = bench.wait(item["uid"])
         assert record["status"] == status and record["exit_code"] == code, record
