@@ -77,11 +77,22 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
         what = "the emulated lab" if loopback else f"the lab of {lab}"
         err_console.print(f"[bold]hil serve[/]: {what} at {url} (state in {state_dir}); Ctrl-C stops it",
                           highlight=False)
+        ports = ", ".join(f"{k} {v}" for k, v in _manager.worker_info.get("ports", {}).items())
+        note(f"the worker holds the lab's ports: {ports}")
 
-    app_ = build_app(options, Gate(tokens), on_ready=ready)
+    fatal: list[str] = []
+
+    def cannot_serve(message: str) -> None:  # the worker could not take the lab (a port held by another bench)
+        fatal.append(message)
+        server.should_exit = True
+
+    app_ = build_app(options, Gate(tokens), on_ready=ready, on_fatal=cannot_serve)
     config = uvicorn.Config(app_, host=host, port=port, log_level="warning", access_log=False, lifespan="on",
                             ws_max_size=1 << 20)
-    uvicorn.Server(config).run()
+    server = uvicorn.Server(config)
+    server.run()
+    if fatal:
+        raise fail(f"hil serve: cannot serve the lab: {fatal[0]}")
 
 
 def check_free_port(host: str, port: int) -> None:

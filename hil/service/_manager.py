@@ -55,6 +55,7 @@ WS_SEND_HZ = 25.0  # pages get the live values this often (each message carries 
 WS_MAX_POINTS = 250  # a page that cannot keep up loses its oldest points beyond this
 STATUS_EVERY_S = 1.0  # and the status at least this often (the lease's remaining time, the queue)
 WORKER_RESTART_S = 2.0
+CLAIM_WAIT_S = 15.0  # a restarted worker waits this long for its predecessor to let go of the ports
 
 
 @dataclass
@@ -84,7 +85,8 @@ class Page:
 class Manager:
     """The service's state and its worker. :meth:`start` / :meth:`close` from the app's lifespan."""
 
-    def __init__(self, options: ServiceOptions, gate: Gate) -> None:
+    def __init__(self, options: ServiceOptions, gate: Gate, on_ready: Callable[[Manager], None] | None = None,
+                 on_fatal: Callable[[str], None] | None = None) -> None:
         self.options = options
         self.gate = gate
         self.store, self.interrupted = Store.open(options.state_dir)
@@ -102,6 +104,9 @@ class Manager:
         self._tasks: list[asyncio.Task[Any]] = []
         self._closing = False
         self.started_at = time.time()
+        self.on_ready = on_ready  # the first worker holds the lab: the service serves
+        self.on_fatal = on_fatal  # the first worker cannot serve (a port held by another bench): the service ends
+        self.ever_ready = False
         self.items_run = 0
 
     # --- the queue's settings ----------------------------------------------------------------------
@@ -143,7 +148,8 @@ class Manager:
 
     def _worker_argv(self) -> list[str]:
         o = self.options
-        argv = [sys.executable, "-m", "hil.service._worker", "--state-dir", str(o.state_dir), "--seed", str(o.seed)]
+        argv = [sys.executable, "-m", "hil.service._worker", "--state-dir", str(o.state_dir), "--seed", str(o.seed),
+                "--claim-wait", str(CLAIM_WAIT_S if self.ever_ready else 0.0)]
         if o.loopback:
             argv.append("--loopback")
             if o.emulator is not None:
@@ -193,10 +199,16 @@ class Manager:
         ev = msg.pop("ev", "")
         if ev == "ready":
             self.worker_state, self.worker_info, self.worker_error = "ready", msg, ""
+            if not self.ever_ready and self.on_ready is not None:
+                self.on_ready(self)
+            self.ever_ready = True
             _log.info("the worker holds the lab's ports: %s", msg.get("ports"))
             self._changed()
         elif ev == "fatal":
             self.worker_error = str(msg.get("message", ""))
+            if not self.ever_ready and self.on_fatal is not None:
+                self._closing = True
+                self.on_fatal(self.worker_error)
             self._changed()
         elif ev == "status":
             if msg != {k: self.worker_info.get(k) for k in msg}:
@@ -599,16 +611,15 @@ API_ROUTES: list[tuple[str, str, Handler, str | None, type[BaseModel] | None, st
 ]
 
 
-def build_app(options: ServiceOptions, gate: Gate, *, on_ready: Callable[[Manager], None] | None = None) -> Starlette:
+def build_app(options: ServiceOptions, gate: Gate, *, on_ready: Callable[[Manager], None] | None = None,
+              on_fatal: Callable[[str], None] | None = None) -> Starlette:
     """The Starlette app of one service: the API routes, the WebSocket, the page and its static files."""
 
     @contextlib.asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
-        manager = Manager(options, gate)
+        manager = Manager(options, gate, on_ready, on_fatal)
         app.state.manager = manager
         await manager.start()
-        if on_ready is not None:
-            on_ready(manager)
         try:
             yield
         finally:

@@ -50,7 +50,6 @@ from hil.service._items import ItemError, check_item
 from hil.session import BenchLab, EmulatorProcess, Session, serve_lab
 
 LIVE_HZ = 50.0  # the running item's latest values, sent to the manager this often (the page wants >= 20 Hz)
-CLAIM_WAIT_S = 15.0  # a worker that restarts waits this long for its predecessor to let go of the ports
 LIVE_CHANNELS = {
     "loop": ("t_s", "rate_err_el_dps", "rate_err_az_dps", "drive_el_counts", "drive_az_counts", "gyro_y_dps",
              "gyro_z_dps"),
@@ -145,12 +144,13 @@ class Worker:
     """One worker: the lab it holds (:meth:`open_lab`), the item it runs, the lines it sends."""
 
     def __init__(self, *, state_dir: Path, loopback: bool, lab_session: Path | None, emulator: Path | None,
-                 seed: int, outbox: Outbox) -> None:
+                 seed: int, outbox: Outbox, claim_wait_s: float = 0.0) -> None:
         self.state_dir = state_dir
         self.loopback = loopback
         self.lab_session = lab_session
         self.emulator_config = emulator
         self.seed = seed
+        self.claim_wait_s = claim_wait_s
         self.out = outbox
         self.emulator: EmulatorProcess | None = None
         self.lab: BenchLab | None = None
@@ -179,7 +179,7 @@ class Worker:
             if config.ports is None:
                 raise ConfigError(f"{self.lab_session}: ports: not set; the lab's session file names its ports")
             ports = {name: port.port for name in LINKS if (port := getattr(config.ports, name)) is not None}
-        deadline = time.monotonic() + CLAIM_WAIT_S
+        deadline = time.monotonic() + self.claim_wait_s
         while True:  # a restarted service's previous worker may still be winding its item down
             try:
                 self.claims = claim_ports(ports, f"hil serve (pid {os.getppid()})")
@@ -469,13 +469,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lab", type=Path, default=None)
     parser.add_argument("--emulator", type=Path, default=None)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--claim-wait", type=float, default=0.0, help="seconds to wait for the ports to be free")
     args = parser.parse_args(argv)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the manager ends the worker (quit, or its stdin closing)
     stdout = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1)
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # a stray print must not corrupt the manager's lines
     outbox = Outbox(stdout)
     worker = Worker(state_dir=args.state_dir, loopback=args.loopback, lab_session=args.lab, emulator=args.emulator,
-                    seed=args.seed, outbox=outbox)
+                    seed=args.seed, outbox=outbox, claim_wait_s=args.claim_wait)
     try:
         return asyncio.run(serve(worker))
     finally:

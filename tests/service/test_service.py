@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from hil.service import API_ROUTES, BenchError
-from tests.service.conftest import Service, short_session, wait_for
+from tests.service.conftest import Service, free_port, short_session, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -174,6 +174,21 @@ def test_a_run_on_the_services_ports_is_refused_naming_the_port_and_the_service(
     line = " ".join(run.stderr.split())
     assert "in use by pid" in line and "hil serve" in line and ports["servo"] in line
     assert len(run.stderr.strip().splitlines()) == 1
+
+
+def test_a_second_service_on_the_same_ports_is_refused_naming_the_port_and_the_service(service: Service,
+                                                                                    tmp_path: Path) -> None:
+    ports = service.bench().status()["worker"]["ports"]
+    lab = short_session(tmp_path, 1.0, name="lab", ports={k: {"port": v} for k, v in ports.items()})
+    run = subprocess.run([sys.executable, "-m", "hil", "serve", "--lab", str(lab), "--port", str(free_port()),
+                          "--state-dir", str(tmp_path / "state")], capture_output=True, text=True, timeout=120,
+                         cwd=REPO, check=False)
+    assert run.returncode == 2, run.stdout + run.stderr
+    lines = run.stderr.strip().splitlines()
+    line = " ".join(run.stderr.split())
+    assert lines[0].startswith("error: hil serve: cannot serve the lab:"), run.stderr
+    assert "in use by pid" in line and "hil serve (pid" in line and ports["servo"] in line
+    assert service.bench().status()["worker"]["state"] == "ready"  # the first service serves on
 
 
 def test_the_openapi_document_describes_every_route(service: Service) -> None:
