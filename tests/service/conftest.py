@@ -36,10 +36,11 @@ class Service:
     env: dict[str, str] = field(default_factory=dict)
     proc: subprocess.Popen[bytes] | None = None
     token: str | None = None
+    host: str = "127.0.0.1"  # where clients reach it (give --host in args too)
 
     @property
     def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
+        return f"http://{self.host}:{self.port}"
 
     def start(self, wait: bool = True) -> Service:
         self.log = (self.state_dir.parent / f"serve-{self.port}.log").open("ab")
