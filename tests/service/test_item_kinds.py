@@ -4,11 +4,13 @@ fit in the record) and `hil campaign --bench` (one item, its cells run by the se
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from hil.service import BenchError
 from tests.service.conftest import Service, short_session
@@ -48,3 +50,23 @@ def test_a_campaign_whose_files_are_not_on_the_service_is_refused_naming_the_fie
     with pytest.raises(BenchError) as err:  # as written: its session is relative to a folder the service lacks
         service.bench().call("POST", "/api/queue/items", {"kind": "campaign", "file_name": "c.yaml", "body": text})
     assert err.value.status == 422 and str(err.value).startswith("c.yaml: session:")
+
+
+def test_an_item_is_checked_again_just_before_it_runs(service: Service, tmp_path: Path) -> None:
+    campaign = yaml.safe_load((REPO / "profiles/campaigns/static-gyro-noise.yaml").read_text())
+    profile = tmp_path / "static.yaml"
+    shutil.copy(REPO / "profiles/swing/static.yaml", profile)
+    campaign["session"] = str(REPO / "profiles/sessions/swing-1deg-1hz-eso.yaml")
+    campaign["profiles"][0]["path"] = str(profile)
+    file = tmp_path / "gone-later.yaml"
+    file.write_text(yaml.safe_dump(campaign))
+    bench = service.bench()
+    bench.stop_queue()
+    try:
+        item = bench.add(file, kind="campaign")  # its files are there when it is submitted ...
+        profile.unlink()  # ... and one is gone when its turn comes
+    finally:
+        bench.start()
+    record = bench.wait(item["uid"])
+    assert record["status"] == "invalid" and record["exit_code"] == 2
+    assert record["message"].startswith("gone-later.yaml: profiles.0.path:") and "no such file" in record["message"]
