@@ -15,14 +15,16 @@ Plain HTTP with the standard library (no client dependency); the token goes in a
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import getpass
 import json
 import os
+import threading
 import time
 import urllib.error
 import urllib.parse
 import urllib.request
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -168,6 +170,29 @@ class Bench:
     def lease(self, ttl_s: float = 300.0) -> dict[str, Any]:
         """Take (or renew) the lease: only your items run until it lapses (renew within ``ttl_s``)."""
         return self.call("POST", "/api/lease", {"ttl_s": ttl_s})  # type: ignore[no-any-return]
+
+    @contextlib.contextmanager
+    def leased(self, ttl_s: float = 30.0) -> Iterator[dict[str, Any]]:
+        """Hold the lease while the ``with`` block runs: taken now, renewed every third of ``ttl_s`` by a thread of
+        this process, released at the end. If this process dies (a cancelled CI job), the renewals stop and the
+        lease lapses by itself within ``ttl_s``."""
+        lease = self.lease(ttl_s)
+        done = threading.Event()
+
+        def renew() -> None:
+            while not done.wait(ttl_s / 3):
+                with contextlib.suppress(BenchError):
+                    self.lease(ttl_s)
+
+        thread = threading.Thread(target=renew, name="hil-bench-lease", daemon=True)
+        thread.start()
+        try:
+            yield lease
+        finally:
+            done.set()
+            thread.join(timeout=self.timeout_s)
+            with contextlib.suppress(BenchError):
+                self.release()
 
     def release(self) -> dict[str, Any]:
         return self.call("DELETE", "/api/lease")  # type: ignore[no-any-return]

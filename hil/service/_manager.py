@@ -182,7 +182,7 @@ class Manager:
                 self._finish(self.running_uid, {"status": "fault", "exit_code": 1,
                                                 "message": f"the worker process ended (exit code {code}) while it ran",
                                                 "log": None, "summary": {}})
-            self._changed()
+            self.changed()
             if self._closing:
                 return
             if self.worker_error:
@@ -203,22 +203,22 @@ class Manager:
                 self.on_ready(self)
             self.ever_ready = True
             _log.info("the worker holds the lab's ports: %s", msg.get("ports"))
-            self._changed()
+            self.changed()
         elif ev == "fatal":
             self.worker_error = str(msg.get("message", ""))
             if not self.ever_ready and self.on_fatal is not None:
                 self._closing = True
                 self.on_fatal(self.worker_error)
-            self._changed()
+            self.changed()
         elif ev == "status":
             if msg != {k: self.worker_info.get(k) for k in msg}:
                 self.worker_info.update(msg)
-                self._changed()
+                self.changed()
         elif ev == "doctor":
             self.doctor_error = str(msg.get("error", ""))
             if not self.doctor_error:
                 self.worker_info["doctor"] = msg
-            self._changed()
+            self.changed()
         elif ev == "live":
             self.progress = {"uid": msg.get("uid"), "cycles": msg.get("cycles", 0), "total": msg.get("total", 0)}
             msg["wall_ms"] = time.time() * 1000.0
@@ -226,7 +226,7 @@ class Manager:
                 page.points.append(msg)
                 page.wake.set()
         elif ev == "started":
-            self._changed()
+            self.changed()
         elif ev == "done":
             uid = str(msg.get("uid"))
             if uid == self.running_uid:
@@ -244,7 +244,7 @@ class Manager:
         self.items_run += 1
         if status != "completed" and self.stop_on_failure:
             self.store.set_setting("queue_running", False)
-        self._changed()
+        self.changed()
 
     # --- the queue ----------------------------------------------------------------------------------
 
@@ -271,9 +271,10 @@ class Manager:
                                                      "options": item.options}})
         except (StoreError, OSError, ConnectionError) as exc:
             self._finish(item.uid, {"status": "fault", "message": f"not started: {exc}"})
-        self._changed()
+        self.changed()
 
-    def _changed(self) -> None:
+    def changed(self) -> None:
+        """Something pages show changed: wake the queue and send every page the status."""
         self.wake.set()
         for page in self.pages:
             page.status_due = True
@@ -406,26 +407,26 @@ async def add_item(request: Request, m: Manager, caller: Caller) -> Response:
     checked = check_item(sub.kind, sub.file_name, sub.body)
     item = m.store.add(sub.kind, checked.name, caller.user, Path(sub.file_name).name, sub.body,
                        options=sub.options, position=sub.position)
-    m._changed()
+    m.changed()
     return JSONResponse(item.public(), status_code=201)
 
 
 async def remove_item(request: Request, m: Manager, caller: Caller) -> Response:
     item = m.store.remove(request.path_params["uid"])
-    m._changed()
+    m.changed()
     return JSONResponse(item.public())
 
 
 async def move_item(request: Request, m: Manager, caller: Caller) -> Response:
     move: MoveItem = await body_as(request, MoveItem)
     item = m.store.move(request.path_params["uid"], move.position)
-    m._changed()
+    m.changed()
     return JSONResponse(item.public())
 
 
 async def clear_queue(request: Request, m: Manager, caller: Caller) -> Response:
     n = m.store.clear()
-    m._changed()
+    m.changed()
     return JSONResponse({"removed": n})
 
 
@@ -433,13 +434,13 @@ async def start_queue(request: Request, m: Manager, caller: Caller) -> Response:
     start: StartQueue = await body_as(request, StartQueue)
     m.store.set_setting("stop_on_failure", start.stop_on_failure)
     m.store.set_setting("queue_running", True)
-    m._changed()
+    m.changed()
     return JSONResponse({"running": True, "stop_on_failure": start.stop_on_failure})
 
 
 async def stop_queue(request: Request, m: Manager, caller: Caller) -> Response:
     m.store.set_setting("queue_running", False)
-    m._changed()
+    m.changed()
     return JSONResponse({"running": False, "note": "the running item (if any) goes on; stop or abort it"})
 
 
@@ -484,7 +485,7 @@ async def end_item(request: Request, m: Manager, caller: Caller) -> Response:
     if m.ending != "abort":
         m.ending = how
     m._send_worker({"op": how, "reason": f"{how} by {caller.user}" + (f": {end.reason}" if end.reason else "")})
-    m._changed()
+    m.changed()
     return JSONResponse({"uid": m.running_uid, "ending": m.ending})
 
 
@@ -505,20 +506,20 @@ async def get_lease(request: Request, m: Manager, caller: Caller) -> Response:
 async def take_lease(request: Request, m: Manager, caller: Caller) -> Response:
     take: TakeLease = await body_as(request, TakeLease)
     lease = m.lease.take(caller.user, take.ttl_s)
-    m._changed()
+    m.changed()
     return JSONResponse(lease.public(time.time()))
 
 
 async def release_lease(request: Request, m: Manager, caller: Caller) -> Response:
     m.lease.release(caller.user)
-    m._changed()
+    m.changed()
     return JSONResponse({"lease": None})
 
 
 async def break_lease(request: Request, m: Manager, caller: Caller) -> Response:
     brk: BreakLease = await body_as(request, BreakLease)
     broken = m.lease.break_(caller.user, brk.reason)
-    m._changed()
+    m.changed()
     return JSONResponse({"broken": broken.public(time.time()), "by": caller.user})
 
 

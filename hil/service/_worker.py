@@ -266,8 +266,8 @@ class Worker:
         except Exception as exc:  # a bug must end the item, not the worker: the lab stays served
             done = {"status": "fault", "exit_code": 1, "message": f"{type(exc).__name__}: {exc}", "log": None,
                     "summary": {}}
-        if running.end == "abort" and done["status"] in ("interrupted", "fault", "stopped", "completed"):
-            done["status"] = "aborted" if done["status"] != "completed" else "completed"
+        if running.end == "abort" and done["status"] in ("interrupted", "fault", "stopped"):
+            done["status"] = "aborted"  # what the operator asked for, whatever way the session ended
         self.running = None
         self.out.send("done", uid=uid, **done)
 

@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import h5py
@@ -204,3 +205,31 @@ def test_the_openapi_document_describes_every_route(service: Service) -> None:
             assert "403" in op["responses"]
     assert doc["components"]["schemas"]["SubmitItem"]["properties"]["kind"]["enum"] == ["session", "ident",
                                                                                        "campaign"]
+
+
+HOLD_LEASE = """
+import sys, time
+from hil.service import Bench
+with Bench(sys.argv[1], user="ci-job").leased(ttl_s=5):
+    print("held", flush=True)
+    time.sleep(600)
+"""
+
+
+def test_a_lease_held_by_a_client_that_dies_lapses_by_itself(service: Service) -> None:
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_LEASE, service.url], stdout=subprocess.PIPE, text=True,
+                              cwd=REPO)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        bench = service.bench(user="next-one")
+        time.sleep(7)  # past its 5 s TTL: renewed meanwhile
+        assert bench.status()["lease"]["holder"] == "ci-job"
+    finally:
+        holder.kill()  # the CI job is cancelled: no release, no more renewals
+        holder.wait()
+    wait_for(lambda: bench.status()["lease"] is None, timeout_s=30)  # within its TTL, give or take a poll
+    events = bench.call("GET", "/api/lease")["events"]
+    assert events[0]["event"] == "lapsed" and events[0]["holder"] == "ci-job"
+    with bench.leased(ttl_s=5) as lease:  # and the next one takes it
+        assert lease["holder"] == "next-one"
+    assert bench.status()["lease"] is None  # released at the end of the block
