@@ -13,8 +13,8 @@ from typing import Annotated, Any, Literal
 import typer
 from rich.table import Table
 
+from hil.cli._bench import call, client
 from hil.cli._common import app, console, err_console, fail, no_progress, note, print_json
-from hil.cli.service import call, client
 
 
 def campaign_json(run: Any) -> dict[str, Any]:

@@ -10,8 +10,8 @@ from typing import Annotated, Any, Literal
 import typer
 from rich.table import Table
 
+from hil.cli._bench import bench_for, run_on_bench
 from hil.cli._common import app, check_out_dir, console, err_console, fail, finite, no_progress, note, print_json
-from hil.cli.service import bench_for, run_on_bench
 
 ClockOption = Literal["realtime", "lockstep", "sim"]
 
