@@ -277,7 +277,14 @@ class Worker:
         progress = self._progress(running)
         if kind == "ident":
             chosen = {k: v for k, v in options.items() if k in IDENT_OPTIONS}
-            ident = api.ident(config, out=out_dir, progress=progress, **chosen)
+            try:
+                ident = api.ident(config, out=out_dir, progress=progress, **chosen)
+            except ConfigError:
+                raise
+            except ValueError as exc:  # it ran, and its log could not be fitted: the log still comes back
+                logs = sorted(out_dir.glob("*.h5"))
+                return {"status": "fault", "exit_code": 1, "message": " ".join(str(exc).split()),
+                        "log": str(logs[-1]) if logs else None, "summary": {}, "report": None}
             result = ident.run
             extra = {"ident": ident.report} if ident.report else {}
         else:

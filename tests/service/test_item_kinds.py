@@ -24,8 +24,9 @@ def hil(*args: str, timeout: float = 900) -> subprocess.CompletedProcess[str]:
 
 
 def test_ident_on_the_bench_fits_the_plant_and_brings_the_log_back(service: Service, tmp_path: Path) -> None:
-    run = hil("ident", str(short_session(tmp_path)), "--bench", service.url, "--axis", "el", "--sweep-s", "4",
-              "--f-start-hz", "2", "--f-stop-hz", "60", "--out", str(tmp_path / "ident"), "--json")
+    run = hil("ident", str(short_session(tmp_path)), "--bench", service.url, "--axis", "el", "--sweep-s", "10",
+              "--f-start-hz", "2", "--f-stop-hz", "40", "--amplitude-dps", "4", "--offset-dps", "5",
+              "--out", str(tmp_path / "ident"), "--json")
     assert run.returncode == 0, run.stderr
     fit = json.loads(run.stdout)
     assert fit["axis"] == "el" and 0.005 < fit["k_m_dps2_per_count"] < 0.1  # the emulated plant's k_m: 0.023
