@@ -40,6 +40,9 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
     emulator: Annotated[Path | None, typer.Option(
         help="With --loopback: the emulated lab's config (default the shipped one).")] = None,
     seed: Annotated[int, typer.Option(help="With --loopback: the emulated lab's seed.")] = 0,
+    emulator_cpu: Annotated[int, typer.Option(
+        help="With --loopback: pin the emulated lab to this CPU (-1: the last, where the shipped sessions put the "
+             "loop and the emulator).")] = -1,
 ) -> None:
     """Serve the bench to the lab: the queue, the history, the lease, a live page at http://HOST:PORT/, and a
     worker that owns the boards' ports and runs one item at a time as `hil run` does. Ctrl-C stops it (a running
@@ -68,7 +71,8 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
     except OSError as exc:
         raise fail(f"--state-dir {state_dir}: {exc.strerror or exc}") from None
     options = ServiceOptions(state_dir=state_dir.absolute(), loopback=loopback, lab=lab.absolute() if lab else None,
-                             emulator=emulator.absolute() if emulator else None, seed=seed, host=host, port=port)
+                             emulator=emulator.absolute() if emulator else None, seed=seed, host=host, port=port,
+                             emulator_cpu=emulator_cpu)
     shown = "localhost" if host in ("127.0.0.1", "::1") else host
     url = f"http://{shown}:{port}/"
 

@@ -66,6 +66,7 @@ class ServiceOptions:
     loopback: bool = True
     lab: Path | None = None  # the lab's session file (its ports), without loopback
     emulator: Path | None = None  # the emulated lab's config, with loopback (default: the shipped one)
+    emulator_cpu: int | None = -1  # the CPU the emulated lab is pinned to (-1: the last, as the shipped sessions)
     seed: int = 0
     host: str = "127.0.0.1"
     port: int = 8765
@@ -154,6 +155,8 @@ class Manager:
             argv.append("--loopback")
             if o.emulator is not None:
                 argv += ["--emulator", str(o.emulator)]
+            if o.emulator_cpu is not None:
+                argv += ["--emulator-cpu", str(o.emulator_cpu)]
         elif o.lab is not None:
             argv += ["--lab", str(o.lab)]
         return argv
@@ -295,8 +298,7 @@ class Manager:
     def status(self, caller: Caller | None = None) -> dict[str, Any]:
         now = time.time()
         lease = self.lease.current()
-        items = self.store.items()
-        running = next((i for i in items if i.started_at is not None), None)
+        running = self.store.running()
         info = self.worker_info
         boards = info.get("boards", {})
         return {
@@ -308,7 +310,7 @@ class Manager:
                        "holder": info.get("holder"), "boards": boards, "doctor": info.get("doctor"),
                        "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"},
             "queue": {"running": self.queue_running, "stop_on_failure": self.stop_on_failure,
-                      "waiting": sum(1 for i in items if i.started_at is None)},
+                      "waiting": self.store.waiting()},
             "running": None if running is None else {**running.public(), **self.progress, "uid": running.uid,
                                                      "ending": self.ending},
             "lease": None if lease is None else lease.public(now),

@@ -164,6 +164,17 @@ class Store:
             rows = self._db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue ORDER BY position").fetchall()
         return [_queued(r) for r in rows]
 
+    def running(self) -> QueuedItem | None:
+        """The item that runs now, or None (one indexed row: what the status asks for ten times a second)."""
+        with self._lock:
+            row = self._db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue WHERE started_at IS NOT NULL").fetchone()
+        return None if row is None else _queued(row)
+
+    def waiting(self) -> int:
+        """How many items wait."""
+        with self._lock:
+            return int(self._db.execute("SELECT COUNT(*) FROM queue WHERE started_at IS NULL").fetchone()[0])
+
     def item(self, uid: str) -> QueuedItem:
         with self._lock:
             row = self._db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue WHERE uid = ?", (uid,)).fetchone()

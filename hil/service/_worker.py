@@ -42,7 +42,7 @@ from typing import Any
 
 from hil import api
 from hil.boards import check_boards
-from hil.config import ConfigError, PortConfig, SessionConfig, load_session
+from hil.config import ConfigError, EmulatorRef, PortConfig, SessionConfig, load_session
 from hil.link import Holder as PortHolder
 from hil.link import LinkError, PortClaims, PortUnavailable, check_ports, claim_ports
 from hil.protocol import LINKS
@@ -144,13 +144,14 @@ class Worker:
     """One worker: the lab it holds (:meth:`open_lab`), the item it runs, the lines it sends."""
 
     def __init__(self, *, state_dir: Path, loopback: bool, lab_session: Path | None, emulator: Path | None,
-                 seed: int, outbox: Outbox, claim_wait_s: float = 0.0) -> None:
+                 seed: int, outbox: Outbox, claim_wait_s: float = 0.0, emulator_cpu: int | None = -1) -> None:
         self.state_dir = state_dir
         self.loopback = loopback
         self.lab_session = lab_session
         self.emulator_config = emulator
         self.seed = seed
         self.claim_wait_s = claim_wait_s
+        self.emulator_cpu = emulator_cpu  # placed as the shipped sessions place it (emulator.cpu: -1, the loop's)
         self.out = outbox
         self.emulator: EmulatorProcess | None = None
         self.lab: BenchLab | None = None
@@ -167,7 +168,9 @@ class Worker:
         """Start the emulated lab (``loopback``) or read the lab's ports (``lab_session``), then claim them; the
         ports (link -> path). PortUnavailable or ConfigError: the service cannot serve."""
         if self.loopback:
-            self.emulator = EmulatorProcess(self.emulator_config, clock="realtime", seed=self.seed)
+            placement = EmulatorRef(cpu=self.emulator_cpu).process_args()
+            self.emulator = EmulatorProcess(self.emulator_config, clock="realtime", seed=self.seed,
+                                            extra_args=placement)
             try:
                 started = self.emulator.start()
             except LinkError as exc:
@@ -373,10 +376,12 @@ class Worker:
         """The running item's latest values, LIVE_HZ times a second, read from its log's buffers (never from
         the loop's own state)."""
         period = 1.0 / LIVE_HZ
+        last_sent: dict[str, Any] = {}  # per group, the host time of the row sent last
         while True:
             await asyncio.sleep(period)
             running = self.running
             if running is None:
+                last_sent.clear()
                 continue
             body: dict[str, Any] = {"uid": running.uid, "cycles": running.cycles, "total": running.total}
             session = running.session
@@ -384,8 +389,10 @@ class Worker:
             if log is not None:
                 for group, names in LIVE_CHANNELS.items():
                     row = log.latest(group)
-                    if row is not None:
-                        body[group] = {name: finite(float(row[name])) for name in names}
+                    if row is None or row.get("t_host_ns") == last_sent.get(group):
+                        continue  # nothing new in this group (a disarmed loop, a camera between frames)
+                    last_sent[group] = row.get("t_host_ns")
+                    body[group] = {name: finite(float(row[name])) for name in names}
                 loop = session.loop_ if session is not None else None
                 body["armed"] = bool(loop is not None and loop.armed)
             self.out.send_live(body)
@@ -477,13 +484,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--emulator", type=Path, default=None)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--claim-wait", type=float, default=0.0, help="seconds to wait for the ports to be free")
+    parser.add_argument("--emulator-cpu", type=int, default=None, help="pin the emulated lab to this CPU")
     args = parser.parse_args(argv)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the manager ends the worker (quit, or its stdin closing)
     stdout = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1)
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # a stray print must not corrupt the manager's lines
     outbox = Outbox(stdout)
     worker = Worker(state_dir=args.state_dir, loopback=args.loopback, lab_session=args.lab, emulator=args.emulator,
-                    seed=args.seed, outbox=outbox, claim_wait_s=args.claim_wait)
+                    seed=args.seed, outbox=outbox, claim_wait_s=args.claim_wait, emulator_cpu=args.emulator_cpu)
     try:
         return asyncio.run(serve(worker))
     finally:

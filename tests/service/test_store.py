@@ -121,3 +121,14 @@ def test_a_service_killed_mid_write_loses_nothing_and_runs_nothing_again(tmp_pat
     assert started[1] not in queued and store.start_next() is not None  # the next item runs, not the interrupted
     assert all(i.started_at is None for i in store.items()[1:])
     assert [i.position for i in store.items()] == list(range(len(store.items())))
+
+
+def test_the_running_item_and_the_number_waiting(tmp_path: Path) -> None:
+    store, _ = Store.open(tmp_path)
+    assert store.running() is None and store.waiting() == 0
+    for n in "abc":
+        store.add("session", n, "ana", f"{n}.yaml", f"name: {n}\n")
+    started = store.start_next()
+    assert started is not None and store.running() == store.item(started.uid) and store.waiting() == 2
+    store.finish(started.uid, "completed")
+    assert store.running() is None and store.waiting() == 2
