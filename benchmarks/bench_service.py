@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """The lab service (`hil serve --loopback`) against running the same sessions without it, side by side in one run.
 
-    .venv/bin/python benchmarks/bench_service.py [--session-s 10] [--rounds 3] [--pages 3] [--items 10]
+    .venv/bin/python benchmarks/bench_service.py [--session-s 10] [--rounds 3] [--pages 3] [--pages-cpu 0] [--items 10]
         [--item-s 1] [--item-rounds 2] [--poll-s 20] [--pollers 50] [--poll-hz 10] [--poll-rounds 2]
         [--queued 100] [--restarts 2] [--json PATH] [--keep DIR]
 
@@ -10,7 +10,8 @@ realtime clock, started once by the service's worker) serves every part; the ses
 with another duration. Parts, each measured against its peer in alternating rounds (medians over the rounds):
 
 1. ``--rounds`` sessions of ``--session-s`` through the service with ``--pages`` live pages open (each its own
-   headless Chromium on http://127.0.0.1:PORT/), alternating with the same session by
+   headless Chromium on http://127.0.0.1:PORT/, pinned to ``--pages-cpu``: off the loop's CPU, the last, as the
+   operators' machines are in the lab; ``none`` lets them run anywhere), alternating with the same session by
    ``hil run SESSION --loopback --clock realtime --json`` (a subprocess with its own emulator) and with the same
    session through the service with no page open (the browsers on about:blank): the board-measured latency p50/p99
    (``board_latency_us``), missed and late cycles, from the service's history record and from ``hil run``'s JSON;
@@ -301,12 +302,18 @@ def run_local(path: Path, out: Path) -> tuple[dict[str, Any], float]:
 
 
 @contextlib.contextmanager
-def browsers(url: str, n: int, directory: Path) -> Iterator[list[Any]]:
+def browsers(url: str, n: int, directory: Path, cpu: int | None = None) -> Iterator[list[Any]]:
+    """``n`` headless Chromium pages on the service; ``cpu``: the browsers (and every process they start) pinned
+    to that CPU, off the one the shipped sessions give the loop and the emulator (the last): in the lab the pages
+    run on the operators' machines, not on the bench's cores."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service as DriverService
 
     drivers: list[Any] = []
+    saved = os.sched_getaffinity(0)
     try:
+        if cpu is not None:  # the drivers and browsers started now inherit it
+            os.sched_setaffinity(0, {cpu})
         for k in range(n):
             options = webdriver.ChromeOptions()
             options.binary_location = CHROMIUM
@@ -320,9 +327,11 @@ def browsers(url: str, n: int, directory: Path) -> Iterator[list[Any]]:
             driver.set_script_timeout(60)
             driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument", {"source": OBSERVER})
             driver.get(url + "/")
+        os.sched_setaffinity(0, saved)
         wait_connected(drivers)
         yield drivers
     finally:
+        os.sched_setaffinity(0, saved)
         for driver in drivers:
             with contextlib.suppress(Exception):
                 driver.quit()
@@ -390,7 +399,7 @@ def part_pages(svc: Service, args: argparse.Namespace, work: Path) -> dict[str, 
     path = session_file(work, args.session_s, "svc-pages")
     warm = session_file(work, 2.0, "warmup")
     rounds: list[dict[str, Any]] = []
-    with browsers(svc.url, args.pages, work) as drivers:
+    with browsers(svc.url, args.pages, work, None if args.pages_cpu == "none" else int(args.pages_cpu)) as drivers:
         assert svc.proc is not None
         meter_pids = {"service": [svc.proc.pid], "pages": [d.service.process.pid for d in drivers]}
         run_on_service(svc, warm)  # the worker's first item and hil run's first start pay for cold caches
@@ -715,6 +724,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--session-s", type=float, default=10.0)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--pages", type=int, default=3)
+    ap.add_argument("--pages-cpu", default="0" if (os.cpu_count() or 1) >= 2 else "none",
+                    help="pin the browsers to this CPU (default 0: off the loop's, the last), or none")
     ap.add_argument("--items", type=int, default=10)
     ap.add_argument("--item-s", type=float, default=1.0)
     ap.add_argument("--item-rounds", type=int, default=2)
