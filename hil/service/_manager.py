@@ -135,7 +135,7 @@ class Manager:
         worker = self.worker
         if worker is not None and worker.returncode is None:
             with contextlib.suppress(OSError, ConnectionError):
-                self._send_worker({"op": "quit"})
+                self.send_worker({"op": "quit"})
             try:
                 await asyncio.wait_for(worker.wait(), 30.0)
             except TimeoutError:
@@ -192,7 +192,8 @@ class Manager:
                 _log.error("the worker cannot serve: %s", self.worker_error)
             await asyncio.sleep(WORKER_RESTART_S)
 
-    def _send_worker(self, msg: dict[str, Any]) -> None:
+    def send_worker(self, msg: dict[str, Any]) -> None:
+        """One line to the worker (run, stop, abort, status, doctor, quit); StoreError when it is not running."""
         worker = self.worker
         if worker is None or worker.stdin is None or worker.returncode is not None:
             raise StoreError("the worker is not running")
@@ -269,7 +270,7 @@ class Manager:
         self.running_uid = item.uid
         self.progress = {"uid": item.uid, "cycles": 0, "total": 0}
         try:
-            self._send_worker({"op": "run", "item": {"uid": item.uid, "kind": item.kind, "file_name": item.file_name,
+            self.send_worker({"op": "run", "item": {"uid": item.uid, "kind": item.kind, "file_name": item.file_name,
                                                      "body": item.body, "user": item.user,
                                                      "options": item.options}})
         except (StoreError, OSError, ConnectionError) as exc:
@@ -288,7 +289,7 @@ class Manager:
             await asyncio.sleep(STATUS_EVERY_S)
             if self.worker_state == "ready":  # the boards' state, for the next status
                 with contextlib.suppress(StoreError, OSError, ConnectionError):
-                    self._send_worker({"op": "status"})
+                    self.send_worker({"op": "status"})
             for page in self.pages:
                 page.status_due = True
                 page.wake.set()
@@ -486,7 +487,7 @@ async def end_item(request: Request, m: Manager, caller: Caller) -> Response:
         raise StoreError(f"item {end.uid!r}: not the running item")
     if m.ending != "abort":
         m.ending = how
-    m._send_worker({"op": how, "reason": f"{how} by {caller.user}" + (f": {end.reason}" if end.reason else "")})
+    m.send_worker({"op": how, "reason": f"{how} by {caller.user}" + (f": {end.reason}" if end.reason else "")})
     m.changed()
     return JSONResponse({"uid": m.running_uid, "ending": m.ending})
 
@@ -494,7 +495,7 @@ async def end_item(request: Request, m: Manager, caller: Caller) -> Response:
 async def run_doctor(request: Request, m: Manager, caller: Caller) -> Response:
     if m.running_uid is not None:
         raise StoreError("an item is running; the hardware checks run between items")
-    m._send_worker({"op": "doctor"})
+    m.send_worker({"op": "doctor"})
     return JSONResponse({"note": "the checks run now (about 3 s); GET /api/status shows them (worker.doctor)"},
                         status_code=202)
 
