@@ -40,6 +40,7 @@ from hil.boards import load_hexapod_driver
 from hil.config._files import ConfigError, read_yaml_mapping, resolve_relative
 from hil.config._mqtt import MqttConfig
 from hil.control.registry import ControllerConfigError, controller_params
+from hil.link import baud_budget
 from hil.protocol import HexAxis
 from hil.protocol.swing import Envelope, Segment, check_envelope
 
@@ -74,6 +75,18 @@ class PortsConfig(Strict):
     hexapod: PortConfig | None = Field(
         None, description="the hexapod controller's link; needed only by a hexapod driver that uses the bench's "
         "link (the protocol driver, the default), never opened otherwise")
+
+    @model_validator(mode="after")
+    def _carries_the_link_budget(self) -> PortsConfig:
+        """Each link's baud rate carries its periodic messages (docs/protocol.md, "Link budget"; the check `hil
+        doctor` makes): a line too slow for 1 kHz GYRO_SAMPLEs is refused before anything is sent."""
+        for name in ("servo", "driver", "image", "hexapod"):
+            port = getattr(self, name)
+            if port is not None:
+                budget = baud_budget(name, port.baudrate)
+                if not budget.ok:
+                    raise ValueError(f"{name}.baudrate: {budget.detail}")
+        return self
 
 
 class ControllerConfig(Strict):

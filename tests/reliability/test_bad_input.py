@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 
 from hil.config import MAX_CONFIG_BYTES, MAX_YAML_NODES, PROFILES, load_session
 from tests.reliability.helpers import bad_input, emulator_run_dirs, listing, session_data, write_yaml
@@ -168,3 +169,23 @@ def test_markup_in_a_value_is_printed_as_is(
 def test_the_shipped_session_files_still_load() -> None:
     for path in sorted((PROFILES / "sessions").glob("*.yaml")):
         assert load_session(path).duration_s > 0, path
+
+
+def test_a_line_too_slow_for_the_link_budget_is_refused_before_anything_is_sent(tmp_path: Path) -> None:
+    """docs/protocol.md's link budget: 115 200 baud cannot carry GYRO_SAMPLE at 1 kHz (433 kbit/s)."""
+    from hil.config import PROFILES, ConfigError, load_session
+
+    data = load_session(PROFILES / "sessions" / "demo.yaml").model_dump(mode="json", exclude_none=True)
+    data["safety"].pop("emulator_stall_grace_ms", None)
+    data["ports"] = {"servo": {"port": "/dev/nonexistent-servo", "baudrate": 115200},
+                     "driver": {"port": "/dev/nonexistent-driver", "baudrate": 460800},
+                     "image": {"port": "/dev/nonexistent-image"}, "hexapod": {"port": "/dev/nonexistent-hexapod"}}
+    session = tmp_path / "slow.yaml"
+    session.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError) as err:
+        load_session(session)
+    assert str(err.value) == (f"{session}: ports: servo.baudrate: 115200 baud carries 115.2 kbit/s, and the periodic "
+                              "messages servo → host need 433.0 kbit/s (at most 80% of the line, docs/protocol.md "
+                              "link budget); use at least 921600 baud on both ends")
+    session.write_text(session.read_text().replace("115200", "921600"))
+    assert load_session(session).ports.driver.baudrate == 460_800  # the driver's commands fit in 460 800
