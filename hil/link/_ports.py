@@ -44,7 +44,12 @@ TIOCGEXCL = 0x80045440  # Linux: read the tty's exclusive-use flag (not in the t
 
 class PortUnavailable(RuntimeError):
     """A port cannot be used: missing, not a serial port, not permitted, or held by another bench or program.
-    Bad input: one line naming the link, the port and the reason (exit 2), raised before any byte is sent."""
+    Bad input: one line naming the link, the port and the reason (exit 2), raised before any byte is sent.
+    ``holder``: the bench that holds it, when that is why (its lock file's record), else None."""
+
+    def __init__(self, message: str, holder: Holder | None = None) -> None:
+        super().__init__(message)
+        self.holder = holder
 
 
 @dataclass(frozen=True)
@@ -179,7 +184,7 @@ class PortClaim:
             os.close(fd)
             who = other.describe() if other is not None else "another process"
             raise PortUnavailable(f"{self.name}: {self.port} is in use by {who}; end that bench first, or use "
-                                  "other ports") from None
+                                  "other ports", other) from None
         with contextlib.suppress(OSError):
             os.fchmod(fd, 0o666)  # another user's bench must be able to take it over later
         previous = Holder.parse(_read_all(fd))

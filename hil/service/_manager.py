@@ -55,7 +55,6 @@ WS_SEND_HZ = 25.0  # pages get the live values this often (each message carries 
 WS_MAX_POINTS = 250  # a page that cannot keep up loses its oldest points beyond this
 STATUS_EVERY_S = 1.0  # and the status at least this often (the lease's remaining time, the queue)
 WORKER_RESTART_S = 2.0
-CLAIM_WAIT_S = 15.0  # a restarted worker waits this long for its predecessor to let go of the ports
 
 
 @dataclass
@@ -149,8 +148,7 @@ class Manager:
 
     def _worker_argv(self) -> list[str]:
         o = self.options
-        argv = [sys.executable, "-m", "hil.service._worker", "--state-dir", str(o.state_dir), "--seed", str(o.seed),
-                "--claim-wait", str(CLAIM_WAIT_S if self.ever_ready else 0.0)]
+        argv = [sys.executable, "-m", "hil.service._worker", "--state-dir", str(o.state_dir), "--seed", str(o.seed)]
         if o.loopback:
             argv.append("--loopback")
             if o.emulator is not None:

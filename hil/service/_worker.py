@@ -31,6 +31,7 @@ import json
 import math
 import os
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -57,7 +58,32 @@ LIVE_CHANNELS = {
     "hexapod": ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"),
 }
 EXIT_INVALID = 2
+CLAIM_WAIT_S = 15.0  # a previous worker of this lab (its manager killed) aborts its item and lets go within this
 IDENT_OPTIONS = ("axis", "f_start_hz", "f_stop_hz", "sweep_s", "amplitude_dps", "offset_dps")  # hil.api.ident's
+
+
+def holder_name() -> str:
+    """How this worker's port locks name it: the service, by its manager's pid."""
+    return f"hil serve (pid {os.getppid()})"
+
+
+def predecessor(holder: PortHolder | None) -> bool:
+    """Is ``holder`` a worker of a service that is gone (its manager dead: it is aborting its item and will let go)
+    or of this very service (a worker that died and is being replaced)? Then its ports are waited for; another
+    live bench's are refused at once."""
+    match = re.fullmatch(r"hil serve \(pid (\d+)\)", holder.session) if holder is not None else None
+    if match is None:
+        return False
+    manager = int(match.group(1))
+    if manager == os.getppid():
+        return True
+    try:
+        os.kill(manager, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
 
 
 class Outbox:
@@ -144,13 +170,12 @@ class Worker:
     """One worker: the lab it holds (:meth:`open_lab`), the item it runs, the lines it sends."""
 
     def __init__(self, *, state_dir: Path, loopback: bool, lab_session: Path | None, emulator: Path | None,
-                 seed: int, outbox: Outbox, claim_wait_s: float = 0.0, emulator_cpu: int | None = -1) -> None:
+                 seed: int, outbox: Outbox, emulator_cpu: int | None = -1) -> None:
         self.state_dir = state_dir
         self.loopback = loopback
         self.lab_session = lab_session
         self.emulator_config = emulator
         self.seed = seed
-        self.claim_wait_s = claim_wait_s
         self.emulator_cpu = emulator_cpu  # placed as the shipped sessions place it (emulator.cpu: -1, the loop's)
         self.out = outbox
         self.emulator: EmulatorProcess | None = None
@@ -182,15 +207,15 @@ class Worker:
             if config.ports is None:
                 raise ConfigError(f"{self.lab_session}: ports: not set; the lab's session file names its ports")
             ports = {name: port.port for name in LINKS if (port := getattr(config.ports, name)) is not None}
-        deadline = time.monotonic() + self.claim_wait_s
-        while True:  # a restarted service's previous worker may still be winding its item down
+        deadline = time.monotonic() + CLAIM_WAIT_S
+        while True:
             try:
-                self.claims = claim_ports(ports, f"hil serve (pid {os.getppid()})")
+                self.claims = claim_ports(ports, holder_name())
                 break
-            except PortUnavailable:
-                if time.monotonic() > deadline:
+            except PortUnavailable as exc:
+                if not predecessor(exc.holder) or time.monotonic() > deadline:
                     raise
-                time.sleep(0.2)
+                time.sleep(0.2)  # a previous worker of this lab is winding its item down
         self.lab = BenchLab({name: PortConfig(port=path) for name, path in ports.items()}, self.claims,
                             emulated=self.loopback, description="emulated lab (realtime)" if self.loopback else
                             str(self.lab_session), on_session=self._on_session)
@@ -321,7 +346,7 @@ class Worker:
         finally:
             if hardware and self.lab is not None:
                 self.claims = await asyncio.to_thread(claim_ports, {n: p.port for n, p in self.lab.ports.items()},
-                                                      f"hil serve (pid {os.getppid()})")
+                                                      holder_name())
                 self.lab.claims = self.claims
         code = proc.returncode
         try:
@@ -436,7 +461,7 @@ async def serve(worker: Worker) -> int:
         await worker.doctor()
     except (LinkError, OSError, ValueError) as exc:  # the checks report; a check that cannot run is said so
         worker.doctor_report = {"at": time.time(), "ok": False, "findings": [], "error": str(exc)}
-    holder = PortHolder.this_process(f"hil serve (pid {os.getppid()})")
+    holder = PortHolder.this_process(holder_name())
     worker.out.send("ready", ports=ports, holder=holder.describe(), pid=os.getpid(), **worker.status())
     live = asyncio.get_running_loop().create_task(worker.live_task())
     reader = asyncio.StreamReader(limit=4 << 20)
@@ -483,7 +508,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lab", type=Path, default=None)
     parser.add_argument("--emulator", type=Path, default=None)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--claim-wait", type=float, default=0.0, help="seconds to wait for the ports to be free")
     parser.add_argument("--emulator-cpu", type=int, default=None, help="pin the emulated lab to this CPU")
     args = parser.parse_args(argv)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the manager ends the worker (quit, or its stdin closing)
@@ -491,7 +515,7 @@ def main(argv: list[str] | None = None) -> int:
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # a stray print must not corrupt the manager's lines
     outbox = Outbox(stdout)
     worker = Worker(state_dir=args.state_dir, loopback=args.loopback, lab_session=args.lab, emulator=args.emulator,
-                    seed=args.seed, outbox=outbox, claim_wait_s=args.claim_wait, emulator_cpu=args.emulator_cpu)
+                    seed=args.seed, outbox=outbox, emulator_cpu=args.emulator_cpu)
     try:
         return asyncio.run(serve(worker))
     finally:

@@ -4,14 +4,18 @@ closed) and recorded ``interrupted``, never run again by itself; the queue and t
 
 from __future__ import annotations
 
+import json
 import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 import h5py
 
-from tests.service.conftest import Service, short_session, wait_for
+from hil.session import EmulatorProcess
+from tests.service.conftest import Service, free_port, short_session, wait_for
 
 
 def test_a_manager_killed_mid_run_leaves_the_boards_safe_and_a_restart_keeps_queue_and_history(
@@ -57,3 +61,51 @@ def test_a_manager_killed_mid_run_leaves_the_boards_safe_and_a_restart_keeps_que
         assert [r["name"] for r in bench.history()][:6] == ["w4", "w3", "w2", "w1", "w0", "long"]
     finally:
         again.stop()
+
+
+HOLD = """
+import json, sys, time
+from hil.link import claim_ports
+claims = claim_ports(json.loads(sys.argv[1]), sys.argv[2])
+print("held", flush=True)
+time.sleep(float(sys.argv[3]))
+claims.release()
+"""
+
+
+def hold_ports(ports: dict[str, str], session: str, seconds: float) -> subprocess.Popen[str]:
+    """Another process holding ``ports`` under ``session``'s name for ``seconds``."""
+    proc = subprocess.Popen([sys.executable, "-c", HOLD, json.dumps(ports), session, str(seconds)],
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_a_lab_service_waits_for_a_dead_services_worker_and_refuses_a_live_bench(tmp_path: Path) -> None:
+    """`hil serve --lab` started again at once after its manager was SIGKILLed finds the ports still held by the
+    old worker (aborting its item): a holder named for a service whose manager is gone is waited for. A holder
+    that is another live bench is refused at once, exit 2."""
+    with EmulatorProcess(clock="realtime", extra_args=["--ports-file", str(tmp_path / "ports.json")]) as lab_boards:
+        ports = {n: p for n, p in lab_boards.ports.items() if n != "control"}
+        lab = short_session(tmp_path, 1.0, name="lab", ports={n: {"port": p} for n, p in ports.items()})
+        dead = hold_ports(ports, "hil serve (pid 999999999)", 8.0)  # no such manager: its worker is winding down
+        svc = Service(tmp_path / "state", args=("--lab", str(lab))).start(wait=False)
+        try:
+            t0 = time.monotonic()
+            status = svc.wait_ready()
+            waited_s = time.monotonic() - t0
+            assert dead.wait(30) == 0
+            assert status["worker"]["ports"] == ports and waited_s > 3.0  # it waited for them
+        finally:
+            svc.stop()
+        live = hold_ports(ports, f"hil serve (pid {os.getpid()})", 60.0)  # a live manager: another bench
+        try:
+            t0 = time.monotonic()
+            run = subprocess.run([sys.executable, "-m", "hil", "serve", "--lab", str(lab), "--port",
+                                  str(free_port()), "--state-dir", str(tmp_path / "other")], capture_output=True,
+                                 text=True, timeout=120, check=False)
+            took_s = time.monotonic() - t0
+        finally:
+            live.kill()
+            live.wait()
+    assert run.returncode == 2 and "in use by pid" in run.stderr and took_s < 60, run.stderr
