@@ -485,9 +485,11 @@ async def end_item(request: Request, m: Manager, caller: Caller) -> Response:
         raise StoreError(f"item {end.uid!r}: not the running item")
     if m.ending != "abort":
         m.ending = how
+    if how == "abort":  # an operator's alarm: nothing arms the boards again until someone starts the queue
+        m.store.set_setting("queue_running", False)
     m.send_worker({"op": how, "reason": f"{how} by {caller.user}" + (f": {end.reason}" if end.reason else "")})
     m.changed()
-    return JSONResponse({"uid": m.running_uid, "ending": m.ending})
+    return JSONResponse({"uid": m.running_uid, "ending": m.ending, "queue_running": m.queue_running})
 
 
 async def run_doctor(request: Request, m: Manager, caller: Caller) -> Response:

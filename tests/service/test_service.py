@@ -94,9 +94,17 @@ def test_stop_winds_down_normally_and_abort_disables_first(service: Service, tmp
         with pytest.raises(BenchError) as err:  # the hardware checks wait for the boards to be free
             bench.doctor()
         assert err.value.status == 409 and "between items" in str(err.value)
-        getattr(bench, how)(reason="test")
+        waiting = bench.add(short_session(tmp_path, 1.0, name=f"after-{how}"))
+        answer = getattr(bench, how)(reason="test")
         record = bench.wait(item["uid"])
         assert record["status"] == status and record["exit_code"] == code, record
+        # a stop lets the queue go on; an abort stops it: nothing arms the boards until an operator starts it
+        assert answer["queue_running"] is (how == "stop") and bench.queue()["running"] is (how == "stop")
+        if how == "abort":
+            time.sleep(2.0)
+            assert bench.item(waiting["uid"])["state"] == "queued"
+            bench.start()
+        assert bench.wait(waiting["uid"])["status"] == "completed"
         assert record["summary"]["cycles"] < 20_000  # ended well before its 30 s
         with h5py.File(record["log_path"], "r") as f:
             events = [bytes(k).decode() for k in f["events/kind"][:]]

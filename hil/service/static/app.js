@@ -425,7 +425,7 @@
   async function end(how) {
     const r = page.status && page.status.running;
     if (!r) return;
-    if (how === "abort" && !window.confirm(`Abort ${r.name}? The driver is disabled first; the item ends as aborted.`)) {
+    if (how === "abort" && !window.confirm(`Abort ${r.name}? The driver is disabled first; the item ends as aborted, and the queue stops until an operator starts it again.`)) {
       return;
     }
     const msg = $("action-msg");
