@@ -278,7 +278,7 @@ class Worker:
             return
         out_dir.mkdir(parents=True, exist_ok=True)
         if self.lab is not None:  # who ran it goes into the log's provenance (never a token)
-            self.lab.extra = {"service_user": str(item.get("user", "")), "service_item": uid}
+            self.lab.extra = {"provenance": {"submitted_by": str(item.get("user", "")), "service_item": uid}}
         self.out.send("started", uid=uid, out_dir=str(out_dir))
         options = dict(item.get("options") or {})
         try:

@@ -27,7 +27,7 @@ class BenchLab:
     claims: PortClaims
     emulated: bool
     description: str = ""
-    extra: dict[str, str] = field(default_factory=dict)  # more log attributes of every session on this lab
+    extra: dict[str, Any] = field(default_factory=dict)  # log attributes of its sessions (a "provenance" adds)
     on_session: Callable[[Any], None] | None = None  # called with each Session once it exists, on its event loop
 
     @property

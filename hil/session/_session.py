@@ -282,7 +282,9 @@ class Session:
         attrs = {"config": self.config.model_dump(mode="json"), "ident": idents, "software_version": __version__,
                  "seed": self.config.seed, "start_time_utc": now.isoformat(), "session_name": self.config.name,
                  "controller": self.config.controller.name, **({"clock": "lockstep"} if self.lockstep else {}),
-                 "provenance": collect_provenance(self.config, emulated=bool(emulated)), **self.extra_attrs}
+                 **self.extra_attrs,  # the caller's own; a "provenance" of theirs adds to the bench's
+                 "provenance": {**collect_provenance(self.config, emulated=bool(emulated)),
+                                **self.extra_attrs.get("provenance", {})}}
         self.log = SessionLog(self.log_path, attrs=attrs, flush_interval_s=self.config.logging.flush_interval_s,
                               fsync=self.config.logging.fsync)
         aloop = asyncio.get_running_loop()

@@ -36,8 +36,9 @@ def test_a_session_runs_through_the_service_and_comes_back_as_a_run_result(servi
     loop = result.log.loop
     assert 1900 <= len(loop) <= 7500  # 2 s at 1 kHz, and the wind-down (the hexapod home in <= 5 s)
     assert loop.attrs["units"]["rate_err_el_dps"] == "deg/s"
-    with h5py.File(result.log_path, "r") as f:  # the user is in the log's provenance
-        assert f.attrs["service_user"] == "ana"
+    provenance = result.log.provenance  # who submitted it, beside the software and the plant
+    assert provenance["submitted_by"] == "ana" and len(provenance["service_item"]) == 32
+    assert provenance["hil_version"] and provenance["plant"]["sha256"]
     summary = result.summary()
     assert summary["cycles"] >= 1900 and summary["rate_error_el_dps"]["std"] > 0
     record = bench.history(limit=1)[0]
