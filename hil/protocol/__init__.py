@@ -7,6 +7,7 @@ Import messages and the codec from here::
 
 from hil.protocol import messages
 from hil.protocol.framing import (
+    BITS_PER_BYTE,
     CRC_INIT,
     HEADER_SIZE,
     MAX_FRAME,
@@ -18,12 +19,15 @@ from hil.protocol.framing import (
     LinkCounters,
     crc16,
     encode_frame,
+    frame_size,
+    wire_time_s,
 )
 from hil.protocol.messages import *  # noqa: F403  (the catalogue is the public vocabulary)
 from hil.protocol.wire import Catalogue, EncodeError, MessageSpec
 
 __all__ = [  # noqa: PLE0604
     *messages.__all__,
+    "BITS_PER_BYTE",
     "CRC_INIT",
     "HEADER_SIZE",
     "MAX_FRAME",
@@ -38,4 +42,6 @@ __all__ = [  # noqa: PLE0604
     "MessageSpec",
     "crc16",
     "encode_frame",
+    "frame_size",
+    "wire_time_s",
 ]

@@ -14,7 +14,15 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from hil.protocol import messages as m
-from hil.protocol.framing import CRC_SIZE, HEADER_SIZE, MAX_PAYLOAD, encode_frame
+from hil.protocol.framing import (
+    BITS_PER_BYTE,
+    CRC_SIZE,
+    HEADER_SIZE,
+    MAX_PAYLOAD,
+    encode_frame,
+    frame_size,
+    wire_time_s,
+)
 from hil.protocol.wire import Catalogue, FieldSpec, MessageSpec
 
 DOC_PATH = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
@@ -239,7 +247,7 @@ def periodic_load_bits_per_s(cat: Catalogue = m.CATALOGUE) -> dict[str, float]:
     for s in cat:
         hz = periodic_rate_hz(s)
         if hz is not None and s.sender is not None and s.receiver is not None:
-            load[direction(s)] = load.get(direction(s), 0.0) + (HEADER_SIZE + s.payload_size + CRC_SIZE) * hz * 10
+            load[direction(s)] = load.get(direction(s), 0.0) + frame_size(s) * hz * BITS_PER_BYTE
     return load
 
 
@@ -251,8 +259,8 @@ def render_link_budget(cat: Catalogue) -> str:
         hz = periodic_rate_hz(s)
         if hz is None:
             continue
-        size = HEADER_SIZE + s.payload_size + CRC_SIZE
-        times = " | ".join(f"{size * 10 / b * 1e6:.0f} us" for b in BAUDS)
+        size = frame_size(s)
+        times = " | ".join(f"{wire_time_s(s, b) * 1e6:.0f} us" for b in BAUDS)
         out.append(f"| {s.name} | {size} | {hz:g} Hz | {times} |")
     load = periodic_load_bits_per_s(cat)
     out += ["", "Periodic load per link direction (each board has its own full-duplex link; HEARTBEAT adds 36 B/s):"]

@@ -25,13 +25,24 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, NamedTuple
 
 from hil.protocol.messages import CATALOGUE, PROTOCOL_VERSION, Board
-from hil.protocol.wire import Catalogue, EncodeError
+from hil.protocol.wire import Catalogue, EncodeError, MessageSpec
 
 SYNC = b"\xeb\x90"
 HEADER_SIZE = 9  # sync included
 CRC_SIZE = 2
 MAX_PAYLOAD = 240
 MAX_FRAME = HEADER_SIZE + MAX_PAYLOAD + CRC_SIZE
+BITS_PER_BYTE = 10  # 8N1 on the wire: a start bit, 8 data bits, a stop bit
+
+
+def frame_size(spec: MessageSpec) -> int:
+    """Bytes of one frame of ``spec`` on the wire: header (sync included), payload, CRC."""
+    return HEADER_SIZE + spec.payload_size + CRC_SIZE
+
+
+def wire_time_s(spec: MessageSpec, baudrate: float) -> float:
+    """Seconds from a frame's first bit on the wire to its last, at ``baudrate`` (8N1)."""
+    return frame_size(spec) * BITS_PER_BYTE / baudrate
 CRC_INIT = 0xFFFF
 _HEADER = struct.Struct("<BBBBHB")  # version, src, dst, msg_id, seq, length (after the sync)
 
