@@ -61,7 +61,8 @@ S_IMB = 57  # 2: imbalance torque held over the last tick (az, el)
 S_LOS = 59  # 3: true elevation-frame inertial rates at the tick end (rad/s)
 S_ATT = 62  # 4: sin, cos of the carrier's roll and pitch at the last mid-tick
 S_RIP = 66  # 4: sin, cos of N theta_m (ripple phase), az then el
-S_COL = 70  # MAX_BANDS x 3 axes x (e1, e2, y1, y2) of the coloured-noise filters
+S_U = 70  # 2: the drive (DAC counts, az, el) held at the end of the last tick
+S_COL = 72  # MAX_BANDS x 3 axes x (e1, e2, y1, y2) of the coloured-noise filters
 S_RING = S_COL + 4 * 3 * MAX_BANDS  # 3 x delay_ticks: the gyro's whole-tick delay line
 
 OUT_LEN = 8  # step_tick's tuple: gyro x, y, z (deg/s), encoders az, el (deg), currents az, el (A), refill flag
@@ -361,16 +362,23 @@ def _zoh(p, b, x, k, tm, v, vr):  # noqa: PLR0917
 
 
 @numba.njit(**_JIT)
-def _axes(p, s, v_a, c_a, tl_a, v_e, c_e, tl_e):  # noqa: PLR0917
-    """Both axes over one tick: ``n_sub`` sub-steps with the drive ``v``, the carrier rate ``c`` and the load torque
-    ``tl`` held over the tick. Each sub-step: the friction torques (:func:`_friction2`), the motor-side torques
-    ``T_m = -T_f + a K_t i sin(N theta_m)`` (ripple; ``sin(N theta_m)`` at the sub-step's start), the exact-ZOH
-    update (:func:`_zoh`), the ripple phase rotated. The axes are stepped in the same loop (their dependency chains
-    overlap); the mechanism switches are read once per tick."""
+def _axes(p, s, v_a0, v_a, v_e0, v_e, n_old, c_a, tl_a, c_e, tl_e):  # noqa: PLR0917
+    """Both axes over one tick: ``n_sub`` sub-steps with the carrier rate ``c`` and the load torque ``tl`` held over
+    the tick, and the drive ``v0`` (the last tick's) for the first ``n_old`` sub-steps, ``v`` after. ``n_old`` may be
+    a fraction: the sub-step it ends in holds the time-weighted mean of the two (exact for the voltage's integral).
+    Each sub-step: the friction torques (:func:`_friction2`), the motor-side torques ``T_m = -T_f + a K_t i sin(N
+    theta_m)`` (ripple; ``sin(N theta_m)`` at the sub-step's start), the exact-ZOH update (:func:`_zoh`), the ripple
+    phase rotated. The axes are stepped in the same loop (their dependency chains overlap); the mechanism switches
+    are read once per tick."""
     xa = (s[S_X], s[S_X + 1], s[S_X + 2], s[S_X + 3], s[S_X + 4])
     xe = (s[S_X + 5], s[S_X + 6], s[S_X + 7], s[S_X + 8], s[S_X + 9])
-    ka = _held(p, 0, v_a, c_a, tl_a)
-    ke = _held(p, PA_LEN, v_e, c_e, tl_e)
+    ka1 = _held(p, 0, v_a, c_a, tl_a)
+    ke1 = _held(p, PA_LEN, v_e, c_e, tl_e)
+    ka, ke, v_a_j, v_e_j = ka1, ke1, v_a, v_e
+    ka0, ke0 = ka1, ke1
+    if n_old > 0.0:
+        ka0 = _held(p, 0, v_a0, c_a, tl_a)
+        ke0 = _held(p, PA_LEN, v_e0, c_e, tl_e)
     za, ze = s[S_Z], s[S_Z + 1]
     tfa = tfe = 0.0
     vaa, vae = v_a, v_e
@@ -380,7 +388,16 @@ def _axes(p, s, v_a, c_a, tl_a, v_e, c_e, tl_e):  # noqa: PLR0917
     # ripple phase sin / cos(N theta_m), carried in the state: rotated by N (change of theta_m) each sub-step
     na, ne = p[PA_RIPN], p[PA_LEN + PA_RIPN]
     sra, cra, sre, cre = s[S_RIP], s[S_RIP + 1], s[S_RIP + 2], s[S_RIP + 3]
-    for _ in range(int(p[P_NSUB])):
+    for j in range(int(p[P_NSUB])):
+        if n_old > j:  # the last tick's drive still (partly) holds in this sub-step
+            w = n_old - j
+            if w >= 1.0:
+                ka, ke, v_a_j, v_e_j = ka0, ke0, v_a0, v_e0
+            else:
+                v_a_j, v_e_j = w * v_a0 + (1.0 - w) * v_a, w * v_e0 + (1.0 - w) * v_e
+                ka, ke = _held(p, 0, v_a_j, c_a, tl_a), _held(p, PA_LEN, v_e_j, c_e, tl_e)
+        else:
+            ka, ke, v_a_j, v_e_j = ka1, ke1, v_a, v_e
         vra, vre = xa[1] - c_a, xe[1] - c_e
         tfa, za, tfe, ze = _friction2(p, lugre2, vra, za, vre, ze)
         tma, tme = -tfa, -tfe
@@ -388,8 +405,8 @@ def _axes(p, s, v_a, c_a, tl_a, v_e, c_e, tl_e):  # noqa: PLR0917
             tma += ripa_a * xa[0] * sra
         if ripa_e != 0.0:
             tme += ripa_e * xe[0] * sre
-        xa1, vaa = _zoh(p, 0, xa, ka, tma, v_a, vra)
-        xe1, vae = _zoh(p, PA_LEN, xe, ke, tme, v_e, vre)
+        xa1, vaa = _zoh(p, 0, xa, ka, tma, v_a_j, vra)
+        xe1, vae = _zoh(p, PA_LEN, xe, ke, tme, v_e_j, vre)
         if na != 0.0 and ne != 0.0:
             sra, cra, sre, cre = _rotate2(sra, cra, na * (xa1[2] - xa[2]), sre, cre, ne * (xe1[2] - xe[2]))
         elif na != 0.0:
@@ -428,15 +445,17 @@ def _outputs(p, s, flag):
 
 
 @numba.njit(**_INLINE)
-def _tick(p, s, nz, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
+def _tick(p, s, nz, u_az, u_el, at, pose, rate, acc):  # noqa: PLR0917
     """One 1 ms tick (:func:`_advance`); returns :func:`_outputs` (step_tick's entry point)."""
-    return _outputs(p, s, _advance(p, s, nz, u_az, u_el, pose, rate, acc))
+    return _outputs(p, s, _advance(p, s, nz, u_az, u_el, at, pose, rate, acc))
 
 
 @numba.njit(**_INLINE)
-def _advance(p, s, nz, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
-    """One 1 ms tick; ``pose``, ``rate``, ``acc`` at mid-tick (tuples or array rows). Returns 1.0 if the tick used up
-    the noise block (the caller refills it), else 0.0."""
+def _advance(p, s, nz, u_az, u_el, at, pose, rate, acc):  # noqa: PLR0917
+    """One 1 ms tick; ``pose``, ``rate``, ``acc`` at mid-tick (tuples or array rows). The drive ``u`` (DAC counts)
+    takes over from the last tick's at the fraction ``at`` of the tick (0: from its start; the wire's and the host's
+    delay, docs/emulator.md "The wire"). Returns 1.0 if the tick used up the noise block (the caller refills it), else
+    0.0."""
     for j in range(6):
         s[S_CARR + j] = pose[j]
         s[S_CARR + 6 + j] = rate[j]
@@ -462,10 +481,14 @@ def _advance(p, s, nz, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
     s[S_IMB], s[S_IMB + 1] = tim_a, tim_e
     vmax = p[PA_VMAX]
     v_a = min(max(u_az * p[PA_VPC], -vmax), vmax)
+    v_a0 = min(max(s[S_U] * p[PA_VPC], -vmax), vmax)
     vmax = p[PA_LEN + PA_VMAX]
     v_e = min(max(u_el * p[PA_LEN + PA_VPC], -vmax), vmax)
+    v_e0 = min(max(s[S_U + 1] * p[PA_LEN + PA_VPC], -vmax), vmax)
+    s[S_U], s[S_U + 1] = u_az, u_el
+    n_old = 0.0 if at <= 0.0 else min(at, 1.0) * p[P_NSUB]
     th_a, th_e = s[S_X + 4], s[S_X + 9]
-    _axes(p, s, v_a, c_a, tim_a, v_e, c_e, tim_e)
+    _axes(p, s, v_a0, v_a, v_e0, v_e, n_old, c_a, tim_a, c_e, tim_e)
     # sin, cos of the load angles at the tick end: the tick start's rotated by the tick's change (exact up to
     # rounding, which _renorm keeps off the norm; reset() starts them exact)
     sa, ca, se, ce = _rotate2(s[S_SC], s[S_SC + 1], s[S_X + 4] - th_a, s[S_SC + 2], s[S_SC + 3], s[S_X + 9] - th_e)
@@ -579,10 +602,10 @@ def _views(buf):
 
 
 @numba.njit(**_JIT)
-def _tick_entry(buf, u_az, u_el, pose, rate, acc):  # noqa: PLR0917
+def _tick_entry(buf, u_az, u_el, at, pose, rate, acc):  # noqa: PLR0917
     """:func:`_tick` on the plant's buffer (step_tick's one compiled call per tick)."""
     p, s, nz = _views(buf)
-    return _tick(p, s, nz, u_az, u_el, pose, rate, acc)
+    return _tick(p, s, nz, u_az, u_el, at, pose, rate, acc)
 
 
 @numba.njit(**_JIT)
@@ -666,11 +689,12 @@ RUN_INDEX = {name: j for j, name in enumerate(RUN_COLUMNS)}
 
 
 @numba.njit(**_JIT)
-def _run(p, s, nz, u_az, u_el, carrier, out, rows, k0):  # noqa: PLR0917
+def _run(p, s, nz, u_az, u_el, at, carrier, out, rows, k0):  # noqa: PLR0917
     """Ticks ``k0 ..`` of a batch (one row of ``carrier`` = pose, rate, accel per tick); stops after the tick that
     used up the noise block (the caller refills it) or at the end. Column ``j`` of :data:`RUN_COLUMNS` goes to
     ``out[rows[j], tick]``, not computed if ``rows[j] < 0`` (the LOS error and camera columns cost 2 atan2, a
-    hypot and a sin / cos per tick). Returns the next tick."""
+    hypot and a sin / cos per tick). Each tick's drive takes over from the last one's at the fraction ``at`` of the
+    tick (:func:`_advance`). Returns the next tick."""
     n = u_az.shape[0]
     ifov, hw, hh = p[P_IFOV], p[P_HW], p[P_HH]
     r_gx, r_gy, r_gz, r_ea, r_ee, r_ia, r_ie = rows[0], rows[1], rows[2], rows[3], rows[4], rows[5], rows[6]
@@ -681,7 +705,7 @@ def _run(p, s, nz, u_az, u_el, carrier, out, rows, k0):  # noqa: PLR0917
     k = k0
     while k < n:
         c = carrier
-        flag = _advance(p, s, nz, u_az[k], u_el[k],
+        flag = _advance(p, s, nz, u_az[k], u_el[k], at,
                         (c[k, 0], c[k, 1], c[k, 2], c[k, 3], c[k, 4], c[k, 5]),
                         (c[k, 6], c[k, 7], c[k, 8], c[k, 9], c[k, 10], c[k, 11]),
                         (c[k, 12], c[k, 13], c[k, 14], c[k, 15], c[k, 16], c[k, 17]))
@@ -749,8 +773,8 @@ _A1 = nbt.Array(nbt.float64, 1, "C")
 _A2 = nbt.Array(nbt.float64, 2, "C")
 _T6 = nbt.UniTuple(nbt.float64, 6)
 _SIGNATURES: dict[str, tuple[Any, tuple[Any, ...]]] = {
-    "tick": (_tick_entry, (_A1, nbt.float64, nbt.float64, _T6, _T6, _T6)),
-    "run": (_run, (_A1, _A1, _A1, _A1, _A1, _A2, _A2, nbt.Array(nbt.int64, 1, "C"), nbt.int64)),
+    "tick": (_tick_entry, (_A1, nbt.float64, nbt.float64, nbt.float64, _T6, _T6, _T6)),
+    "run": (_run, (_A1, _A1, _A1, _A1, _A1, nbt.float64, _A2, _A2, nbt.Array(nbt.int64, 1, "C"), nbt.int64)),
     "los": (_los_entry, (_A1,)),
     "truth": (_truth, (_A1, _A1)),
     "outputs": (_outputs, (_A1, _A1, nbt.float64)),

@@ -162,19 +162,23 @@ class Plant:
         lsb = self.config.gyro.quantisation_lsb_dps
         return round(x / lsb) * lsb if lsb > 0 else x
 
-    def step_tick(self, u_az_counts: float, u_el_counts: float, carrier: CarrierMotion) -> None:
-        """Advance one 1 ms tick with the drive (DAC counts) held; ``carrier`` is evaluated at mid-tick."""
+    def step_tick(self, u_az_counts: float, u_el_counts: float, carrier: CarrierMotion,
+                  drive_delay_s: float = 0.0) -> None:
+        """Advance one 1 ms tick; ``carrier`` is evaluated at mid-tick. The drive (DAC counts) takes over from the last
+        tick's ``drive_delay_s`` after the tick's start (0: over the whole tick; the wire's and the host's delay,
+        docs/emulator.md "The wire"; clipped to the tick) and holds until the next tick's drive takes over."""
+        at = drive_delay_s / TICK_S
         try:
             pose, rate, accel = carrier
-            out = self._tick(self._buf, u_az_counts, u_el_counts, pose, rate, accel)
+            out = self._tick(self._buf, u_az_counts, u_el_counts, at, pose, rate, accel)
         except (TypeError, ValueError):  # not floats / tuples of 6 (nothing was stepped): convert, or say why
-            out = self._tick(self._buf, float(u_az_counts), float(u_el_counts), *_carrier_tuples(carrier))
+            out = self._tick(self._buf, float(u_az_counts), float(u_el_counts), float(at), *_carrier_tuples(carrier))
         self._out = out
         if out[7]:
             self._refill_noise()
 
     def run(self, u_az_counts: Any, u_el_counts: Any, carrier: Any,
-            outputs: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+            outputs: Iterable[str] | None = None, drive_delay_s: float = 0.0) -> dict[str, np.ndarray]:
         """Advance ``n`` ticks in one compiled loop (offline use: fitting, benchmarks): the same physics, noise and
         final state as ``n`` calls of :meth:`step_tick` (bit for bit; tested), so the two can be mixed.
 
@@ -185,6 +189,8 @@ class Plant:
         (bool), true LOS rates in deg/s, load angles az/el in deg, armature voltages in V). ``outputs``: the names of
         the columns to compute and return (default: all); the physics, the noise and the state do not depend on it,
         only the time spent (without the LOS error and camera columns: no atan2, hypot, sin / cos of the yaw).
+        ``drive_delay_s``: each tick's drive takes over from the last one's this long after the tick's start, as in
+        :meth:`step_tick`.
         """
         u_a = np.ascontiguousarray(u_az_counts, dtype=np.float64)
         u_e = np.ascontiguousarray(u_el_counts, dtype=np.float64)
@@ -195,6 +201,8 @@ class Plant:
                              f"{u_e.shape}, {car.shape}")
         if not (np.all(np.isfinite(u_a)) and np.all(np.isfinite(u_e)) and np.all(np.isfinite(car))):
             raise ValueError("run: inputs must be finite")
+        if not 0.0 <= drive_delay_s <= TICK_S:
+            raise ValueError(f"run: drive_delay_s must be within the tick, 0 to {TICK_S} s; got {drive_delay_s!r}")
         names = RUN_COLUMNS if outputs is None else tuple(dict.fromkeys(outputs))
         rows = np.full(len(RUN_COLUMNS), -1, dtype=np.int64)
         for i, name in enumerate(names):
@@ -206,7 +214,7 @@ class Plant:
         step = kernel("run")
         k = 0
         while k < n:
-            k = step(self._p, self._s, self._nz, u_a, u_e, car, out, rows, k)
+            k = step(self._p, self._s, self._nz, u_a, u_e, drive_delay_s / TICK_S, car, out, rows, k)
             if self._s[S_REFILL]:
                 self._refill_noise()
         self._out = kernel("outputs")(self._p, self._s, 0.0)
