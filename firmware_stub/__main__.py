@@ -21,7 +21,7 @@ import tempfile
 from pathlib import Path
 from typing import NoReturn
 
-from firmware_stub.config import ConfigError, EmulatorConfig, load_emulator_config
+from firmware_stub.config import ConfigError, EmulatorConfig, LinkName, load_emulator_config
 from firmware_stub.emulator import Emulator
 from firmware_stub.plant import PlantConfigError, load_plant_config
 from hil.protocol import CATALOGUE
@@ -52,6 +52,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="run the board clock SCHED_FIFO at this priority (1-99; 0 = normal scheduling)")
     ap.add_argument("--cpu", type=int, default=None,
                     help="pin the emulator to this CPU, an index into the CPUs it may use (-1 = the last)")
+    ap.add_argument("--baud", action="append", default=[], metavar="LINK=RATE",
+                    help="a link's line rate, bit/s (repeat per link; default the config's links.LINK.baudrate)")
     ap.add_argument("--fingerprint", type=lambda s: int(s, 0), default=CATALOGUE.fingerprint,
                     help="catalogue fingerprint the boards claim (emulates firmware built from another catalogue)")
     return ap.parse_args(argv)
@@ -77,6 +79,18 @@ def _writable_file(path: Path, option: str) -> None:
         raise BadInput(f"{option} {path}: {parent} is not writable")
 
 
+def parse_bauds(items: list[str]) -> dict[str, int]:
+    """``--baud servo=921600`` options as link -> rate; BadInput naming the option for a malformed one."""
+    bauds: dict[str, int] = {}
+    for item in items:
+        name, _, rate = item.partition("=")
+        if name not in {link.value for link in LinkName} or not rate.isdigit():
+            raise BadInput(f"--baud {item}: expected LINK=RATE with LINK one of "
+                           f"{', '.join(link.value for link in LinkName)} and RATE in bit/s")
+        bauds[name] = int(rate)
+    return bauds
+
+
 def check_inputs(args: argparse.Namespace) -> EmulatorConfig:
     """Validate every option, the config and the plant file it names, before anything is created (the
     Emulator makes its run directory and ptys at once): BadInput or ConfigError (one line) if one is bad."""
@@ -91,7 +105,7 @@ def check_inputs(args: argparse.Namespace) -> EmulatorConfig:
     for option, path in (("--ports-file", args.ports_file), ("--fault-log", args.fault_log)):
         if path is not None:
             _writable_file(path, option)
-    config = load_emulator_config(args.config, clock=args.clock, seed=args.seed)
+    config = load_emulator_config(args.config, clock=args.clock, seed=args.seed, baudrates=parse_bauds(args.baud))
     try:
         load_plant_config(config.plant)
     except PlantConfigError as exc:

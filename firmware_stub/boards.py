@@ -61,6 +61,7 @@ from hil.protocol import (
     StreamMode,
     TrackCmd,
     TrackMode,
+    frame_size,
 )
 from hil.protocol.swing import (
     ZERO6,
@@ -104,6 +105,7 @@ class World(Protocol):
     recorder: FaultRecorder
     servo: ServoBoard
     driver: DriverBoard
+    drive_delay_s: float  # lockstep and sim: when DRIVE_CMD k acts after tick k (the wire and the host; 0: off)
 
 
 class EmulatedBoard:
@@ -384,13 +386,15 @@ class ServoBoard(EmulatedBoard):
             self.clock_late += 1
             self.send(ClockLate(self.last_delivered & U32, min(round(late_s * 1e6), U32)))
 
-    def on_written(self, t_perf: float) -> None:
-        """The tick's output has been written to the pty (realtime: at the deadline)."""
+    def on_written(self, t_perf: float, wire_s: float = 0.0) -> None:
+        """The tick's output has been written to the pty (realtime: at the deadline, plus ``wire_s``, its wire time:
+        the sample's first byte left at ``t_perf - wire_s``)."""
         if self._unwritten is not None:
-            self.written_at[self._unwritten] = t_perf
+            t_first = t_perf - wire_s
+            self.written_at[self._unwritten] = t_first
             self._unwritten = None
             if self.world.deadline is not None:
-                self.pacing_late_us.append((t_perf - self.world.deadline) * 1e6)
+                self.pacing_late_us.append((t_first - self.world.deadline) * 1e6)
 
     def _report_timing(self, first: int) -> None:
         values = []
@@ -402,8 +406,8 @@ class ServoBoard(EmulatedBoard):
                 continue
             us = lat * 1e6
             self.latencies_us.append(us)
-            if self.world.deadline is None:  # lockstep: the world waited for it, so no simulated latency
-                values.append(0)
+            if self.world.deadline is None:  # lockstep: the world waited for it; the latency is the modelled one
+                values.append(round(self.world.drive_delay_s * 1e6))
                 continue
             if us > self.late_threshold_us:
                 self.late_total += 1
@@ -446,6 +450,8 @@ class DriverBoard(EmulatedBoard):
         self.current_limit_a = cfg.current_limit_a
         self.bus_voltage_v = cfg.bus_voltage_v
         self.stale_commands = 0
+        self._rx_wire_s = {cls: link.wire_s(frame_size(spec)) for cls, spec in self.accepted.items()}
+        self.arrived_s = -math.inf  # perf_counter() time the last host frame's last byte arrived
 
     def power_on(self) -> None:
         super().power_on()
@@ -459,9 +465,15 @@ class DriverBoard(EmulatedBoard):
         self.over_ticks = [0, 0]
         self._last_nack_tick = -(10**9)
 
+    def handle(self, frame: Frame, t_rx: float) -> None:
+        """Realtime: the frame acts when its last byte arrives, its wire time after it was read (the emulator splits
+        the tick's hold there)."""
+        self.arrived_s = t_rx + self._rx_wire_s.get(type(frame.message), 0.0)
+        super().handle(frame, t_rx)
+
     def _on_cmd(self, frame: Frame, t_rx: float) -> None:
         msg: DriveCmd = frame.message
-        self.world.servo.note_command(msg.tick, t_rx)
+        self.world.servo.note_command(msg.tick, self.arrived_s)
         self.last_cmd_tick = msg.tick
         en = self._en
         if not en:

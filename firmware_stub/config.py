@@ -8,12 +8,16 @@ from __future__ import annotations
 
 import os
 import stat
+from collections.abc import Mapping
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from hil.protocol import CATALOGUE, DriveCmd, GyroSample, wire_time_s
+from hil.protocol.docgen import periodic_load_bits_per_s
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_EMULATOR_CONFIG = REPO / "profiles" / "emulator" / "default.yaml"
@@ -54,6 +58,62 @@ class LinkFaults(Strict):
     drop_byte_rate: Probability = Field(0.0, description="chance that each transmitted byte is lost")
     garbage_rate: Probability = Field(0.0, description="chance of a burst of random bytes before each frame")
     garbage_max_bytes: int = Field(32, ge=1, le=4096, description="longest garbage burst, bytes")
+
+
+DEFAULT_BAUD = 921_600  # the protocol's line rate (docs/protocol.md, "Link budget")
+HOST_COMPUTE_US = 37.0  # the bench's sample in -> DRIVE_CMD out, p50 (docs/performance.md, the default placement)
+
+
+class LinkConfig(LinkFaults):
+    """One board's link: its line rate, and the faults on what the board sends."""
+
+    baudrate: int = Field(DEFAULT_BAUD, ge=9600, le=12_000_000,
+                          description="the line's rate, bit/s (8N1: 10 bits a byte); a loopback session sets it from "
+                          "its ports")
+
+    def faults(self) -> LinkFaults:
+        return LinkFaults(**self.model_dump(exclude={"baudrate"}))
+
+
+def _as_link(value: Any) -> Any:
+    """A LinkFaults instance (a test's or a caller's) read as the fields it sets."""
+    return value.model_dump() if isinstance(value, LinkFaults) and not isinstance(value, LinkConfig) else value
+
+
+class LinksConfig(Strict):
+    """The four links: the wire's time (on by default) and each link's rate and faults (docs/emulator.md, "The wire").
+
+    With ``wire_time`` on, a frame arrives its wire time (10 bits a byte at the link's rate) after it starts. On the
+    realtime clock the servo board's output is written that long after its deadline, and a host frame takes effect
+    that long after it was read. On the lockstep and sim clocks, DRIVE_CMD k takes effect ``GYRO_SAMPLE`` wire time
+    + ``host_compute_us`` + ``DRIVE_CMD`` wire time after tick k (the same in both, so their logs stay equal)."""
+
+    wire_time: bool = Field(True, description="frames take their wire time; off: a frame arrives as it is written, "
+                            "and a DRIVE_CMD acts from its tick's start")
+    host_compute_us: float = Field(
+        HOST_COMPUTE_US, ge=0.0, le=10_000.0,
+        description="lockstep and sim: the bench's time from a GYRO_SAMPLE received to its DRIVE_CMD written, us")
+    servo: LinkConfig = LinkConfig()
+    driver: LinkConfig = LinkConfig()
+    image: LinkConfig = LinkConfig()
+    hexapod: LinkConfig = LinkConfig()
+
+    _links = field_validator("servo", "driver", "image", "hexapod", mode="before")(_as_link)
+
+    def link(self, name: LinkName | str) -> LinkConfig:
+        return getattr(self, LinkName(name).value)
+
+    @model_validator(mode="after")
+    def _carries_the_periodic_load(self) -> LinksConfig:
+        """A line slower than its periodic messages (docs/protocol.md, "Link budget") could not keep up at all."""
+        loads = periodic_load_bits_per_s()
+        for name in LinkName:
+            baud = self.link(name).baudrate
+            need = max((bps for d, bps in loads.items() if name.value in d.split(" → ")), default=0.0)
+            if need > baud:
+                raise ValueError(f"{name.value}.baudrate: {baud} baud cannot carry the link's periodic messages "
+                                 f"({need / 1e3:.1f} kbit/s on the wire, docs/protocol.md link budget)")
+        return self
 
 
 FaultKind = Literal["stall", "latency_spike", "reset", "disconnect", "garbage"]
@@ -112,11 +172,21 @@ class EmulatorConfig(Strict):
         description="realtime: the world advances when DRIVE_CMD k arrives, or this long before the next "
         "sample is due if it has not; a command later than that is applied one tick late")
     boards: BoardsConfig = BoardsConfig()
-    links: dict[LinkName, LinkFaults] = Field(default_factory=dict, description="continuous faults per link")
+    links: LinksConfig = Field(LinksConfig(), description="the wire's time, each link's rate and faults")
     faults: list[ScheduledFault] = Field(default_factory=list, description="one-off faults at simulated times")
 
     def link_faults(self, link: LinkName) -> LinkFaults:
-        return self.links.get(link, LinkFaults())
+        return self.links.link(link).faults()
+
+    def drive_delay_s(self) -> float:
+        """Lockstep and sim: how long after tick k DRIVE_CMD k acts (docs/emulator.md, "The wire"): the GYRO_SAMPLE's
+        wire time on the servo link, ``links.host_compute_us``, the DRIVE_CMD's on the driver link; 0 with
+        ``links.wire_time`` off."""
+        links = self.links
+        if not links.wire_time:
+            return 0.0
+        return (wire_time_s(CATALOGUE.by_type[GyroSample], links.servo.baudrate) + links.host_compute_us * 1e-6
+                + wire_time_s(CATALOGUE.by_type[DriveCmd], links.driver.baudrate))
 
 
 def describe_validation_error(source: str, err: ValidationError) -> str:
@@ -203,9 +273,20 @@ def load_yaml_model(model: type[M], path: str | Path, overrides: dict | None = N
         raise ConfigError(describe_validation_error(str(path), exc)) from None
 
 
-def load_emulator_config(path: str | Path | None = None, **overrides: object) -> EmulatorConfig:
-    """Load an emulator YAML (default profiles/emulator/default.yaml); overrides replace top-level fields."""
+def load_emulator_config(path: str | Path | None = None, *, baudrates: Mapping[str, int] | None = None,
+                         **overrides: object) -> EmulatorConfig:
+    """Load an emulator YAML (default profiles/emulator/default.yaml); overrides replace top-level fields,
+    ``baudrates`` (link name -> bit/s: a loopback session's ports) the links' rates."""
     path = Path(path) if path is not None else DEFAULT_EMULATOR_CONFIG
     config = load_yaml_model(EmulatorConfig, path, {k: v for k, v in overrides.items() if v is not None})
     plant = config.plant if config.plant.is_absolute() else (path.parent / config.plant).resolve()
-    return config.model_copy(update={"plant": plant})
+    config = config.model_copy(update={"plant": plant})
+    if baudrates:
+        data = config.model_dump()
+        for name, baud in baudrates.items():
+            data["links"][LinkName(name).value]["baudrate"] = baud
+        try:
+            config = EmulatorConfig.model_validate(data)
+        except ValidationError as exc:
+            raise ConfigError(describe_validation_error(str(path), exc)) from None
+    return config

@@ -37,7 +37,7 @@ from firmware_stub.config import ClockMode, EmulatorConfig, LinkFaults, LinkName
 from firmware_stub.control import ControlServer
 from firmware_stub.link import BoardLink, FaultRecorder
 from firmware_stub.plant import CarrierMotion, Plant, load_plant_config
-from hil.protocol import CATALOGUE, Board, DriveCmd, Frame
+from hil.protocol import BITS_PER_BYTE, CATALOGUE, Board, DriveCmd, Frame
 from hil.protocol.swing import Envelope
 
 TICK_S = 1e-3
@@ -75,8 +75,17 @@ class Emulator:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.recorder = FaultRecorder(fault_log)
         self.plant = Plant(load_plant_config(config.plant), config.seed)
+        wire = config.links.wire_time
         self.links = {name: link_factory(name, BOARD_IDS[name], self.run_dir, config.link_faults(name),
-                                      seed=config.seed, recorder=self.recorder) for name in LinkName}
+                                      seed=config.seed, recorder=self.recorder,
+                                      byte_time_s=BITS_PER_BYTE / config.links.link(name).baudrate if wire else 0.0)
+                      for name in LinkName}
+        # lockstep and sim: DRIVE_CMD k acts this long after tick k (the sample's wire, the host, the command's wire);
+        # whole ticks of it wait in a delay line, the rest splits the tick's hold (Plant.step_tick)
+        self.drive_delay_s = config.drive_delay_s()
+        whole_ticks = int(self.drive_delay_s / TICK_S + 1e-9)
+        self._drive_in_tick_s = self.drive_delay_s - whole_ticks * TICK_S
+        self._drive_line: deque[tuple[float, float]] = deque([(0.0, 0.0)] * whole_ticks, maxlen=whole_ticks + 1)
         self.servo = ServoBoard(self, self.links[LinkName.SERVO], fingerprint)
         self.driver = DriverBoard(self, self.links[LinkName.DRIVER], fingerprint)
         self.image = ImageBoard(self, self.links[LinkName.IMAGE], fingerprint)
@@ -139,9 +148,16 @@ class Emulator:
         then every board's periodic output (the servo board's GYRO_SAMPLE last). A board whose host timer
         expires at the new tick (realtime) protects itself before its periodic output."""
         u_az, u_el = self.driver.output_counts()
+        if self.deadline is None:  # lockstep and sim: the modelled delay
+            delay_s = self._drive_in_tick_s
+            if self._drive_line.maxlen != 1:
+                self._drive_line.append((u_az, u_el))
+                u_az, u_el = self._drive_line[0]
+        else:  # realtime: the last host frame's arrival on the driver's wire, within this tick
+            delay_s = min(max(self.driver.arrived_s - (self.deadline - TICK_S), 0.0), TICK_S)
         pose, rate, accel = self.hexapod.motion(self.tick)
         self.hexapod.pose = pose
-        self.plant.step_tick(u_az, u_el, CarrierMotion(pose, rate, accel))
+        self.plant.step_tick(u_az, u_el, CarrierMotion(pose, rate, accel), delay_s)
         tick = self.tick = self.tick + 1
         self.recorder.now_tick = tick
         if tick >= self.host_check_tick:
@@ -220,9 +236,11 @@ class Emulator:
             for link in self.links.values():
                 link.defer()
             self.step()
-            self.servo.announce_late(wait_until(self.deadline, self.readers()))
-            self.links[LinkName.SERVO].flush()
-            self.servo.on_written(time.perf_counter())
+            servo_link = self.links[LinkName.SERVO]
+            wire_s = servo_link.wire_s(servo_link.pending_bytes)  # written when its last byte would arrive
+            self.servo.announce_late(wait_until(self.deadline + wire_s, self.readers()))
+            servo_link.flush()
+            self.servo.on_written(time.perf_counter(), wire_s)
             self.released = False
             self.drain(LinkName.DRIVER)
 

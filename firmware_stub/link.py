@@ -119,8 +119,10 @@ class BoardLink:
     """A board's end of its serial link. ``send`` applies the faults; ``receive`` decodes what came in."""
 
     def __init__(self, name: LinkName, board_id: int, run_dir: Path, faults: LinkFaults, *, seed: int,
-                 recorder: FaultRecorder) -> None:
+                 recorder: FaultRecorder, byte_time_s: float = 0.0) -> None:
+        """``byte_time_s``: a byte's time on the wire (10 bits at the line's rate; 0: no wire time)."""
         self.name = name
+        self.byte_time_s = byte_time_s
         self.board_id = board_id
         self.path = run_dir / name.value
         self.recorder = recorder
@@ -236,6 +238,15 @@ class BoardLink:
         self.host_acks, self.sent_seq = False, None
 
     # --- traffic -----------------------------------------------------------------------------------
+
+    def wire_s(self, n_bytes: int) -> float:
+        """Seconds ``n_bytes`` take on this link's wire (0 with the wire's time off)."""
+        return n_bytes * self.byte_time_s
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes the board has queued since :meth:`defer` and not yet written."""
+        return len(self._deferred) if self._deferred is not None else 0
 
     def send(self, message: Any, dst: int, tick: int) -> bool:
         """Encode and send one message; False when it did not go out intact (stalled, disconnected,

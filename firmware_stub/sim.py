@@ -35,8 +35,8 @@ class MessageLink(BoardLink):
     :class:`Frame` whose message went through its wire round trip."""
 
     def __init__(self, name: LinkName, board_id: int, run_dir: Path, faults: LinkFaults, *, seed: int,
-                 recorder: FaultRecorder) -> None:
-        super().__init__(name, board_id, run_dir, faults, seed=seed, recorder=recorder)
+                 recorder: FaultRecorder, byte_time_s: float = 0.0) -> None:
+        super().__init__(name, board_id, run_dir, faults, seed=seed, recorder=recorder, byte_time_s=byte_time_s)
         self.outbox: Outbox = []
         self._roundtrip = CATALOGUE.roundtrips()
 
@@ -57,8 +57,8 @@ class MessageLink(BoardLink):
 
 def check_sim_config(config: EmulatorConfig) -> None:
     """Refuse what only real bytes can emulate: ConfigError, one line naming the field."""
-    for name, faults in config.links.items():
-        if faults != LinkFaults():
+    for name in LinkName:
+        if config.link_faults(name) != LinkFaults():
             raise ConfigError(f"links.{name.value}: link faults need bytes on a pty; run with --clock lockstep "
                               "(the sim clock passes messages in-process)")
     if config.faults:

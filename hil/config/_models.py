@@ -326,7 +326,8 @@ class SessionConfig(Strict):
     description: str = ""
     duration_s: float = Field(gt=0, le=MAX_SESSION_S, description="run time with the stream on, s")
     seed: Seed = Field(0, description="emulator seed in loopback; recorded in the log")
-    ports: PortsConfig | None = Field(None, description="the lab's serial ports (not needed for a loopback run)")
+    ports: PortsConfig | None = Field(None, description="the lab's serial ports (not needed for a loopback run; "
+                                      "their baud rates set the emulated links' when given)")
     controller: ControllerConfig = ControllerConfig()
     tracking: TrackingConfig = TrackingConfig()
     profile: SwingProfile = SwingProfile()
@@ -340,6 +341,13 @@ class SessionConfig(Strict):
     emulator: EmulatorRef = EmulatorRef()
     excitation: Excitation | None = Field(
         None, description="a signal added to one axis's rate command: a sine, or a swept sine (hil ident)")
+
+    def link_baudrates(self) -> dict[str, int]:
+        """The ports' baud rates by link: an emulated lab's links run at them (empty without ``ports``)."""
+        if self.ports is None:
+            return {}
+        return {name: port.baudrate for name in ("servo", "driver", "image", "hexapod")
+                if (port := getattr(self.ports, name)) is not None}
 
     @field_validator("controller", "profile", "hexapod_limits", mode="before")
     @classmethod

@@ -182,8 +182,9 @@ async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True
                           log_attrs={"loopback": False, "clock": "hardware"}, **_capture(capture_dir))
         hook(session)
         return _result(await _run_session(session), "hardware", {})
+    bauds = [f"--baud={name}={baud}" for name, baud in config.link_baudrates().items()]  # the ports' line rates
     emulator = EmulatorProcess(config.emulator.config, clock=clock_name, seed=config.seed,
-                               extra_args=config.emulator.process_args())
+                               extra_args=[*config.emulator.process_args(), *bauds])
     _log.info("starting the emulated lab: %s clock, seed %d, %s", clock_name, config.seed, config.emulator.config)
     try:  # stopped on every way out, a cancellation while it starts included
         try:

@@ -165,11 +165,11 @@ class SimLab:
     """The emulated lab of ``emulator_config`` in this process. Use as an async context manager around a
     Session built with ``open_link=lab.open_link``; the world ticks while the session runs."""
 
-    def __init__(self, emulator_config: Path, *, seed: int) -> None:
+    def __init__(self, emulator_config: Path, *, seed: int, baudrates: dict[str, int] | None = None) -> None:
         from firmware_stub.plant import PlantConfigError, load_plant_config  # noqa: PLC0415  (the emulated plant's numba kernel: loaded only on the sim clock)
         from firmware_stub.sim import SimWorld  # noqa: PLC0415  (the emulated plant's numba kernel: loaded only on the sim clock)
 
-        config = load_emulator_config(emulator_config, clock="lockstep", seed=seed)
+        config = load_emulator_config(emulator_config, clock="lockstep", seed=seed, baudrates=baudrates)
         try:
             load_plant_config(config.plant)
         except PlantConfigError as exc:
@@ -296,7 +296,7 @@ async def run_sim_session(config: SessionConfig, out_dir: Path, *, progress: Cal
     if capture_dir is not None:
         raise ValueError(CAPTURE_REFUSED)
 
-    lab = SimLab(config.emulator.config, seed=config.seed)
+    lab = SimLab(config.emulator.config, seed=config.seed, baudrates=config.link_baudrates())
     session = Session(config, sim_ports(), out_dir, progress=progress, lockstep=True, open_link=lab.open_link,
                       watchdog=False, log_attrs={"loopback": True, "clock": "sim", **(log_attrs or {})},
                       truth=lab.truth, record_truth=lab.truth_log)

@@ -1,6 +1,9 @@
 """Lockstep runs of the shipped sessions give the same logged values as the recorded digests: a change to how the
 bench runs its loop (threads, encoders, decoders) must not change what a lockstep run computes.
 
+Each session is run with the wire's time (the default) and without it (``links.wire_time: false``): the digests
+without it are those recorded before the wire was modelled, so turning it off restores that lab exactly.
+
 The digests were recorded with ``python -m tests.session.test_lockstep_golden --update``; run that again only for
 a change that is meant to change the results (a new controller default, a new plant), and say so in its commit.
 """
@@ -13,8 +16,9 @@ import tempfile
 from pathlib import Path
 
 import pytest
+import yaml
 
-from hil.config import PROFILES
+from hil.config import PROFILES, load_session
 from tests.session.helpers import channel_digests, run_session, session_config
 
 GOLDEN = Path(__file__).with_name("lockstep_golden.json")
@@ -22,32 +26,45 @@ SESSIONS = sorted(p.stem for p in (PROFILES / "sessions").glob("*.yaml"))
 TICKS = 2000
 
 
-def lockstep_digests(session: str, out: Path) -> dict[str, str]:
+WIRES = ("wire", "no_wire")
+
+
+def lockstep_digests(session: str, wire: str, out: Path) -> dict[str, str]:
     out.mkdir(parents=True, exist_ok=True)
-    config = session_config(duration_s=TICKS / 1000, seed=7, **_shipped(session))
+    config = session_config(duration_s=TICKS / 1000, seed=7, **_shipped(session, wire, out))
     run = run_session(config, out)
     assert run.result.status == "completed", run.result.message
     return channel_digests(run.result.log_path, TICKS)
 
 
-def _shipped(session: str) -> dict[str, object]:
-    """The shipped session's own controller, profile and tracking (paths resolved), over the test base."""
-    from hil.config import load_session
-
+def _shipped(session: str, wire: str, out: Path) -> dict[str, object]:
+    """The shipped session's own controller, profile and tracking (paths resolved), over the test base; ``no_wire``:
+    the base's emulated lab with ``links.wire_time: false``."""
     data = load_session(PROFILES / "sessions" / f"{session}.yaml").model_dump()
-    return {k: data[k] for k in ("controller", "profile", "tracking", "excitation", "name")}
+    shipped = {k: data[k] for k in ("controller", "profile", "tracking", "excitation", "name")}
+    if wire == "no_wire":
+        base = session_config().emulator.model_dump()
+        lab = Path(base["config"])
+        doc = yaml.safe_load(lab.read_text())
+        doc["plant"] = str((lab.parent / doc["plant"]).resolve())
+        doc["links"] = {**(doc.get("links") or {}), "wire_time": False}
+        (out / "no-wire.yaml").write_text(yaml.safe_dump(doc))
+        shipped["emulator"] = {**base, "config": out / "no-wire.yaml"}
+    return shipped
 
 
+@pytest.mark.parametrize("wire", WIRES)
 @pytest.mark.parametrize("session", SESSIONS)
-def test_lockstep_results_match_the_recorded_digests(session: str, tmp_path: Path) -> None:
-    golden = json.loads(GOLDEN.read_text())[session]
-    got = lockstep_digests(session, tmp_path)
+def test_lockstep_results_match_the_recorded_digests(session: str, wire: str, tmp_path: Path) -> None:
+    golden = json.loads(GOLDEN.read_text())[wire][session]
+    got = lockstep_digests(session, wire, tmp_path)
     assert set(got) == set(golden)
     changed = sorted(k for k in golden if got[k] != golden[k])
-    assert not changed, f"{session}: lockstep results changed in {changed}"
+    assert not changed, f"{session} ({wire}): lockstep results changed in {changed}"
 
 
 if __name__ == "__main__" and "--update" in sys.argv:
     with tempfile.TemporaryDirectory() as tmp:
-        GOLDEN.write_text(json.dumps({s: lockstep_digests(s, Path(tmp) / s) for s in SESSIONS}, indent=1) + "\n")
+        GOLDEN.write_text(json.dumps({w: {s: lockstep_digests(s, w, Path(tmp) / w / s) for s in SESSIONS}
+                                      for w in WIRES}, indent=1) + "\n")
     print(f"wrote {GOLDEN}")
