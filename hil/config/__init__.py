@@ -36,6 +36,7 @@ from hil.config._models import (
     load_model,
     load_session,
     one_line,
+    session_yaml,
 )
 from hil.config._mqtt import MqttConfig, check_topic_name
 
@@ -70,4 +71,5 @@ __all__ = [
     "require_regular_file",
     "require_writable_dir",
     "resolve_relative",
+    "session_yaml",
 ]

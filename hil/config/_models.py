@@ -17,6 +17,7 @@ import math
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
+import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -409,3 +410,8 @@ def load_model(model: type[M], path: str | Path) -> M:
 
 def load_session(path: str | Path) -> SessionConfig:
     return load_model(SessionConfig, path)
+
+
+def session_yaml(config: SessionConfig) -> str:
+    """A loaded session as YAML that loads back to the same session anywhere (its parts inline)."""
+    return yaml.safe_dump(config.model_dump(mode="json", exclude_none=True), sort_keys=False)

@@ -12,7 +12,7 @@ the ports and runs one item at a time through the same code as `hil run` (hil.ap
 """
 
 from hil.service._auth import AuthError, Caller, Gate, TokenFile, is_loopback_host, load_tokens
-from hil.service._client import Bench, BenchError, bench_url, item_text, session_yaml
+from hil.service._client import Bench, BenchError, bench_url, item_text
 from hil.service._items import CheckedItem, ItemError, check_item
 from hil.service._lease import Lease, LeaseBook, LeaseError
 from hil.service._manager import API_ROUTES, Manager, ServiceOptions, build_app, record_view
@@ -28,4 +28,4 @@ from hil.service._store import (
 __all__ = ["API_ROUTES", "EXIT_STATUSES", "ITEM_KINDS", "AuthError", "Bench", "BenchError", "Caller", "CheckedItem",
            "Gate", "HistoryRecord", "ItemError", "Lease", "LeaseBook", "LeaseError", "Manager", "QueuedItem",
            "ServiceOptions", "Store", "StoreError", "TokenFile", "bench_url", "build_app", "check_item",
-           "is_loopback_host", "item_text", "load_tokens", "record_view", "session_yaml"]
+           "is_loopback_host", "item_text", "load_tokens", "record_view"]

@@ -32,7 +32,7 @@ import yaml
 
 from hil.api import RunResult
 from hil.campaign import load_campaign
-from hil.config import ConfigError, SessionConfig, load_session
+from hil.config import ConfigError, SessionConfig, load_session, session_yaml
 from hil.session import LoopStats, SessionResult
 
 BENCH_ENV = "HIL_BENCH"
@@ -272,11 +272,6 @@ def item_text(file: str | Path | SessionConfig, kind: str) -> tuple[str, str]:
         campaign = load_campaign(path)
         return path.name, yaml.safe_dump(campaign.model_dump(mode="json", exclude_none=True), sort_keys=False)
     return path.name, session_yaml(load_session(path))
-
-
-def session_yaml(config: SessionConfig) -> str:
-    """A loaded session as YAML that loads back to the same session anywhere (its parts inline)."""
-    return yaml.safe_dump(config.model_dump(mode="json", exclude_none=True), sort_keys=False)
 
 
 def _detail(exc: urllib.error.HTTPError) -> str:

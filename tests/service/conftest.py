@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from hil.config import PROFILES, load_session
-from hil.service import Bench, BenchError, session_yaml
+from hil.config import PROFILES, load_session, session_yaml
+from hil.service import Bench, BenchError
 
 READY_S = 180.0  # the worker starts the emulated lab and compiles nothing: minutes only on a machine under load
 
