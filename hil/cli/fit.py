@@ -5,7 +5,7 @@ from __future__ import annotations
 import shlex
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -32,11 +32,30 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
     study: Annotated[str | None, typer.Option(help="--targets: study name.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="--targets: continue the study.")] = False,
     seed: Annotated[int, typer.Option(min=0, max=2**32 - 1, help="--targets: the sampler's seed.")] = 0,
+    plan: Annotated[Path | None, typer.Option(
+        help="Print the recordings a fit needs on the lab of this session YAML (your own: its ports and limits): "
+             "the commands, their durations and why; their session files are written beside the report.")] = None,
+    record: Annotated[Path | None, typer.Option(
+        help="Record that set on the lab of this session YAML (with --loopback or --hardware), then fit it.")] = None,
+    loopback: Annotated[bool, typer.Option("--loopback", help="--record: on the emulated lab (sim clock).")] = False,
+    hardware: Annotated[bool, typer.Option("--hardware", help="--record: on the lab's boards (the session's "
+                                                              "ports).")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the outcome as JSON.")] = False,
 ) -> None:
     """Fit the emulated plant (a digital twin) to LOGs of one platform, or with --targets to published figures.
-    Writes the plant YAML (--out) and a report (fit.md, fit.html, plots). Exit 2 on bad input."""
+    Writes the plant YAML (--out) and a report (fit.md, fit.html, plots). --plan SESSION says what to record,
+    --record SESSION records it and fits. Exit 2 on bad input."""
     command = "hil fit " + " ".join(shlex.quote(a) for a in sys.argv[2:])
+    report = report_dir or Path("runs/fit") / out.stem
+    if plan is not None or record is not None:
+        if logs or targets is not None or (plan is not None and record is not None):
+            raise fail("--plan, --record: give one session YAML, and no logs or --targets")
+        if plan is not None:
+            _print_plan(plan, report / "sessions", json_out)
+            return
+        if loopback == hardware:
+            raise fail("--record: say where: --loopback (the emulated lab) or --hardware (the lab's boards)")
+        logs = _record(record, report / "sessions", loopback=loopback, json_out=json_out)  # type: ignore[arg-type]
     if targets is not None:
         if logs:
             raise fail("--targets: give either logs or a targets file, not both")
@@ -50,7 +69,6 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
 
     if out.suffix not in (".yaml", ".yml"):
         raise fail(f"--out: {out} is not a .yaml file")
-    report = report_dir or Path("runs/fit") / out.stem
     quiet = no_progress(json_out)
     with err_console.status("fitting", spinner="dots") if not quiet else _Null() as status:
         def progress(text: str) -> None:
@@ -81,14 +99,72 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
         table.add_column(col, justify="right" if col in ("value", "+- 1 sigma", "prior") else "left")
     for e in result.estimates:
         table.add_row(e.name, _g(e.value), _g(e.sigma), e.unit, _g(e.prior),
-                      {"fitted": "[green]fitted[/]", "bound": "[yellow]bound[/]"}.get(e.status, "prior"))
+                      {"fitted": "[green]fitted[/]", "weak": "[red]weak[/]",
+                       "bound": "[yellow]bound[/]"}.get(e.status, "prior"))
     console.print(table)
+    for e in result.estimates:
+        if e.status in ("weak", "prior") and e.note.startswith(("record", "1 sigma")):
+            note(f"  {e.name}: {e.status}: {e.source}; {e.note}")
     for c in checks:
         note(f"  twin check {c.log}: {c.metric} logged {c.logged:.4g}, twin {c.twin:.4g} {c.unit} "
              f"(x{c.ratio:.3f})")
     for n in result.notes:
         note(f"  note: {n}")
     note(f"report: {files.markdown} (and {files.html.name})")
+
+
+def _plan_of(session: Path) -> list[Any]:
+    from hil.config import ConfigError, load_session  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.fit.record import recording_plan  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+
+    try:
+        return recording_plan(load_session(session))
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
+
+
+def _print_plan(session: Path, sessions_dir: Path, json_out: bool) -> None:
+    """The recording set for ``session``'s lab: each recording's command, duration and purpose."""
+    plan = _plan_of(session)
+    rows = []
+    for rec in plan:
+        file = str(rec.write(sessions_dir))
+        rows.append({"name": rec.name, "kind": rec.kind, "seconds": rec.seconds, "why": rec.why,
+                     "command": rec.command(file)})
+    if json_out:
+        print_json({"recordings": rows, "total_s": sum(r["seconds"] for r in rows)})
+        return
+    total = sum(r["seconds"] for r in rows)
+    console.print(f"[bold]hil fit: what to record on the lab of {session}[/] ({len(rows)} logs, {total:.0f} s of "
+                  "running; add --loopback to each command for the emulated lab)", soft_wrap=True)
+    for i, r in enumerate(rows, 1):
+        console.print(f"{i}. [bold]{r['name']}[/] ({r['seconds']:g} s): {r['why']}", soft_wrap=True)
+        console.print(f"   {r['command']}", soft_wrap=True, highlight=False, markup=False)
+    console.print(f"Then: hil fit LOGS... (or all of it at once: hil fit --record {session} --hardware)",
+                  soft_wrap=True, highlight=False, markup=False)
+
+
+def _record(session: Path, sessions_dir: Path, *, loopback: bool, json_out: bool) -> list[Path]:
+    """Run the recording set; the logs' paths."""
+    from hil.fit.record import record  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+
+    plan = _plan_of(session)
+    for rec in plan:
+        rec.write(sessions_dir)
+    with err_console.status("recording", spinner="dots") if not no_progress(json_out) else _Null() as status:
+        def progress(text: str) -> None:
+            if status is not None:
+                status.update(f"recording: {text}")
+            else:
+                note(f"recording: {text}")
+
+        try:
+            logs = record(plan, loopback=loopback, progress=progress)
+        except RuntimeError as exc:
+            raise fail(f"--record: {exc}", code=1) from None
+    for path in logs:
+        note(f"recorded {path}")
+    return logs
 
 
 def _fit_targets(targets: Path, out: Path, trials: int, storage: str | None, study: str | None, resume: bool,  # noqa: PLR0917

@@ -49,6 +49,15 @@ class ParamRange:
     draw_lo: float | None = None
     draw_hi: float | None = None
     note: str = ""
+    target_rel: float | None = None  # the accuracy a fit aims at, relative (docs/fit.md, "What the logs determine")
+    target_abs: float | None = None  # ... or absolute, in ``unit``
+    resolved_by: str = ""  # the recording that determines it (what `hil fit` asks for when it cannot)
+
+    def tolerance(self, value: float) -> float | None:
+        """The target accuracy at ``value`` (in ``unit``), None without a target."""
+        if self.target_abs is not None:
+            return self.target_abs
+        return None if self.target_rel is None else abs(value) * self.target_rel
 
     @property
     def draw_range(self) -> tuple[float, float]:
@@ -68,9 +77,12 @@ def _axis_ranges(axis: str) -> list[ParamRange]:
     heavy = axis == "az"  # the azimuth axis carries both frames: more inertia, friction and current
     return [
         ParamRange(f"motor_{axis}.k_m_dps2_per_count", 0.0115, 0.046, "deg/s^2 per count",
-                   "paper (seed 000 eq 38: 0.023), x0.5..x2 for other payloads", log=True),
+                   "paper (seed 000 eq 38: 0.023), x0.5..x2 for other payloads", log=True, target_rel=0.05,
+                   resolved_by=f"`hil ident SESSION --axis {axis}`"),
         ParamRange(f"friction.{axis}.coulomb_n_m", 0.10 if heavy else 0.06, 0.60 if heavy else 0.40, "N m",
-                   "literature (sealed bearings + cables of airborne gimbals; T_c / J 1-10 rad/s^2)", log=True),
+                   "literature (sealed bearings + cables of airborne gimbals; T_c / J 1-10 rad/s^2)", log=True,
+                   target_rel=0.10, resolved_by=f"a swing session (`hil run` with a swing profile) and `hil ident "
+                   f"SESSION --axis {axis}` (motion both ways)"),
         ParamRange(f"friction.{axis}.stiction_ratio", 1.0, 1.5, "1",
                    "literature (T_s / T_c of ball bearings and seals; Canudas de Wit 1995)"),
         ParamRange(f"friction.{axis}.stribeck_rate_dps", 0.1, 1.0, "deg/s", "literature (Canudas de Wit 1995)",
@@ -78,13 +90,16 @@ def _axis_ranges(axis: str) -> list[ParamRange]:
         ParamRange(f"friction.{axis}.viscous_n_m_s_per_rad", 0.005, 0.1, "N m s/rad", "datasheet-typical", log=True),
         ParamRange(f"structure.{axis}.mode_hz", 50.0, 300.0, "Hz",
                    "literature (first torsion mode of gimbal structures; Hilkert 2008, Masten 2008)",
-                   draw_lo=180.0, note="below ~160 Hz the shipped eso_kf_high_gain loop limit-cycles "
+                   draw_lo=180.0, target_rel=0.10,
+                   resolved_by=f"`hil ident SESSION --axis {axis}` with coherence up to the mode",
+                   note="below ~160 Hz the shipped eso_kf_high_gain loop limit-cycles "
                    "(docs/emulator.md, Mechanisms)"),
         ParamRange(f"structure.{axis}.damping_ratio", 0.02, 0.1, "1", "literature (bolted aluminium frames)"),
         ParamRange(f"drive.{axis}.current_limit_a", 1.5 if heavy else 1.0, 5.0 if heavy else 4.0, "A",
                    "datasheet-typical (PWM servo amplifiers, continuous rating)"),
         ParamRange(f"cable.{axis}.stiffness_n_m_per_rad", 0.1, 5.0, "N m/rad",
                    "literature (harness restraint of slip-ring-free gimbals)", log=True, draw_hi=1.0,
+                   target_rel=0.10, resolved_by="swing sessions (travel over degrees)",
                    note="a stiffer harness with a weak driver holds the axis within a few degrees: "
                    "(K_t I_max - T_c) / k_c = 10 deg at 1.7 N m/rad and 2 A, less than an ident sweep's travel"),
     ]
@@ -94,22 +109,32 @@ PLAUSIBLE: tuple[ParamRange, ...] = (
     *_axis_ranges("az"),
     *_axis_ranges("el"),
     ParamRange("gyro.bandwidth_hz", 100.0, 500.0, "Hz", "datasheet-typical MEMS rate gyro", draw_lo=150.0,
-               draw_hi=400.0, note="a 100 Hz gyro puts the shipped eso_kf_high_gain loop into a limit cycle "
+               draw_hi=400.0, target_rel=0.10,
+               resolved_by="`hil ident SESSION` whose coherent band reaches ~1.25 x the bandwidth",
+               note="a 100 Hz gyro puts the shipped eso_kf_high_gain loop into a limit cycle "
                "(docs/emulator.md, Calibration)"),
     ParamRange("gyro.delay_s", 0.1e-3, 1.0e-3, "s", "datasheet-typical (MEMS output filter + interface)",
-               draw_lo=0.2e-3, draw_hi=0.8e-3, note="1 ms of gyro delay puts eso_kf_high_gain into a limit cycle "
+               draw_lo=0.2e-3, draw_hi=0.8e-3, target_abs=0.1e-3,
+               resolved_by="`hil ident SESSION` (a coherent band to a few hundred Hz)",
+               note="1 ms of gyro delay puts eso_kf_high_gain into a limit cycle "
                "(docs/emulator.md, Calibration)"),
     ParamRange("gyro.noise_std_dps", 0.01, 0.06, "deg/s", "datasheet-typical MEMS noise density at 1 kHz "
-               "(paper Fig 12a: 0.0315)", log=True),
+               "(paper Fig 12a: 0.0315)", log=True, target_rel=0.05,
+               resolved_by="a static session (`hil run` with profiles/swing/static.yaml, 10 s or more)"),
     ParamRange("gyro.noise_psd.std_dps", 0.0, 0.03, "deg/s",
                "FACTS (MEMS noise shaped near its sense band; one 2nd-order component)"),
     ParamRange("gyro.noise_psd.centre_hz", 300.0, 480.0, "Hz", "FACTS (sense-mode band below Nyquist)"),
     ParamRange("imbalance.m_rho_x_kg_mm", -20.0, 20.0, "kg mm", "datasheet-typical residual after balancing "
-               "(10 kg at +-2 mm)"),
+               "(10 kg at +-2 mm)", target_abs=1.0, resolved_by="swing sessions (the pitch swing's accelerations)"),
     ParamRange("imbalance.m_rho_z_kg_mm", -20.0, 20.0, "kg mm", "datasheet-typical residual after balancing"),
 )
 
 BY_NAME: dict[str, ParamRange] = {p.name: p for p in PLAUSIBLE}
+
+
+def param_range(name: str) -> ParamRange | None:
+    """The range of a parameter, per-axis gyro noise (``gyro.noise_std_dps.x``) by its family's."""
+    return BY_NAME.get(name) or BY_NAME.get(name.rsplit(".", 1)[0])
 
 
 def _motor(cfg: Mapping[str, Any], axis: str) -> Mapping[str, Any]:

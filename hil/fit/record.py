@@ -1,5 +1,6 @@
-"""Record the logs a lab would give ``hil fit``, on an emulated plant (sim clock): the hidden-plant acceptance
-tests and ``benchmarks/fit_hidden_plants.py`` use it, and so can a lab that wants to see what a fit needs.
+"""The logs ``hil fit`` needs: the recording set as sessions derived from the lab's own (:func:`recording_plan`, which
+``hil fit --plan`` prints and ``hil fit --record`` runs), and the same set recorded on an emulated plant (sim clock)
+for the hidden-plant acceptance tests and ``benchmarks/fit_hidden_plants.py``.
 
 The set: a static session (ESO+KF holding the gimbal, no swing), an ``hil ident`` sweep on each axis, and swing
 sessions at 1 deg and 3 deg / 1 Hz with the plain ESO and at 3 deg with the high-gain ESO+KF (the hardest the
@@ -10,12 +11,13 @@ profile with the emulator pointed at the given plant file; nothing is re-impleme
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from hil.analysis import SweptSine
 from hil.campaign import load_campaign, run_campaign
-from hil.config import PROFILES, SessionConfig, load_session
+from hil.config import PROFILES, SessionConfig, load_session, session_yaml
 from hil.session import emulator_for_plant, run
 
 SWING_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
@@ -39,41 +41,93 @@ def session_on_plant(plant: str | Path, work_dir: str | Path, *, name: str, swin
     return SessionConfig.model_validate(data)
 
 
-def record_platform_logs(plant: str | Path, out_dir: str | Path, *, seed: int = 1, static_s: float = 10.0,
-                         swing_s: float = 20.0, sweep_s: float = 6.0, f_start_hz: float = 1.0,
-                         f_stop_hz: float = 450.0, amplitude_dps: float = 1.5, offset_dps: float = 3.0,
-                         swings: tuple[tuple[str, str], ...] = (("swing-1deg-1hz", "eso"), ("swing-3deg-1hz", "eso"),
-                                                                ("swing-3deg-1hz", "eso_kf_high_gain")),
-                         axes: tuple[str, ...] = ("el", "az"),
-                         progress: Callable[[str], Any] | None = None) -> list[Path]:
-    """Record a fit's logs on ``plant`` (sim clock, ``seed``): static, ident per axis, each swing. Their paths.
+@dataclass(frozen=True)
+class Recording:
+    """One log of the recording set ``hil fit`` needs (docs/fit.md, "What to record"): the session that records it
+    (``config``), how long it runs, and what the fit takes from it."""
 
-    The sweep is the session ``hil ident`` runs (docs/ident.md) around a rate offset (no friction reversal), kept
-    short (``offset_dps * (sweep_s + 1 s)`` = 21 deg by default) because a cable harness restrains the travel."""
-    out = Path(out_dir)
-    logs: list[Path] = []
+    name: str
+    kind: str  # static | ident | swing
+    seconds: float
+    why: str
+    config: SessionConfig
+    sweep: SweptSine | None = None
 
-    def say(text: str) -> None:
-        if progress is not None:
-            progress(text)
+    def write(self, directory: Path) -> Path:
+        """This recording's session YAML in ``directory`` (its parts inline, the sweep left to ``hil ident``)."""
+        directory.mkdir(parents=True, exist_ok=True)
+        path = directory / f"{self.name}.yaml"
+        path.write_text(session_yaml(self.config.model_copy(update={"excitation": None})), encoding="utf-8")
+        return path
 
-    say("static session")
-    static = session_on_plant(plant, out, name="fit-static", swing=None, controller="eso_kf", seconds=static_s,
-                              seed=seed)
-    logs.append(run(static, clock="sim").log_path)
+    def command(self, session_file: str) -> str:
+        """The command a user runs for it, ``session_file`` being this recording's session YAML (:meth:`write`; an
+        ident sweep's options on the command line)."""
+        if self.sweep is None:
+            return f"hil run {session_file}"
+        s = self.sweep
+        return (f"hil ident {session_file} --axis {s.axis} --f-start-hz {s.f_start_hz:g} --f-stop-hz {s.f_stop_hz:g} "
+                f"--sweep-s {s.duration_s:g} --amplitude-dps {s.amplitude_dps:g} --offset-dps {s.offset_dps:g}")
+
+
+def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: float = 20.0, sweep_s: float = 6.0,
+                   f_start_hz: float = 1.0, f_stop_hz: float = 450.0, amplitude_dps: float = 1.5,
+                   offset_dps: float = 3.0,
+                   swings: tuple[tuple[str, str], ...] = (("swing-1deg-1hz", "eso"), ("swing-3deg-1hz", "eso"),
+                                                          ("swing-3deg-1hz", "eso_kf_high_gain")),
+                   axes: tuple[str, ...] = ("el", "az")) -> list[Recording]:
+    """The logs a fit needs, as sessions derived from ``base`` (the lab's own session: its ports, limits and lab):
+    a static session, an ident sweep per axis, swing sessions. The sweep is the session ``hil ident`` runs
+    (docs/ident.md) around a rate offset (no friction reversal), kept short (``offset_dps * (sweep_s + 1 s)`` = 21 deg
+    by default) because a cable harness restrains the travel."""
+
+    def session(name: str, swing: str | None, controller: str, seconds: float, tracking: bool) -> SessionConfig:
+        data = base.model_dump(mode="json", exclude_none=True)
+        data.update(name=name, duration_s=seconds, controller=str(PROFILES / "controllers" / f"{controller}.yaml"),
+                    profile=str(PROFILES / "swing" / f"{swing or 'static'}.yaml"),
+                    tracking={**data.get("tracking", {}), "enabled": tracking}, mqtt=base.mqtt, hexapod=base.hexapod)
+        data.pop("excitation", None)
+        return SessionConfig.model_validate(data)
+
+    plan = [Recording("fit-static", "static", static_s, "the gyro's white and coloured noise and its bias (5 % "
+                      "needs 10 s or more)", session("fit-static", None, "eso_kf", static_s, False))]
     for axis in axes:
-        say(f"ident sweep, {axis}")
         sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s, amplitude_dps=amplitude_dps,
                           axis=axis, offset_dps=offset_dps)  # type: ignore[arg-type]
-        cfg = session_on_plant(plant, out, name=f"fit-ident-{axis}", swing=None, controller="eso",
-                               seconds=sweep.total_s + 0.5, seed=seed)
-        logs.append(run(cfg.model_copy(update={"excitation": sweep}), clock="sim").log_path)
+        cfg = session(f"fit-ident-{axis}", None, "eso", sweep.total_s + 0.5, False)
+        plan.append(Recording(f"fit-ident-{axis}", "ident", cfg.duration_s,
+                              f"k_m of {axis}, the gyro's bandwidth and delay (the whole loop delay, the wire's "
+                              f"included), the {axis} structural mode: a sweep to {f_stop_hz:g} Hz",
+                              cfg.model_copy(update={"excitation": sweep}), sweep))
     for swing, controller in swings:
-        say(f"swing session, {swing}, {controller}")
-        cfg = session_on_plant(plant, out, name=f"fit-{swing}-{controller.replace('_', '-')}", swing=swing,
-                               controller=controller, seconds=swing_s, seed=seed, tracking=True)
-        logs.append(run(cfg, clock="sim").log_path)
+        name = f"fit-{swing}-{controller.replace('_', '-')}"
+        plan.append(Recording(name, "swing", swing_s, "friction, the cable's spring, the imbalance and the current "
+                              f"limit from the torque balance ({controller} drives the axes through the swing)",
+                              session(name, swing, controller, swing_s, True)))
+    return plan
+
+
+def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None = None,
+           progress: Callable[[str], Any] | None = None) -> list[Path]:
+    """Run a recording plan: on the emulated lab (``loopback``: the sim clock) or on the lab's boards. The logs'
+    paths, in the plan's order; RuntimeError naming the recording when one does not complete."""
+    logs: list[Path] = []
+    for i, rec in enumerate(plan, 1):
+        if progress is not None:
+            progress(f"{i}/{len(plan)} {rec.name} ({rec.seconds:g} s)")
+        result = run(rec.config, loopback=loopback, clock="sim" if loopback else None, out=out_dir)
+        if result.status != "completed" or result.log_path is None:
+            raise RuntimeError(f"{rec.name}: {result.status}: {result.message}")
+        logs.append(result.log_path)
     return logs
+
+
+def record_platform_logs(plant: str | Path, out_dir: str | Path, *, seed: int = 1, progress: Callable[[str], Any]
+                         | None = None, **plan: Any) -> list[Path]:
+    """Record a fit's logs on ``plant`` (sim clock, ``seed``): :func:`recording_plan` on the shipped swing session
+    with the emulator pointed at ``plant``. Their paths."""
+    base = session_on_plant(plant, out_dir, name="fit", swing=None, seed=seed)
+    return record(recording_plan(base, **plan), loopback=True, progress=progress)
 
 
 ACCEPTANCE_CAMPAIGN = PROFILES / "campaigns" / "swing-miss-distance.yaml"

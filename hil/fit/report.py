@@ -224,8 +224,9 @@ def write_fit_report(fit: TwinFit, plant_path: Path, out_dir: Path, *, rerun: bo
                      Cell(e.status, status="pass" if e.status == "fitted" else None),
                      Cell(e.source + (f" ({e.note})" if e.note else ""))])
     doc.append(Table(["parameter", "value +- 1 sigma", "unit", "prior", "status", "from"], rows, align="lllrll"))
-    doc.append(Text("fitted: determined by the logs; prior: the logs cannot determine it, the prior's value is kept; "
-                    "bound: not reached in the logs (a limit at least the value shown)."))
+    doc.append(Text("fitted: determined by the logs within its target accuracy; weak: fitted, but its 1-sigma is wider "
+                    "than the target (the note says what to record); prior: the logs cannot determine it, the prior's "
+                    "value is kept; bound: not reached in the logs (a limit at least the value shown)."))
     doc.append(Heading(2, "Logs and residuals"))
     lrows = []
     for lg in fit.logs:

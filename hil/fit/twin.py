@@ -24,12 +24,13 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
+from firmware_stub.config import load_emulator_config
 from firmware_stub.plant import DEFAULT_PLANT_CONFIG, Plant, PlantConfig
 from hil.analysis import Frf, SweepShapes, SweptSine, estimate_frf, fit_plant, plant_response, sweep_start
 from hil.fit.logs import AXES, FitInputError, FitLog, load_fit_logs
@@ -40,12 +41,14 @@ from hil.fit.ranges import (
     get_param,
     k_m_of,
     load_plant_dict,
+    param_range,
     validate_plant,
 )
 
 D2R = math.pi / 180.0
 G0 = 9.80665
-Status = Literal["fitted", "prior", "bound"]
+Status = Literal["fitted", "weak", "prior", "bound"]  # weak: fitted, not to its target (wider sigma, or leaning on a
+# prior it cannot tell itself from)
 HI_NPERSEG = 1024  # Welch segment of the high band (a chirp: longer segments hold more of it, fewer average it)
 
 
@@ -712,6 +715,14 @@ class TwinFit:
     mechanics: dict[str, MechanicsFit] = field(default_factory=dict)
     noise: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    wire_s: float = 0.0  # the lab's wire and host delay the twin runs with (lab_wire_delay_s)
+
+    @property
+    def total_delay_s(self) -> float:
+        """The loop's whole delay from a drive command to the gyro, as a low-frequency phase slope: the gyro's lag
+        ``1 / (2 pi bandwidth)``, its delay, and the wire and the host's (docs/fit.md)."""
+        gyro = self.plant["gyro"]
+        return 1.0 / (2.0 * math.pi * float(gyro["bandwidth_hz"])) + float(gyro["delay_s"]) + self.wire_s
 
     def estimate(self, name: str) -> Estimate | None:
         return next((e for e in self.estimates if e.name == name), None)
@@ -722,12 +733,43 @@ class TwinFit:
     def write(self, out: str | Path, command: str = "hil fit") -> Path:
         lines = [f"Plant fitted by `{command}` (hil.fit; docs/fit.md) to {len(self.logs)} logs:"]
         lines += [f"  {lg.name} ({lg.kind}{', ' + lg.axis if lg.axis else ''})" for lg in self.logs]
-        lines.append("Fitted (value +- 1 sigma); every other value is the prior's:")
+        lines.append("Fitted (value +- 1 sigma; weak: wider than its target); every other value is the prior's:")
         for e in self.estimates:
-            if e.status == "fitted" and e.value is not None:
+            if e.status in ("fitted", "weak") and e.value is not None:
                 sig = "" if e.sigma is None else f" +- {e.sigma:.3g}"
-                lines.append(f"  {e.name} = {e.value:.5g}{sig} {e.unit}  ({e.source})")
+                weak = ", weak" if e.status == "weak" else ""
+                lines.append(f"  {e.name} = {e.value:.5g}{sig} {e.unit}  ({e.source}{weak})")
         return dump_plant(self.plant, out, "\n".join(lines))
+
+
+def grade(estimates: list[Estimate]) -> list[Estimate]:
+    """A fitted value whose 1-sigma is wider than its target accuracy (:meth:`ParamRange.tolerance`) is ``weak``, never
+    ``fitted``; a weak value and a prior kept for want of a log name the recording that would resolve them."""
+    return [_graded(e) for e in estimates]
+
+
+def _graded(e: Estimate) -> Estimate:
+    rng = param_range(e.name)
+    if rng is not None and e.status == "fitted" and e.value is not None and e.sigma is not None:
+        tol = rng.tolerance(e.value)
+        if tol is not None and e.sigma > tol:
+            return replace(e, status="weak", note=f"1 sigma {e.sigma:.3g} is wider than the target {tol:.3g} "
+                           f"{e.unit}; record {rng.resolved_by or 'more of the logs above'}")
+    elif rng is not None and e.status == "prior" and rng.resolved_by:
+        return replace(e, note="; ".join(x for x in (e.note, f"record {rng.resolved_by}") if x))
+    return e
+
+
+def lab_wire_delay_s(logs: list[FitLog]) -> float:
+    """How long after its sample a logged drive command acts in the emulated lab a twin runs in (the default
+    emulator at the logs' baud rates, docs/emulator.md "The wire"): the part of the measured loop delay that is the
+    wire's and the host's, not the gyro's."""
+    bauds: dict[str, int] = {}
+    for lg in logs:
+        for name, port in (lg.config.get("ports") or {}).items():
+            if isinstance(port, Mapping) and "baudrate" in port:
+                bauds.setdefault(name, int(port["baudrate"]))
+    return load_emulator_config(baudrates=bauds).drive_delay_s()
 
 
 def _mean_sigma(values: list[tuple[float, float]]) -> tuple[float, float]:
@@ -751,25 +793,36 @@ def fit_logs(paths: list[str | Path], *, prior: str | Path | Mapping[str, Any] |
     plant = copy.deepcopy(base)
     notes = [f"{lg.name}: {n}" for lg in logs for n in lg.notes]
 
+    wire_s = lab_wire_delay_s(logs)
     say("frequency response (ident logs)")
-    plant, lin_est, frfs = _linear_pass(logs, base, plant, None)
-    plant, mech_est, mech = _mechanics_pass(logs, base, plant, say)
+    plant, lin_est, frfs = _linear_pass(logs, base, plant, None, wire_s)
+    plant, mech_est, mech = _mechanics_pass(logs, base, plant, say, wire_s)
     if frfs:  # again, with the low-frequency spring the torque balance found (k_c, gravity on the imbalance)
         say("frequency response, with the springs of the torque balance")
         springs = {f.axis: _spring_q(plant, f.axis, logs) for f in frfs}
-        plant, lin_est, frfs = _linear_pass(logs, base, plant, springs)
-        plant, mech_est, mech = _mechanics_pass(logs, base, plant, say)
+        plant, lin_est, frfs = _linear_pass(logs, base, plant, springs, wire_s)
+        plant, mech_est, mech = _mechanics_pass(logs, base, plant, say, wire_s)
+    if frfs:
+        bw, td = float(plant["gyro"]["bandwidth_hz"]), float(plant["gyro"]["delay_s"])
+        total_ms = (1.0 / (2.0 * math.pi * bw) + td + wire_s) * 1e3
+        weak = any(e.name == "gyro.delay_s" and e.status == "weak" for e in lin_est)
+        notes.append(f"total loop delay {total_ms:.3f} ms: the gyro's lag {1e3 / (2 * math.pi * bw):.3f} ms "
+                     f"(1 / 2 pi bandwidth) + its delay {td * 1e3:.3f} ms + the wire and the host "
+                     f"{wire_s * 1e3:.3f} ms" + ("; weak: the gyro's pole is beyond the coherent band" if weak else ""))
     say("gyro noise (static logs)")
     plant, noise_est, noise_extra = _noise_pass(logs, plant, frfs)
-    est = lin_est + noise_est + mech_est
+    est = grade(lin_est + noise_est + mech_est)
     validate_plant(plant)
     return TwinFit(prior=base, plant=plant, estimates=est, logs=logs, frf=frfs, mechanics=mech,
-                   noise=noise_extra, notes=notes)
+                   noise=noise_extra, notes=notes, wire_s=wire_s)
 
 
 def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, Any],
-                 springs: Mapping[str, float] | None) -> tuple[dict[str, Any], list[Estimate], list[FrfFit]]:
-    """k_m, the structural modes, the gyro's bandwidth and delay from the ident logs, set in ``plant``."""
+                 springs: Mapping[str, float] | None,
+                 wire_s: float = 0.0) -> tuple[dict[str, Any], list[Estimate], list[FrfFit]]:
+    """k_m, the structural modes, the gyro's bandwidth and delay from the ident logs, set in ``plant``. The FRF's
+    delay is the whole transport delay from the drive command to the gyro: the gyro's is what is left after the
+    lab's ``wire_s`` (:func:`lab_wire_delay_s`), never below 0."""
     frfs = [fit_frequency_response(lg, prior=plant, spring_q=(springs or {}).get(lg.axis or ""))
             for lg in logs if lg.kind == "ident"]
     est: list[Estimate] = []
@@ -820,7 +873,17 @@ def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, A
     for pname, vals in shared.items():
         if vals:
             val, sig = _mean_sigma(vals)
-            est.append(Estimate(pname, val, sig, _unit(pname), "fitted", "ident: FRF", prior=get_param(base, pname)))
+            source, note = "ident: FRF", ""
+            status: Status = "fitted"
+            if pname == "gyro.delay_s" and wire_s:
+                source = f"ident: FRF, {val * 1e3:.3f} ms less the wire and the host's {wire_s * 1e3:.3f} ms"
+                val = max(0.0, val - wire_s)
+            if pname == "gyro.delay_s" and not resolved:  # it stands in for the unresolved pole's lag too
+                status = "weak"
+                note = ("fitted with the prior's bandwidth (the gyro's pole lies beyond the coherent band, so the "
+                        f"delay absorbs its lag); record {BY_NAME['gyro.bandwidth_hz'].resolved_by}")
+            est.append(Estimate(pname, val, sig, _unit(pname), status, source, prior=get_param(base, pname),
+                                note=note))
             plant = apply_params(plant, {pname: val})
         else:
             why = ("ident: the coherent band ends below the gyro's pole (the delay absorbs its lag)" if frfs
@@ -848,13 +911,14 @@ def _noise_pass(logs: list[FitLog], plant: dict[str, Any],
     return plant, est, noise_extra
 
 
-def _mechanics_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, Any],
-                    say: Any) -> tuple[dict[str, Any], list[Estimate], dict[str, MechanicsFit]]:
-    """Friction, cable, current limit and imbalance from the torque balance, set in ``plant``."""
+def _mechanics_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, Any], say: Any,
+                    wire_s: float = 0.0) -> tuple[dict[str, Any], list[Estimate], dict[str, MechanicsFit]]:
+    """Friction, cable, current limit and imbalance from the torque balance, set in ``plant`` (the drive's side
+    aligned with the gyro by the whole delay: the gyro's and the lab's ``wire_s``)."""
     mech: dict[str, MechanicsFit] = {}
     est: list[Estimate] = []
     bw = float(plant["gyro"]["bandwidth_hz"])
-    td = float(plant["gyro"]["delay_s"])
+    td = float(plant["gyro"]["delay_s"]) + wire_s
     for axis in AXES:
         say(f"torque balance, {axis}")
         moving = [lg for lg in logs if lg.kind == "swing" or (lg.kind == "ident" and lg.axis == axis)]

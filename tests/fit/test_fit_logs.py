@@ -13,6 +13,7 @@ from pathlib import Path
 import h5py
 import pytest
 
+from firmware_stub.config import load_emulator_config
 from firmware_stub.plant import DEFAULT_PLANT_CONFIG, RIGID_PLANT_CONFIG
 from hil.fit.logs import FitInputError, load_fit_logs
 from hil.fit.ranges import (
@@ -91,6 +92,17 @@ def test_identifiable_parameters_recovered(platform: dict, twin: dict) -> None:
             assert e.status == "bound" and e.value >= fit.mechanics[axis].current_peak_a
 
 
+def test_the_total_loop_delay_is_recovered_within_a_tenth_of_a_millisecond(platform: dict, twin: dict) -> None:
+    """The logs were recorded with the wire on (docs/emulator.md, "The wire"): the fit recovers the gyro's lag, its
+    delay and the wire's together, and leaves the wire's to the twin's lab."""
+    hidden, fit = platform["hidden"], twin["fit"]
+    wire_s = load_emulator_config().drive_delay_s()
+    assert fit.wire_s == pytest.approx(wire_s) and wire_s > 6e-4
+    true_s = 1.0 / (2.0 * math.pi * get_param(hidden, "gyro.bandwidth_hz")) + get_param(hidden, "gyro.delay_s")
+    assert fit.total_delay_s == pytest.approx(true_s + wire_s, abs=1e-4), (fit.total_delay_s, true_s + wire_s)
+    assert any(n.startswith("total loop delay") for n in fit.notes)
+
+
 def test_twin_gives_the_hidden_plants_campaign_within_15_percent(platform: dict, twin: dict) -> None:
     """ESO, ESO+KF and high-gain ESO+KF at 1 and 3 deg / 1 Hz (miss range and std, rate error std): every metric
     on the twin within 15 % of the hidden plant's (same seeds)."""
@@ -131,6 +143,7 @@ def test_without_ident_logs_k_m_keeps_its_prior_and_says_why(platform: dict) -> 
     fit = fit_logs([p for p in platform["logs"] if "ident" not in p.name])
     e = fit.estimate("motor_az.k_m_dps2_per_count")
     assert e is not None and e.status == "prior" and "no ident log" in e.source
+    assert "record `hil ident SESSION --axis az`" in e.note  # what would resolve it
     assert e.value == pytest.approx(0.023, rel=0.01)
     assert fit.estimate("friction.el.coulomb_n_m").status == "fitted"  # type: ignore[union-attr]
 

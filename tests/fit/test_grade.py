@@ -1,0 +1,31 @@
+"""A fitted value is `fitted` only within its target accuracy (docs/fit.md, "What the logs determine"); wider, it
+is `weak`, and a weak value or a prior kept names the recording that would resolve it."""
+
+from __future__ import annotations
+
+from hil.fit.ranges import param_range
+from hil.fit.twin import Estimate, grade
+
+
+def est(name: str, value: float, sigma: float | None, status: str = "fitted") -> Estimate:
+    return Estimate(name, value, sigma, "", status, "test", prior=value)  # type: ignore[arg-type]
+
+
+def test_a_sigma_wider_than_the_target_is_weak_and_names_the_recording() -> None:
+    k_m = "motor_el.k_m_dps2_per_count"
+    got = grade([est(k_m, 0.02, 0.0009), est(k_m, 0.02, 0.0011)])  # the target: 5 % of 0.02 = 0.001
+    assert [e.status for e in got] == ["fitted", "weak"]
+    assert "hil ident SESSION --axis el" in got[1].note and "0.0011" in got[1].note
+    delay = grade([est("gyro.delay_s", 5e-4, 0.8e-4), est("gyro.delay_s", 5e-4, 1.3e-4)])  # the target: 0.1 ms
+    assert [e.status for e in delay] == ["fitted", "weak"]
+    noise = grade([est("gyro.noise_std_dps.y", 0.03, 0.002)])  # the family's 5 %: 0.0015
+    assert noise[0].status == "weak" and "static session" in noise[0].note
+
+
+def test_a_prior_kept_names_the_recording_and_a_value_without_a_target_stays_fitted() -> None:
+    got = grade([est("gyro.bandwidth_hz", 200.0, None, "prior"),
+                 est("friction.az.viscous_n_m_s_per_rad", 0.01, 0.05)])
+    assert got[0].status == "prior" and got[0].note.startswith("record `hil ident SESSION`")
+    assert got[1].status == "fitted"  # no target: its sigma is reported, not judged
+    assert param_range("friction.az.viscous_n_m_s_per_rad") is not None
+    assert param_range("friction.az.viscous_n_m_s_per_rad").tolerance(0.01) is None
