@@ -149,9 +149,10 @@ def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
 
 # why a log's board-measured latency is no measurement: by the log's clock attribute, or by what the board sent
 NO_BOARD_LATENCY = {
-    "lockstep": "lockstep: the emulator waits for each command, so there is no board-measured latency",
+    "lockstep": "lockstep: the emulator waits for each command, so there is no board-measured latency (its boards "
+                "report the modelled wire and host delay)",
     "sim": "sim: the emulated boards run in the bench's process and wait for each command, so there is no "
-           "board-measured latency",
+           "board-measured latency (they report the modelled wire and host delay)",
 }
 NO_BOARD_REPORT = "the servo board reported no loop timing"
 NO_BOARD_COMMAND = "the servo board received no command on any tick it reported"
