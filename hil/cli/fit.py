@@ -9,7 +9,7 @@ from typing import Annotated, Any
 
 import typer
 
-from hil.cli._common import app, console, err_console, fail, no_progress, note, print_json
+from hil.cli._common import app, as_flags, console, err_console, fail, no_progress, note, print_json
 
 
 @app.command()
@@ -104,13 +104,22 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
     console.print(table)
     for e in result.estimates:
         if e.status in ("weak", "prior") and e.note.startswith(("record", "1 sigma")):
-            note(f"  {e.name}: {e.status}: {e.source}; {e.note}")
+            note(as_flags(f"  {e.name}: {e.status}: {e.source}; {e.note}"))
     for c in checks:
         note(f"  twin check {c.log}: {c.metric} logged {c.logged:.4g}, twin {c.twin:.4g} {c.unit} "
              f"(x{c.ratio:.3f})")
     for n in result.notes:
         note(f"  note: {n}")
     note(f"report: {files.markdown} (and {files.html.name})")
+
+
+def _command(rec: Any, session_file: str) -> str:
+    """The command that records ``rec`` (a :class:`hil.fit.record.Recording`) from its session file."""
+    if rec.sweep is None:
+        return f"hil run {session_file}"
+    s = rec.sweep
+    return (f"hil ident {session_file} --axis {s.axis} --f-start-hz {s.f_start_hz:g} --f-stop-hz {s.f_stop_hz:g} "
+            f"--sweep-s {s.duration_s:g} --amplitude-dps {s.amplitude_dps:g} --offset-dps {s.offset_dps:g}")
 
 
 def _plan_of(session: Path) -> list[Any]:
@@ -130,7 +139,7 @@ def _print_plan(session: Path, sessions_dir: Path, json_out: bool) -> None:
     for rec in plan:
         file = str(rec.write(sessions_dir))
         rows.append({"name": rec.name, "kind": rec.kind, "seconds": rec.seconds, "why": rec.why,
-                     "command": rec.command(file)})
+                     "command": _command(rec, file)})
     if json_out:
         print_json({"recordings": rows, "total_s": sum(r["seconds"] for r in rows)})
         return

@@ -78,11 +78,11 @@ def _axis_ranges(axis: str) -> list[ParamRange]:
     return [
         ParamRange(f"motor_{axis}.k_m_dps2_per_count", 0.0115, 0.046, "deg/s^2 per count",
                    "paper (seed 000 eq 38: 0.023), x0.5..x2 for other payloads", log=True, target_rel=0.05,
-                   resolved_by=f"`hil ident SESSION --axis {axis}`"),
+                   resolved_by=f"`hil ident SESSION` with axis={axis}"),
         ParamRange(f"friction.{axis}.coulomb_n_m", 0.10 if heavy else 0.06, 0.60 if heavy else 0.40, "N m",
                    "literature (sealed bearings + cables of airborne gimbals; T_c / J 1-10 rad/s^2)", log=True,
                    target_rel=0.10, resolved_by=f"a swing session (`hil run` with a swing profile) and `hil ident "
-                   f"SESSION --axis {axis}` (motion both ways)"),
+                   f"SESSION` with axis={axis} (motion both ways)"),
         ParamRange(f"friction.{axis}.stiction_ratio", 1.0, 1.5, "1",
                    "literature (T_s / T_c of ball bearings and seals; Canudas de Wit 1995)"),
         ParamRange(f"friction.{axis}.stribeck_rate_dps", 0.1, 1.0, "deg/s", "literature (Canudas de Wit 1995)",
@@ -91,7 +91,7 @@ def _axis_ranges(axis: str) -> list[ParamRange]:
         ParamRange(f"structure.{axis}.mode_hz", 50.0, 300.0, "Hz",
                    "literature (first torsion mode of gimbal structures; Hilkert 2008, Masten 2008)",
                    draw_lo=180.0, target_rel=0.10,
-                   resolved_by=f"`hil ident SESSION --axis {axis}` with coherence up to the mode",
+                   resolved_by=f"`hil ident SESSION` with axis={axis}, coherent up to the mode",
                    note="below ~160 Hz the shipped eso_kf_high_gain loop limit-cycles "
                    "(docs/emulator.md, Mechanisms)"),
         ParamRange(f"structure.{axis}.damping_ratio", 0.02, 0.1, "1", "literature (bolted aluminium frames)"),

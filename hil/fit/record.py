@@ -1,6 +1,6 @@
 """The logs ``hil fit`` needs: the recording set as sessions derived from the lab's own (:func:`recording_plan`, which
-``hil fit --plan`` prints and ``hil fit --record`` runs), and the same set recorded on an emulated plant (sim clock)
-for the hidden-plant acceptance tests and ``benchmarks/fit_hidden_plants.py``.
+``hil fit`` prints and runs for a session, docs/fit.md "What to record"), and the same set recorded on an emulated
+plant (sim clock) for the hidden-plant acceptance tests and ``benchmarks/fit_hidden_plants.py``.
 
 The set: a static session (ESO+KF holding the gimbal, no swing), an ``hil ident`` sweep on each axis, and swing
 sessions at 1 deg and 3 deg / 1 Hz with the plain ESO and at 3 deg with the high-gain ESO+KF (the hardest the
@@ -59,15 +59,6 @@ class Recording:
         path = directory / f"{self.name}.yaml"
         path.write_text(session_yaml(self.config.model_copy(update={"excitation": None})), encoding="utf-8")
         return path
-
-    def command(self, session_file: str) -> str:
-        """The command a user runs for it, ``session_file`` being this recording's session YAML (:meth:`write`; an
-        ident sweep's options on the command line)."""
-        if self.sweep is None:
-            return f"hil run {session_file}"
-        s = self.sweep
-        return (f"hil ident {session_file} --axis {s.axis} --f-start-hz {s.f_start_hz:g} --f-stop-hz {s.f_stop_hz:g} "
-                f"--sweep-s {s.duration_s:g} --amplitude-dps {s.amplitude_dps:g} --offset-dps {s.offset_dps:g}")
 
 
 def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: float = 20.0, sweep_s: float = 6.0,

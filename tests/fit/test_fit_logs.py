@@ -143,7 +143,7 @@ def test_without_ident_logs_k_m_keeps_its_prior_and_says_why(platform: dict) -> 
     fit = fit_logs([p for p in platform["logs"] if "ident" not in p.name])
     e = fit.estimate("motor_az.k_m_dps2_per_count")
     assert e is not None and e.status == "prior" and "no ident log" in e.source
-    assert "record `hil ident SESSION --axis az`" in e.note  # what would resolve it
+    assert "record `hil ident SESSION` with axis=az" in e.note  # what would resolve it
     assert e.value == pytest.approx(0.023, rel=0.01)
     assert fit.estimate("friction.el.coulomb_n_m").status == "fitted"  # type: ignore[union-attr]
 

@@ -15,7 +15,7 @@ def test_a_sigma_wider_than_the_target_is_weak_and_names_the_recording() -> None
     k_m = "motor_el.k_m_dps2_per_count"
     got = grade([est(k_m, 0.02, 0.0009), est(k_m, 0.02, 0.0011)])  # the target: 5 % of 0.02 = 0.001
     assert [e.status for e in got] == ["fitted", "weak"]
-    assert "hil ident SESSION --axis el" in got[1].note and "0.0011" in got[1].note
+    assert "`hil ident SESSION` with axis=el" in got[1].note and "0.0011" in got[1].note
     delay = grade([est("gyro.delay_s", 5e-4, 0.8e-4), est("gyro.delay_s", 5e-4, 1.3e-4)])  # the target: 0.1 ms
     assert [e.status for e in delay] == ["fitted", "weak"]
     noise = grade([est("gyro.noise_std_dps.y", 0.03, 0.002)])  # the family's 5 %: 0.0015
