@@ -284,7 +284,9 @@ def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str
                                                                  params={**entry.params, **params})})
     cell_dir = work / "cells" / f"{spec.cell_id}-{abs(hash((str(cell.campaign), tuple(params.items())))):x}"
     data = cell_session(camp, spec, cell_dir)
-    emulator = emulator_for_plant(plant_path, work, base=data["emulator"]["config"])
+    # without the wire's time: the paper's figures are of its whole loop, whose delay the plant's gyro lag and delay
+    # stand for (docs/emulator.md, "The wire"; profiles/emulator/paper-000.yaml)
+    emulator = emulator_for_plant(plant_path, work, base=data["emulator"]["config"], wire_time=False)
     data["emulator"] = {**data["emulator"], "config": str(emulator)}
     try:
         result = run(SessionConfig.model_validate(data), clock="sim")

@@ -21,16 +21,20 @@ DEFAULT_EMULATOR = PROFILES / "emulator" / "default.yaml"
 
 
 def emulator_for_plant(plant: str | Path, out_dir: str | Path, *, base: str | Path = DEFAULT_EMULATOR,
-                       seed: int | None = None) -> Path:
+                       seed: int | None = None, wire_time: bool | None = None) -> Path:
     """An emulator YAML with ``base``'s settings (the shipped default unless given) and ``plant`` as its plant
-    (``seed`` too, if given), written into ``out_dir`` as ``emulator-BASE-PLANT.yaml``; its path. Written whole
-    and renamed into place, so processes that share ``out_dir`` never read half a file."""
+    (``seed`` and ``links.wire_time`` too, if given), written into ``out_dir`` as ``emulator-BASE-PLANT.yaml``
+    (``...-nowire.yaml`` without the wire's time); its path. Written whole and renamed into place, so processes
+    that share ``out_dir`` never read half a file."""
     base, plant = Path(base), Path(plant)
     data = read_yaml_mapping(base)
     data["plant"] = str(plant.resolve())
     if seed is not None:
         data["seed"] = seed
-    out = Path(out_dir) / f"emulator-{base.stem}-{plant.stem}.yaml"
+    if wire_time is not None:
+        data["links"] = {**(data.get("links") or {}), "wire_time": wire_time}
+    suffix = "-nowire" if wire_time is False else ""
+    out = Path(out_dir) / f"emulator-{base.stem}-{plant.stem}{suffix}.yaml"
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
     tmp.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
