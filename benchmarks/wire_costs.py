@@ -32,13 +32,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hil.campaign import load_campaign, run_campaign
-from hil.config import PROFILES, SessionConfig, load_session
-from hil.session import run
+from hil.config import PROFILES, SessionConfig, load_session, read_yaml_mapping
+from hil.session import emulator_for_plant, run
 
 PLANTS = {"default": ("swing-1deg-1hz-eso.yaml", "default.yaml"),
           "paper-000": ("swing-1deg-1hz-eso-paper-000.yaml", "paper-000.yaml")}
@@ -47,14 +46,10 @@ U_MAX = 32767
 
 
 def lab_file(tmp: Path, emulator: str, wire: bool) -> Path:
-    """The shipped emulator config with the wire on or off (its plant path made absolute)."""
-    src = PROFILES / "emulator" / emulator
-    doc = yaml.safe_load(src.read_text())
-    doc["plant"] = str((src.parent / doc["plant"]).resolve())
-    doc["links"] = {**(doc.get("links") or {}), "wire_time": wire}
-    path = tmp / f"{src.stem}-{'wire' if wire else 'nowire'}.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    return path
+    """The shipped emulator config ``emulator`` with the wire on or off."""
+    base = PROFILES / "emulator" / emulator
+    plant = base.parent / read_yaml_mapping(base)["plant"]
+    return emulator_for_plant(plant, tmp, base=base, wire_time=wire)
 
 
 def config(session: str, controller: Path, lab: Path, *, baud: int, seconds: float, seed: int,

@@ -15,6 +15,7 @@ import yaml
 from hil.campaign import CampaignError, load_campaign, load_results, run_campaign
 from hil.campaign.runner import cell_session
 from hil.config import PROFILES
+from hil.session import emulator_for_plant
 
 CAMPAIGNS = PROFILES / "campaigns"
 HIL = [sys.executable, "-m", "hil"]
@@ -115,14 +116,9 @@ def without_the_wire(name: str, tmp_path: Path) -> dict[str, Any]:
     """Overrides that run campaign ``name`` on its lab with ``links.wire_time: false`` (docs/emulator.md, "The
     wire")."""
     data = yaml.safe_load((CAMPAIGNS / name).read_text())
-    lab_path = PROFILES / "emulator" / "default.yaml"
-    lab = yaml.safe_load(lab_path.read_text())
-    lab["plant"] = str((lab_path.parent / lab["plant"]).resolve())
-    lab["links"] = {**(lab.get("links") or {}), "wire_time": False}
-    (tmp_path / "no-wire.yaml").write_text(yaml.safe_dump(lab))
+    lab = emulator_for_plant(PROFILES / "plant" / "default.yaml", tmp_path, wire_time=False)
     overrides = data.get("overrides") or {}
-    return {"overrides": {**overrides, "emulator": {**overrides.get("emulator", {}),
-                                                    "config": str(tmp_path / "no-wire.yaml")}}}
+    return {"overrides": {**overrides, "emulator": {**overrides.get("emulator", {}), "config": str(lab)}}}
 
 
 NO_WIRE = {"no_wire": True}  # run on the lab without the wire's time

@@ -10,12 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from firmware_stub.config import ConfigError, load_emulator_config
 from hil.config import PROFILES
 from hil.protocol import CATALOGUE, NO_LATENCY_US, DriveCmd, GyroSample, LoopTiming, wire_time_s
-from hil.session import run
+from hil.session import emulator_for_plant, run
 from tests.firmware_stub.host import Host, running_emulator
 from tests.firmware_stub.test_emulator import start_session, stream
 from tests.session.helpers import session_config
@@ -82,15 +81,12 @@ def phase_at_deg(x: np.ndarray, y: np.ndarray, freq_hz: float) -> float:
 
 
 def drive_to_gyro_phase_deg(tmp_path: Path, wire: bool, baud: int = 921_600) -> float:
-    lab = yaml.safe_load((PROFILES / "emulator" / "default.yaml").read_text())
-    lab["plant"] = str(PROFILES / "plant" / "default.yaml")
-    lab["links"] = {**(lab.get("links") or {}), "wire_time": wire}
-    (tmp_path / f"lab-{wire}.yaml").write_text(yaml.safe_dump(lab))
+    lab = emulator_for_plant(PROFILES / "plant" / "default.yaml", tmp_path, wire_time=wire)
     ports = {name: {"port": f"/dev/null-{name}", "baudrate": baud} for name in ("servo", "driver", "image", "hexapod")}
     config = session_config(duration_s=3.0, seed=4, profile=str(PROFILES / "swing" / "static.yaml"),
                             tracking={"enabled": False}, ports=ports,
                             excitation={"axis": "el", "amplitude_dps": 5.0, "freq_hz": 100.0},
-                            emulator={"config": tmp_path / f"lab-{wire}.yaml", "clock": "sim"})
+                            emulator={"config": lab, "clock": "sim"})
     result = run(config, clock="sim", out=tmp_path / f"out-{wire}-{baud}")
     assert result.status == "completed", result.message
     loop = result.log.loop

@@ -16,9 +16,9 @@ import tempfile
 from pathlib import Path
 
 import pytest
-import yaml
 
-from hil.config import PROFILES, load_session
+from hil.config import PROFILES, load_session, read_yaml_mapping
+from hil.session import emulator_for_plant
 from tests.session.helpers import channel_digests, run_session, session_config
 
 GOLDEN = Path(__file__).with_name("lockstep_golden.json")
@@ -45,11 +45,8 @@ def _shipped(session: str, wire: str, out: Path) -> dict[str, object]:
     if wire == "no_wire":
         base = session_config().emulator.model_dump()
         lab = Path(base["config"])
-        doc = yaml.safe_load(lab.read_text())
-        doc["plant"] = str((lab.parent / doc["plant"]).resolve())
-        doc["links"] = {**(doc.get("links") or {}), "wire_time": False}
-        (out / "no-wire.yaml").write_text(yaml.safe_dump(doc))
-        shipped["emulator"] = {**base, "config": out / "no-wire.yaml"}
+        plant = lab.parent / read_yaml_mapping(lab)["plant"]
+        shipped["emulator"] = {**base, "config": emulator_for_plant(plant, out, base=lab, wire_time=False)}
     return shipped
 
 
