@@ -452,6 +452,7 @@ class DriverBoard(EmulatedBoard):
         self.stale_commands = 0
         self._rx_wire_s = {cls: link.wire_s(frame_size(spec)) for cls, spec in self.accepted.items()}
         self.arrived_s = -math.inf  # perf_counter() time the last host frame's last byte arrived
+        self.acted_s = -math.inf  # ... that of the last command that changed the output (realtime: it acts then)
 
     def power_on(self) -> None:
         super().power_on()
@@ -466,8 +467,8 @@ class DriverBoard(EmulatedBoard):
         self._last_nack_tick = -(10**9)
 
     def handle(self, frame: Frame, t_rx: float) -> None:
-        """Realtime: the frame acts when its last byte arrives, its wire time after it was read (the emulator splits
-        the tick's hold there)."""
+        """Realtime: a frame acts when its last byte arrives, its wire time after it was read; the emulator splits
+        the tick's hold where the last command that changed the output arrived (``acted_s``)."""
         self.arrived_s = t_rx + self._rx_wire_s.get(type(frame.message), 0.0)
         super().handle(frame, t_rx)
 
@@ -482,6 +483,7 @@ class DriverBoard(EmulatedBoard):
                 self.nack(frame, ErrorCode.NOT_ENABLED)
             return
         self.last_cmd_at = self.world.tick
+        self.acted_s = self.arrived_s
         if self.stale:
             self.stale = False
             self.faults &= ~DriveFault.STALE_COMMAND
@@ -505,6 +507,7 @@ class DriverBoard(EmulatedBoard):
                 self.cmd[i] = 0  # output starts at zero
         self.enabled |= msg.axes
         self._en = int(self.enabled)
+        self.acted_s = self.arrived_s
         self.last_cmd_at = self.world.tick  # the stale timer starts now
         self.state = BoardState.RUNNING
         self.world.recorder.record(self.link.name, "drive_enable", axes=int(msg.axes), clear=bool(msg.clear_faults))
@@ -512,6 +515,7 @@ class DriverBoard(EmulatedBoard):
 
     def _on_disable(self, frame: Frame, t_rx: float) -> None:
         msg: DriveDisable = frame.message
+        self.acted_s = self.arrived_s
         self._disable(AxisMask(msg.axes), "host")
         self.ack(frame)
 

@@ -75,7 +75,7 @@ class Emulator:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.recorder = FaultRecorder(fault_log)
         self.plant = Plant(load_plant_config(config.plant), config.seed)
-        wire = config.links.wire_time
+        wire = self.wire_time = config.links.wire_time
         self.links = {name: link_factory(name, BOARD_IDS[name], self.run_dir, config.link_faults(name),
                                       seed=config.seed, recorder=self.recorder,
                                       byte_time_s=BITS_PER_BYTE / config.links.link(name).baudrate if wire else 0.0)
@@ -153,8 +153,10 @@ class Emulator:
             if self._drive_line.maxlen != 1:
                 self._drive_line.append((u_az, u_el))
                 u_az, u_el = self._drive_line[0]
-        else:  # realtime: the last host frame's arrival on the driver's wire, within this tick
-            delay_s = min(max(self.driver.arrived_s - (self.deadline - TICK_S), 0.0), TICK_S)
+        elif self.wire_time:  # realtime: when the command that set the output arrived on the driver's wire
+            delay_s = min(max(self.driver.acted_s - (self.deadline - TICK_S), 0.0), TICK_S)
+        else:
+            delay_s = 0.0
         pose, rate, accel = self.hexapod.motion(self.tick)
         self.hexapod.pose = pose
         self.plant.step_tick(u_az, u_el, CarrierMotion(pose, rate, accel), delay_s)
