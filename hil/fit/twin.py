@@ -32,7 +32,7 @@ import numpy as np
 
 from firmware_stub.config import load_emulator_config
 from firmware_stub.plant import DEFAULT_PLANT_CONFIG, Plant, PlantConfig
-from hil.analysis import Frf, SweepShapes, SweptSine, estimate_frf, fit_plant, plant_response, sweep_start
+from hil.analysis import SweepShapes, SweptSine, estimate_sweep_frf, fit_plant, plant_response, sweep_start
 from hil.fit.logs import AXES, FitInputError, FitLog, load_fit_logs
 from hil.fit.ranges import (
     BY_NAME,
@@ -49,7 +49,6 @@ D2R = math.pi / 180.0
 G0 = 9.80665
 Status = Literal["fitted", "weak", "prior", "bound"]  # weak: fitted, not to its target (wider sigma, or leaning on a
 # prior it cannot tell itself from)
-HI_NPERSEG = 1024  # Welch segment of the high band (a chirp: longer segments hold more of it, fewer average it)
 
 
 @dataclass
@@ -344,9 +343,10 @@ def _kernel_plant(plant: Mapping[str, Any], axis: str, x: np.ndarray, with_mode:
 
 def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
                            spring_q: float | None = None) -> FrfFit:
-    """The ident log's FRF (``hil.analysis.estimate_frf``, indirect) and the joint least-squares fit on its coherent
-    bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as ``hil.analysis.fit_plant``. The rigid
-    fit of ``hil.analysis`` starts it; the mode's frequency starts from a grid over the band."""
+    """The ident log's FRF (``hil.analysis.estimate_sweep_frf``, indirect, at two resolutions) and the joint least-
+    squares fit on its coherent bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as
+    ``hil.analysis.fit_plant``. The rigid fit of ``hil.analysis`` starts it; the mode's frequency starts from a grid
+    over the band."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
 
@@ -361,15 +361,7 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     a, b = max(0, k0 + round((sweep.window_s[0] - pad) / dt)), min(r.size, k0 + round((sweep.window_s[1] + pad) / dt))
     f_lo, f_hi = sorted((sweep.f_start_hz, sweep.f_stop_hz))
     f_hi = min(f_hi, 0.45 / dt)
-    # two resolutions: long segments for the low band (k_m, the cable spring), short ones (more averages, so
-    # coherent further up) above ``split``: the lag, the delay and the structural mode live there
-    frf_lo = estimate_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi)
-    frf_hi = estimate_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi, nperseg=HI_NPERSEG)
-    split = max(20.0, 8.0 / (HI_NPERSEG * dt))
-    lo_sel, hi_sel = frf_lo.freq_hz < split, frf_hi.freq_hz >= split
-    frf = Frf(np.concatenate([frf_lo.freq_hz[lo_sel], frf_hi.freq_hz[hi_sel]]),
-              np.concatenate([frf_lo.response[lo_sel], frf_hi.response[hi_sel]]),
-              np.concatenate([frf_lo.coherence[lo_sel], frf_hi.coherence[hi_sel]]), dt, frf_lo.n_segments)
+    frf = estimate_sweep_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi)
     try:
         rigid = fit_plant(frf, coherence_min=coherence_min, f_min_hz=2.0 * f_lo, lag=True)
     except ValueError as exc:
