@@ -22,7 +22,10 @@ Docs: docs/ident.md.
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import math
+from bisect import bisect_right
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -35,16 +38,25 @@ if TYPE_CHECKING:
 
 __all__ = [
     "GYRO_CHANNEL",
+    "IDENT_SWEEP",
     "Frf",
+    "LevelCheck",
     "PlantFit",
     "SweptSine",
+    "axis_columns",
     "bode_plot",
+    "check_levels",
+    "coherent_band",
     "estimate_frf",
     "estimate_sweep_frf",
     "fit_caption",
     "fit_plant",
     "identify_log",
+    "level_frequencies",
+    "log_frf",
+    "next_level",
     "plant_response",
+    "resonance_hz",
 ]
 
 TWO_PI = 2.0 * math.pi
@@ -79,8 +91,21 @@ class SweptSine(BaseModel):
     taper_s: float = Field(0.1, ge=0, le=60, description="raised-cosine fade in and out of the sweep amplitude")
     offset_dps: float = Field(0.0, ge=-200, le=200,
                               description="constant rate during the sweep (keeps friction on one side)")
+    levels: tuple[tuple[float, float], ...] = Field(
+        (), description="[frequency_hz, amplitude_dps] pairs, frequencies rising: the amplitude at the chirp's "
+        "frequency, interpolated on log frequency and held beyond the ends (a levelled sweep); empty: amplitude_dps "
+        "throughout")
 
     _c: tuple[float, ...] = PrivateAttr(default=())
+    _lv: tuple[tuple[float, ...], tuple[float, ...]] = PrivateAttr(default=((), ()))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _peak_of_levels(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("levels"):
+            with contextlib.suppress(TypeError, ValueError):  # the field's own validation names what is wrong
+                data = {**data, "amplitude_dps": max(float(a) for _, a in data["levels"])}
+        return data
 
     @model_validator(mode="after")
     def _check(self) -> SweptSine:
@@ -88,6 +113,11 @@ class SweptSine(BaseModel):
             raise ValueError("f_stop_hz must differ from f_start_hz")
         if 2.0 * self.taper_s > self.duration_s:
             raise ValueError("taper_s: the two tapers are longer than duration_s")
+        freqs = [f for f, _ in self.levels]
+        if any(not 0 < f <= 500 for f in freqs) or any(b <= a for a, b in itertools.pairwise(freqs)):
+            raise ValueError("levels: frequencies must rise and lie in (0, 500] Hz")
+        if any(not 0 < a <= 200 for _, a in self.levels):
+            raise ValueError("levels: amplitudes must lie in (0, 200] deg/s")
         return self
 
     def model_post_init(self, __context: Any) -> None:
@@ -100,6 +130,23 @@ class SweptSine(BaseModel):
         else:
             c1, c2 = TWO_PI * f0, math.pi * (f1 - f0) / dur  # phase = c1 tau + c2 tau^2
         self._c = (c1, c2)
+        if self.levels:
+            self._lv = (tuple(math.log(f) for f, _ in self.levels), tuple(a for _, a in self.levels))
+
+    def amplitude_at_dps(self, f_hz: float) -> float:
+        """The sweep's amplitude at frequency ``f_hz``: ``levels`` interpolated on log frequency, else
+        ``amplitude_dps``."""
+        lf, amp = self._lv
+        if not lf:
+            return self.amplitude_dps
+        x = math.log(f_hz)
+        if x <= lf[0]:
+            return amp[0]
+        i = bisect_right(lf, x)
+        if i >= len(lf):
+            return amp[-1]
+        w = (x - lf[i - 1]) / (lf[i] - lf[i - 1])
+        return amp[i - 1] + w * (amp[i] - amp[i - 1])
 
     @property
     def total_s(self) -> float:
@@ -126,7 +173,7 @@ class SweptSine(BaseModel):
         if 0.0 < tau < dur:
             c1, c2 = self._c
             phase = c1 * math.expm1(c2 * tau) if self.kind == "log" else tau * (c1 + c2 * tau)
-            a = self.amplitude_dps
+            a = self.amplitude_dps if not self.levels else self.amplitude_at_dps(self.frequency_hz(t_s))
             tp = self.taper_s
             if tau < tp:
                 a *= 0.5 - 0.5 * math.cos(math.pi * tau / tp)
@@ -143,6 +190,11 @@ class SweptSine(BaseModel):
         return out
 
     __call__ = rate_dps
+
+
+IDENT_SWEEP = SweptSine(f_start_hz=1.0, f_stop_hz=450.0, duration_s=8.0, amplitude_dps=1.5, offset_dps=3.0)
+"""Where ``hil ident``'s sweep starts (its levelling goes on from here): 1-450 Hz in 8 s, 1.5 deg/s around 3 deg/s
+(the axis turns 27 deg)."""
 
 
 # --- frequency response --------------------------------------------------------------------------------------------
@@ -367,12 +419,21 @@ class PlantFit:
             dt_s=self.dt_s,
         )
 
+    def lag_and_delay(self) -> str:
+        """The gyro's bandwidth and the delay as the fit resolved them, never a figure from outside the fitted band:
+        without the pole in the band, the bandwidth is "above" the band's top and the delay is the loop's (the
+        gyro's lag, its delay and the wire's together, which the band cannot tell apart)."""
+        hi = self.f_range_hz[1]
+        if self.gyro_bandwidth_hz is not None:
+            td = "n/a" if self.delay_ms is None else f"{self.delay_ms:.2f} ms"
+            return f"gyro bandwidth {self.gyro_bandwidth_hz:.0f} Hz, delay {td}"
+        td = "n/a" if self.delay_ms is None else f"{self.delay_ms:.2f} ms (the gyro's lag included)"
+        return f"gyro bandwidth above {hi:.3g} Hz, loop delay {td}"
+
     def describe(self) -> str:
-        bw = "n/a" if self.gyro_bandwidth_hz is None else f"{self.gyro_bandwidth_hz:.0f} Hz"
-        td = "n/a" if self.delay_ms is None else f"{self.delay_ms:.2f} ms"
         lo, hi = self.f_range_hz
         return (
-            f"k_m = {self.k_m_dps2_per_count:.5g} deg/s^2 per count, gyro bandwidth {bw}, delay {td} "
+            f"k_m = {self.k_m_dps2_per_count:.5g} deg/s^2 per count, {self.lag_and_delay()} "
             f"(rms {self.rms_error_db:.2f} dB / {self.rms_phase_deg:.1f} deg over {self.n_bins} bins, "
             f"{lo:.3g}-{hi:.3g} Hz)"
         )
@@ -417,14 +478,19 @@ def fit_plant(
     f_max_hz: float | None = None,
     lag: bool = True,
     sampled_integrator: bool = True,
+    pole_max_ratio: float = 2.0,
+    pole_min_gain: float = 0.0,
 ) -> PlantFit:
     """Weighted least squares of the plant model on the bins with ``coherence >= coherence_min`` in the range.
 
     Residual ``ln(P_data / P_model)`` (log-magnitude and phase in radians alike), weights ``g / (1 - g)`` (the
     inverse variance of a Welch estimate, capped at g = 0.99) times ``1/f`` (each decade counts the same, so ``k_m``
     comes mostly from the low-frequency magnitude where ``|P| ~ k_m / w``). ``lag=False``: integrator + delay only.
-    The gyro bandwidth is reported only if its pole is within twice the highest fitted frequency (>= 1 dB of
-    roll-off in the band, otherwise it cannot be told from a delay and the integrator + delay model is reported);
+    The gyro bandwidth is reported only if its pole is within ``pole_max_ratio`` times the highest fitted frequency
+    (2: >= 1 dB of roll-off in the band, otherwise it cannot be told from a delay and the integrator + delay model is
+    reported; ``hil ident`` asks for 1, no figure from outside the coherent band) and it lowers the cost by more than
+    ``pole_min_gain`` (a fraction; ``hil ident`` asks for 0.3: a pole that barely helps is the residual of something
+    else, a mode's skirt, not a lag);
     the delay only if its 1-sigma uncertainty (RMS phase residual over the top frequency) is under
     max(0.1 ms, 25 %).
     """
@@ -461,7 +527,7 @@ def fit_plant(
                                   options={"xatol": 1e-5}).x)  # Brent on log10(fc) around the grid's best
         cand = cost(x)
         fc = float(10.0**x)
-        if cand.cost < best.cost and fc <= 2.0 * f_hi:
+        if cand.cost < (1.0 - pole_min_gain) * best.cost and fc <= pole_max_ratio * f_hi:
             best, best_bw = cand, fc
 
     rms_ph = float(np.sqrt(np.mean(best.res_ph**2)))
@@ -487,10 +553,8 @@ def fit_plant(
 def fit_caption(fit: PlantFit) -> str:
     """The fitted figures, each once, on two lines: the model's parameters, then the fit's band and residuals (the
     Bode plot's heading; :meth:`PlantFit.describe` is the one-line form)."""
-    bw = "n/a" if fit.gyro_bandwidth_hz is None else f"{fit.gyro_bandwidth_hz:.0f} Hz"
-    td = "n/a" if fit.delay_ms is None else f"{fit.delay_ms:.2f} ms"
     lo, hi = fit.f_range_hz
-    return (f"k_m = {fit.k_m_dps2_per_count:.5g} deg/s\u00b2 per count, gyro bandwidth {bw}, delay {td}\n"
+    return (f"k_m = {fit.k_m_dps2_per_count:.5g} deg/s\u00b2 per count, {fit.lag_and_delay()}\n"
             f"rms error {fit.rms_error_db:.2f} dB / {fit.rms_phase_deg:.1f} deg over {fit.n_bins} bins, "
             f"{lo:.3g}\u2013{hi:.3g} Hz")
 
@@ -559,6 +623,26 @@ def _uniform(tick: np.ndarray, *cols: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(np.interp(grid, t, c) for c in cols)
 
 
+def axis_columns(data: LogData, axis: Literal["el", "az"]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """One axis' rate command ``r`` (deg/s), drive ``u`` (counts) and gyro ``y`` (deg/s) from a log's loop group on
+    a gap-free tick grid, and the tick's period ``dt_s``."""
+    loop = data.groups.get("loop")
+    if not loop:
+        raise ValueError("the log has no 'loop' group")
+    names = (f"rate_cmd_{axis}_dps", f"drive_{axis}_counts", GYRO_CHANNEL[axis])
+    missing = [c for c in (*names, "t_s") if c not in loop]
+    if missing:
+        raise ValueError(f"loop group lacks {', '.join(missing)}")
+    r, u, y = (np.asarray(loop[c], dtype=float) for c in names)
+    t = np.asarray(loop["t_s"], dtype=float)
+    if r.size < 64:
+        raise ValueError(f"loop group has {r.size} rows: too short")
+    dt = float(np.median(np.diff(t)))
+    if "tick" in loop:
+        r, u, y = _uniform(np.asarray(loop["tick"]), r, u, y)
+    return r, u, y, dt
+
+
 def sweep_start(r: np.ndarray, sweep: SweptSine, dt_s: float) -> int:
     """Index where the excitation starts: the peak of the cross-correlation of the command with the sweep."""
     tpl = np.array([sweep.rate_dps(k * dt_s) for k in range(round(sweep.total_s / dt_s))])
@@ -589,21 +673,16 @@ def identify_log(
     5 % of its largest excursion, band 1 Hz .. 0.45 / dt, fitted whole. ``f_min_hz`` / ``f_max_hz`` override the
     band (FRF and fit). ``axis`` defaults to the sweep's, else "el".
     """
+    frf, fit_lo = log_frf(data, sweep, axis=axis, f_min_hz=f_min_hz, f_max_hz=f_max_hz, nperseg=nperseg)
+    return frf, fit_plant(frf, coherence_min=coherence_min, f_min_hz=fit_lo, lag=lag)
+
+
+def log_frf(data: LogData, sweep: SweptSine | None = None, *, axis: Literal["el", "az"] | None = None,
+            f_min_hz: float | None = None, f_max_hz: float | None = None,
+            nperseg: int | None = None) -> tuple[Frf, float]:
+    """The FRF of :func:`identify_log` without the fit, and the frequency its fit would start from."""
     ax = axis or (sweep.axis if sweep is not None else "el")
-    loop = data.groups.get("loop")
-    if not loop:
-        raise ValueError("the log has no 'loop' group")
-    names = (f"rate_cmd_{ax}_dps", f"drive_{ax}_counts", GYRO_CHANNEL[ax])
-    missing = [c for c in (*names, "t_s") if c not in loop]
-    if missing:
-        raise ValueError(f"loop group lacks {', '.join(missing)}")
-    r, u, y = (np.asarray(loop[c], dtype=float) for c in names)
-    t = np.asarray(loop["t_s"], dtype=float)
-    if r.size < 64:
-        raise ValueError(f"loop group has {r.size} rows: too short")
-    dt = float(np.median(np.diff(t)))
-    if "tick" in loop:
-        r, u, y = _uniform(np.asarray(loop["tick"]), r, u, y)
+    r, u, y, dt = axis_columns(data, ax)
     if sweep is not None:
         k0 = sweep_start(r, sweep, dt)
         pad = 0.5 * sweep.settle_s
@@ -624,5 +703,191 @@ def identify_log(
     if f_min_hz is not None:
         f_lo = fit_lo = f_min_hz
     f_hi = f_max_hz if f_max_hz is not None else min(f_hi, 0.45 / dt)
-    frf = estimate_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi, nperseg=nperseg)
-    return frf, fit_plant(frf, coherence_min=coherence_min, f_min_hz=fit_lo, lag=lag)
+    if sweep is not None and nperseg is None:
+        frf = estimate_sweep_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi)
+    else:
+        frf = estimate_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi, nperseg=nperseg)
+    return frf, fit_lo
+
+
+
+
+# --- levelling -----------------------------------------------------------------------------------------------------
+
+LEVELS_PER_OCTAVE = 3  # the level table's spacing: third octaves
+CLIPPED_SHARE = 0.01  # a third octave whose drive sat at its limit on more than this share of its ticks saturated
+DRIVE_TARGET = 0.8  # a raise stops where the drive's peak would reach this fraction of the limit
+OFFSET_MIN_DPS = 0.3  # a levelling lowers the offset no further
+REVERSAL_SMOOTH_S = 0.005  # the axis' rate is averaged over this before its sign is read (gyro noise is not motion)
+
+
+@dataclass(frozen=True)
+class LevelCheck:
+    """What one sweep's log says about its level, per third octave of the sweep (:func:`check_levels`)."""
+
+    freq_hz: np.ndarray  # centre of each third octave
+    amplitude_dps: np.ndarray  # the sweep's amplitude there
+    coherence: np.ndarray  # median coherence of the FRF bins in the third octave (0 where there is none)
+    drive_peak_counts: np.ndarray  # 99th percentile of |drive| while the chirp was in the third octave
+    drive_clipped: np.ndarray  # share of those ticks with the drive at the limit (the loop clipped it)
+    drive_mean_counts: np.ndarray  # mean drive there (friction, imbalance, harness at the offset's rate)
+    reversed: np.ndarray  # the axis' rate (5 ms mean) went against the offset there: friction switched sides
+    rate_swing_dps: np.ndarray  # largest departure of the axis' rate (5 ms mean) from its mean there
+
+    def coherent(self, coherence_min: float) -> np.ndarray:
+        return self.coherence >= coherence_min
+
+    def unasked_clipping(self, max_drive_counts: float) -> float:
+        """Median share of ticks at the drive's limit over the third octaves below 10 Hz whose mean drive is under
+        half the limit: there a sweep of a few deg/s asks a few thousand counts, so clipping is the loop's own."""
+        low = (self.freq_hz < 10.0) & (np.abs(self.drive_mean_counts) < 0.5 * max_drive_counts)
+        return float(np.median(self.drive_clipped[low])) if np.any(low) else 0.0
+
+    def oscillating(self, max_drive_counts: float) -> bool:
+        """The loop oscillates by itself: its drive clips on more than 5 % of the ticks the sweep asks little of."""
+        return self.unasked_clipping(max_drive_counts) > 0.05
+
+    def saturated(self) -> np.ndarray:
+        """Where the drive sat at its limit on more than 1 % of the ticks."""
+        return self.drive_clipped > CLIPPED_SHARE
+
+
+def level_frequencies(sweep: SweptSine) -> np.ndarray:
+    """Third-octave centres from the sweep's lower to its upper frequency (both ends included)."""
+    lo, hi = sorted((sweep.f_start_hz, sweep.f_stop_hz))
+    n = max(2, round(math.log2(hi / lo) * LEVELS_PER_OCTAVE) + 1)
+    return np.geomspace(lo, hi, n)
+
+
+def _octave_share(freq_hz: np.ndarray, centre_hz: float) -> np.ndarray:
+    half = 2.0 ** (0.5 / LEVELS_PER_OCTAVE)
+    return (freq_hz >= centre_hz / half) & (freq_hz < centre_hz * half)
+
+
+def check_levels(data: LogData, sweep: SweptSine, frf: Frf, max_drive_counts: float) -> LevelCheck:
+    """Per third octave of ``sweep`` on the log ``data`` (the sweep located as :func:`identify_log` does), the
+    coherence of ``frf`` (the log's FRF), the drive's peak, mean and share of ticks at ``max_drive_counts`` while
+    the chirp was there, and whether the axis
+    reversed against the offset (the time-to-frequency map of the chirp, ``SweptSine.frequency_hz``)."""
+    r, u, y, dt = axis_columns(data, sweep.axis)
+    k0 = sweep_start(r, sweep, dt)
+    t0, t1 = sweep.window_s
+    a, b = max(k0 + round(t0 / dt), 0), min(k0 + round(t1 / dt), r.size)
+    if b - a < 64:
+        raise ValueError(f"the sweep window has {b - a} samples in the log")
+    f_t = np.array([sweep.frequency_hz((k - k0) * dt) for k in range(a, b)])
+    u_w = u[a:b]
+    width = max(1, round(REVERSAL_SMOOTH_S / dt))
+    y_s = np.convolve(y, np.ones(width) / width, mode="same")[a:b]
+    sign = 1.0 if sweep.offset_dps >= 0 else -1.0
+    centres = level_frequencies(sweep)
+    coh, peak, clip, mean, rev, swing = (np.zeros(centres.size) for _ in range(6))
+    for i, fc in enumerate(centres):
+        bins = _octave_share(frf.freq_hz, fc)
+        coh[i] = float(np.median(frf.coherence[bins])) if np.any(bins) else 0.0
+        there = _octave_share(f_t, fc)
+        if np.any(there):
+            peak[i] = float(np.percentile(np.abs(u_w[there]), 99.0))
+            clip[i] = float(np.mean(np.abs(u_w[there]) >= max_drive_counts - 0.5))
+            mean[i] = float(np.mean(u_w[there]))
+            rev[i] = float(np.min(sign * y_s[there]) < 0.0)
+            swing[i] = float(np.max(np.abs(y_s[there] - np.mean(y_s[there]))))
+    amp = np.array([sweep.amplitude_at_dps(float(fc)) for fc in centres])
+    return LevelCheck(centres, amp, coh, peak, clip, mean, rev.astype(bool), swing)
+
+
+def next_level(sweep: SweptSine, check: LevelCheck, *, max_drive_counts: float, coherence_min: float = 0.8,
+               offset_max_dps: float, amplitude_max_dps: float = 20.0, amplitude_min_dps: float = 0.05,
+               saturated_dps: np.ndarray | None = None) -> SweptSine | None:
+    """The next sweep of a levelling (``hil ident``, docs/ident.md "Levelling"), or None when there is nothing left
+    to change.
+
+    If the drive saturated (at ``max_drive_counts`` on more than 1 % of a third octave's ticks) with its mean over
+    half the limit, the mean took the headroom (friction at the offset's rate, a harness wound up by the travel,
+    the imbalance): amplitudes and offset all fall x0.6, the travel with them. Otherwise, per third octave: where
+    the drive saturated the amplitude halves; where the coherence is under ``coherence_min`` it rises, at most x2
+    and only as far as the drive's headroom allows (its 99th percentile to 80 % of the limit, the mean counted);
+    elsewhere it stays. Then the offset rises (x1.5 at most, up to ``offset_max_dps``, the travel's limit) until it
+    is 1.5 times the axis' largest rate swing at the new amplitudes (the swing measured, so the loop's resonance
+    counts, and never expected to fall with the amplitude: the loop's noise swings the rate too), and amplitudes
+    whose swing the offset cannot carry fall until it can: the axis never reverses, so friction stays on one side.
+    Amplitudes stay in [``amplitude_min_dps``, ``amplitude_max_dps``] and under 0.7 times ``saturated_dps`` (per
+    third octave, the lowest amplitude that saturated the drive in an earlier pass), so a levelling does not swing
+    between a level that saturates and one that does not; the offset stays at 0.3 deg/s or more."""
+    old = check.amplitude_dps
+    limit = float(max_drive_counts)
+    offset = abs(sweep.offset_dps)
+    saturated = check.saturated()
+    if np.any(saturated & (np.abs(check.drive_mean_counts) > 0.5 * limit)):
+        amp = 0.6 * old
+        offset *= 0.6
+    else:
+        amp = old.copy()
+        for i in range(amp.size):
+            peak, bias = check.drive_peak_counts[i], abs(check.drive_mean_counts[i])
+            if saturated[i]:
+                amp[i] *= 0.5
+            elif check.coherence[i] < coherence_min:
+                room = (DRIVE_TARGET * limit - bias) / max(peak - bias, 1.0)
+                if room > 1.05:
+                    amp[i] *= min(2.0, room)
+        if saturated_dps is not None:
+            amp = np.minimum(amp, 0.7 * saturated_dps)
+        amp = np.clip(amp, amplitude_min_dps, amplitude_max_dps)
+        swing = check.rate_swing_dps * np.maximum(amp / old, 1.0)  # the swing each third octave would have
+        need = 1.5 * float(np.max(swing)) if swing.size else 0.0
+        if need > offset:
+            offset = min(need, max(1.5 * offset, 0.5), offset_max_dps)
+        over = 1.5 * swing > offset
+        amp[over] *= offset / (1.5 * swing[over])
+    amp = np.clip(amp, amplitude_min_dps, amplitude_max_dps)
+    offset = max(offset, OFFSET_MIN_DPS)
+    if np.allclose(amp, old, rtol=0.02) and math.isclose(offset, abs(sweep.offset_dps), rel_tol=0.02):
+        return None
+    data = sweep.model_dump()
+    data.update(levels=tuple((float(f), round(float(a), 4)) for f, a in zip(check.freq_hz, amp, strict=True)),
+                offset_dps=math.copysign(round(offset, 4), sweep.offset_dps or 1.0))
+    return SweptSine.model_validate(data)
+
+
+def resonance_hz(frf: Frf, fit: PlantFit, *, f_min_hz: float, f_max_hz: float, coherence_min: float = 0.8,
+                 excess_db: float = 6.0) -> float | None:
+    """The first resonance the rigid model ``fit`` does not have, between ``f_min_hz`` and ``f_max_hz``: the lowest
+    third octave whose coherent bins stand a median ``excess_db`` or more above the model, at its largest bin; None
+    without one. (A structural mode with the gyro on the load peaks 1/(2 zeta), 14 dB at zeta = 0.1; the gyro's lag,
+    which the rigid fit below it may lack, only lowers the data.)"""
+    ok = (frf.coherence >= coherence_min) & np.isfinite(frf.response) & (np.abs(frf.response) > 0)
+    f = frf.freq_hz
+    excess = np.full(f.size, -np.inf)
+    excess[ok] = 20.0 * np.log10(np.abs(frf.response[ok]) / np.abs(fit.response(f[ok])))
+    for fc in np.geomspace(f_min_hz, f_max_hz, max(2, round(math.log2(f_max_hz / f_min_hz) * LEVELS_PER_OCTAVE) + 1)):
+        there = _octave_share(f, fc) & ok
+        if np.count_nonzero(there) >= 3 and float(np.median(excess[there])) >= excess_db:
+            return float(f[there][np.argmax(excess[there])])
+    return None
+
+
+def coherent_band(check: LevelCheck, sweep: SweptSine, coherence_min: float = 0.8) -> tuple[float, float] | None:
+    """The widest run of third octaves whose median coherence holds ``coherence_min``, a single third octave under it
+    bridged (a notch at an anti-resonance or a clip does not end a band; the fit leaves out its incoherent bins), as
+    (low, high) Hz within the sweep; None if no third octave holds it. (A drive the loop clipped does not bias the
+    band: the log holds the drive as written, after the clip, and the estimate is of the plant from it.)"""
+    ok = check.coherent(coherence_min)
+    ok[1:-1] |= ok[:-2] & ok[2:]
+    best: tuple[int, int] | None = None
+    i = 0
+    while i < ok.size:
+        if ok[i]:
+            j = i
+            while j + 1 < ok.size and ok[j + 1]:
+                j += 1
+            if best is None or j - i > best[1] - best[0]:
+                best = (i, j)
+            i = j + 1
+        else:
+            i += 1
+    if best is None:
+        return None
+    half = 2.0 ** (0.5 / LEVELS_PER_OCTAVE)
+    lo, hi = sorted((sweep.f_start_hz, sweep.f_stop_hz))
+    return max(lo, float(check.freq_hz[best[0]]) / half), min(hi, float(check.freq_hz[best[1]]) * half)

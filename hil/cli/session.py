@@ -219,13 +219,18 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
     out: Annotated[Path, typer.Option(help="Directory for the log, bode-AXIS.png and ident.json.")] = Path(
         "runs/ident"),
     axis: Annotated[Literal["el", "az"], typer.Option(help="The gimbal axis to identify.")] = "el",
-    f_start_hz: Annotated[float, typer.Option(min=0.01, help="Sweep start.")] = 0.5,
-    f_stop_hz: Annotated[float, typer.Option(max=450, help="Sweep stop (below the 500 Hz Nyquist).")] = 300.0,
-    sweep_s: Annotated[float, typer.Option(min=1, help="Length of the sweep.")] = 20.0,
-    amplitude_dps: Annotated[float, typer.Option(min=0, help="Sweep amplitude on the rate command.")] = 2.0,
+    f_start_hz: Annotated[float, typer.Option(min=0.01, help="Sweep start.")] = 1.0,
+    f_stop_hz: Annotated[float, typer.Option(max=450, help="Sweep stop (below the 500 Hz Nyquist).")] = 450.0,
+    sweep_s: Annotated[float, typer.Option(min=1, help="Length of the sweep.")] = 8.0,
+    amplitude_dps: Annotated[float, typer.Option(
+        min=0, help="Sweep amplitude on the rate command (where the levelling starts).")] = 1.5,
     offset_dps: Annotated[float, typer.Option(
         help="Constant rate under the sweep, above its amplitude, so Coulomb friction stays on one side "
-        "(docs/ident.md); the axis turns offset x (sweep + 1 s) deg.")] = 2.5,
+        "(docs/ident.md); the axis turns offset x (sweep + 1 s) deg (where the levelling starts).")] = 3.0,
+    level: Annotated[bool, typer.Option(
+        "--level/--no-level", help="Level the sweep: up to 6 sweeps, the amplitude raised where the coherence "
+        "fails and the drive has headroom, lowered where it saturates, the offset raised while the axis reverses "
+        "(at most 60 deg of travel); each sweep turns the axis back (docs/ident.md, Levelling).")] = True,
     clock: Annotated[ClockOption | None, typer.Option(
         help="Emulator clock with --loopback (default: the session's).")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print the fit as JSON.")] = False,
@@ -233,8 +238,10 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
         help="Identify on a `hil serve` service at this URL (default $HIL_BENCH unless --loopback).")] = None,
 ) -> None:
     """Frequency-sweep identification (seed 000 Figs. 8-9): a swept sine on the rate command of the closed rate
-    loop, the plant's frequency response from the log (indirect closed-loop method), a Bode plot, and the fit of
-    k_m (deg/s^2 per count), the gyro's bandwidth and the delay."""
+    loop, levelled by default (up to 6 sweeps: more amplitude where the coherence fails, less where the drive clips,
+    the offset kept above the rate's swing), the plant's frequency response from the log (indirect closed-loop
+    method), its coherent band, a Bode plot, and the fit on that band only of k_m (deg/s^2 per count), the gyro's
+    bandwidth and the delay."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
@@ -247,7 +254,7 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
         if clock is not None:
             raise fail("--bench: the service runs on its own lab and clock; leave out --clock")
         options = {"axis": axis, "f_start_hz": f_start_hz, "f_stop_hz": f_stop_hz, "sweep_s": sweep_s,
-                   "amplitude_dps": amplitude_dps, "offset_dps": offset_dps}
+                   "amplitude_dps": amplitude_dps, "offset_dps": offset_dps, "level": level}
         result, record = run_on_bench(url, session, out, json_out, kind="ident", options=options)
         report = record["summary"].get("ident")
         if report and result.log_path is not None:
@@ -257,19 +264,28 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
         else:
             print_result(result, json_out)
             if report:
+                band = report.get("coherent_band_hz") or [math.nan, math.nan]
+                lag = (f"gyro bandwidth {_fmt(report.get('gyro_bandwidth_hz'), 1)} Hz, delay "
+                       f"{_fmt(report.get('delay_ms'), 2)} ms" if report.get("gyro_bandwidth_hz") is not None else
+                       f"gyro bandwidth above {band[1]:.3g} Hz, loop delay {_fmt(report.get('loop_delay_ms'), 2)} ms")
                 console.print(f"k_m {report['k_m_dps2_per_count']:.5f} deg/s^2 per count "
-                              f"({report['k_m_vs_default_pct']:+.1f} % vs the controllers' default), gyro bandwidth "
-                              f"{_fmt(report.get('gyro_bandwidth_hz'), 1)} Hz, delay {_fmt(report.get('delay_ms'), 2)}"
-                              " ms (on the service; its Bode plot stays there)", highlight=False)
+                              f"({report['k_m_vs_default_pct']:+.1f} % vs the controllers' default), {lag}; "
+                              f"coherent {band[0]:.3g}-{band[1]:.3g} Hz (on the service; its Bode plot stays there)",
+                              highlight=False)
         raise typer.Exit(result.exit_code if report or result.exit_code else 1)
-    with Progress(TextColumn(f"[bold]{base.name}[/] swept sine on {axis}"), BarColumn(),
+    with Progress(TextColumn(f"[bold]{base.name}[/] swept sine on {axis}" + " {task.fields[sweep]}"), BarColumn(),
                   TextColumn("{task.fields[sim]:.1f} s"), TimeRemainingColumn(), console=err_console,
                   transient=True, disable=no_progress(json_out)) as bar:
-        task = bar.add_task("ident", total=None, sim=0.0)
+        task = bar.add_task("ident", total=None, sim=0.0, sweep="")
+
+        def on_pass(i: int, sweep: Any) -> None:
+            bar.update(task, completed=0, sweep=f"pass {i} (peak {sweep.amplitude_dps:.3g} deg/s, offset "
+                       f"{sweep.offset_dps:+.3g} deg/s)")
+
         try:
             done = api.ident(base, axis=axis, loopback=loopback, clock=clock, out=out, f_start_hz=f_start_hz,
                              f_stop_hz=f_stop_hz, sweep_s=sweep_s, amplitude_dps=amplitude_dps,
-                             offset_dps=offset_dps,
+                             offset_dps=offset_dps, level=level, on_pass=on_pass,
                              progress=lambda n, t: bar.update(task, completed=n, total=t, sim=n / 1000))
         except ConfigError as exc:
             raise fail(str(exc)) from None
@@ -283,6 +299,12 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
         print_json(done.report)
         return
     print_result(result, False)
+    lo, hi = done.band_hz or fit.f_range_hz
+    console.print(f"levelling: {done.report['levelling']}; coherent band {lo:.3g}-{hi:.3g} Hz (coherence >= 0.8), "
+                  "the figures below from it only", highlight=False)
+    if done.report.get("resonance_hz"):
+        console.print(f"a resonance at {done.report['resonance_hz']:.0f} Hz over the rigid model (a structural mode?):"
+                      f" the fit stops at half of it, {fit.f_range_hz[1]:.3g} Hz", highlight=False)
     console.print(f"[bold]{fit.describe()}[/]", highlight=False)
     console.print(f"k_m {fit.k_m_dps2_per_count:.5f} deg/s^2 per count: {done.report['k_m_vs_default_pct']:+.1f} % "
                   f"vs the controllers' default {K_M_DEFAULT} (set b0_dps2_per_count to the fitted value if it "

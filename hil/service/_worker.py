@@ -59,7 +59,8 @@ LIVE_CHANNELS = {
 }
 EXIT_INVALID = 2
 CLAIM_WAIT_S = 15.0  # a previous worker of this lab (its manager killed) aborts its item and lets go within this
-IDENT_OPTIONS = ("axis", "f_start_hz", "f_stop_hz", "sweep_s", "amplitude_dps", "offset_dps")  # hil.api.ident's
+# hil.api.ident's options an ident item may carry
+IDENT_OPTIONS = ("axis", "f_start_hz", "f_stop_hz", "sweep_s", "amplitude_dps", "offset_dps", "level")
 
 
 def holder_name() -> str:

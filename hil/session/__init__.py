@@ -8,12 +8,15 @@
   returning a :class:`RunResult`; campaigns, tuning and fitting run their sessions through it.
 - The emulated lab: :class:`EmulatorProcess` (``_loopback``, the emulator in its own process on ptys, realtime or
   lockstep) and the ``sim`` clock in this process (``_sim``: :func:`run_sim_session`, :class:`PlantTruth`).
+- A swept-sine identification as sessions, levelled until its coherence holds (``_ident``: :func:`ident_sweeps`,
+  ``hil ident``).
 - The lab a long-running process holds (``_lab``: :class:`BenchLab`, :func:`serve_lab`): `hil serve`'s worker.
 
 Import from here; the underscored modules are this package's own.
 """
 
 from hil.session._control_loop import LATE_NS, ControlLoop, LoopStats
+from hil.session._ident import IdentPass, IdentSweeps, ident_sweeps
 from hil.session._lab import BenchLab, current_lab, serve_lab
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._loopback import DEFAULT_EMULATOR, EmulatorProcess, emulator_for_plant
@@ -47,6 +50,8 @@ __all__ = [
     "DriveWriter",
     "EmulatorProcess",
     "EventLoopWatchdog",
+    "IdentPass",
+    "IdentSweeps",
     "LoopStats",
     "LoopThread",
     "PlantTruth",
@@ -63,6 +68,7 @@ __all__ = [
     "capture_for_session",
     "current_lab",
     "emulator_for_plant",
+    "ident_sweeps",
     "link_fd",
     "prepare_run",
     "read_log",

@@ -72,6 +72,6 @@ def test_the_api_names_the_parameter(tmp_path: Path) -> None:
     session = REPO / "profiles" / "sessions" / "swing-1deg-1hz-eso.yaml"
     with pytest.raises(api.ConfigError, match=r"^axis='up': not el or az$"):
         api.ident(session, axis="up", out=tmp_path)  # type: ignore[arg-type]
-    with pytest.raises(api.ConfigError, match=r"^offset_dps=10: the elevation axis would turn 210 deg .*; lower "
+    with pytest.raises(api.ConfigError, match=r"^offset_dps=10: the elevation axis would turn 90 deg .*; lower "
                                               r"offset_dps= or sweep_s=, or identify axis='az'$"):
         api.ident(session, offset_dps=10.0, out=tmp_path)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -15,25 +16,31 @@ SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
 
 
 def test_ident_recovers_the_emulators_k_m_within_5_percent(tmp_path: Path) -> None:
-    proc = subprocess.run([sys.executable, "-m", "hil", "ident", str(SESSION), "--loopback", "--out", str(tmp_path),
-                           "--sweep-s", "6", "--f-stop-hz", "250"], capture_output=True, text=True, timeout=300,
-                          check=False)
+    """`hil ident SESSION --loopback` with its defaults (a levelled sweep, lockstep)."""
+    proc = subprocess.run([sys.executable, "-m", "hil", "ident", str(SESSION), "--loopback", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = json.loads((tmp_path / "ident-el.json").read_text())
     # the emulated plant's k_m is K_t V/count / (J R) = 0.0230 deg/s^2 per count (profiles/plant/default.yaml)
     assert abs(report["k_m_dps2_per_count"] - K_M_DEFAULT) / K_M_DEFAULT < 0.05, report
-    # the delay is the loop's: the gyro's (0.3-0.8 ms with the hold's half sample taken out) and the wire's
+    # the delay is the loop's: the gyro's (200 Hz: 0.80 ms of lag, and 0.5 ms of delay) and the wire's
     wire_ms = load_emulator_config().drive_delay_s() * 1e3  # 0.67 ms at 921 600 baud (docs/emulator.md, "The wire")
-    assert 150 < report["gyro_bandwidth_hz"] < 250 and 0.3 < report["delay_ms"] - wire_ms < 0.8, report
+    lag_ms = 1e3 / (2 * math.pi * 200.0)
+    band_lo, band_hi = report["coherent_band_hz"]
+    assert band_lo < 3.0 and band_hi > 150.0, report  # the levelled sweep is coherent over most of the band
+    if report["gyro_bandwidth_hz"] is None:  # the pole above the band: one loop delay, lag included
+        assert abs(report["loop_delay_ms"] - (lag_ms + 0.5 + wire_ms)) < 0.2, report
+    else:
+        assert 150 < report["gyro_bandwidth_hz"] < 250 and 0.3 < report["delay_ms"] - wire_ms < 0.8, report
     assert (tmp_path / "bode-el.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "k_m" in proc.stdout
+    assert "k_m" in proc.stdout and "coherent band" in proc.stdout
 
 
 def test_ident_refuses_an_elevation_sweep_that_would_reach_the_gimbals_singularity(tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-m", "hil", "ident", str(SESSION), "--loopback", "--out", str(tmp_path),
                            "--offset-dps", "10"], capture_output=True, text=True, timeout=60, check=False)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
-    assert "error: --offset-dps 10: the elevation axis would turn 210 deg" in proc.stderr
+    assert "error: --offset-dps 10: the elevation axis would turn 90 deg" in proc.stderr  # 10 x (8 + 1) s
     assert proc.stderr.strip().endswith("lower --offset-dps or --sweep-s, or identify --axis az")
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
 
@@ -64,7 +71,8 @@ def test_ident_shows_a_structural_mode_as_a_resonance_at_its_frequency(tmp_path:
         (tmp_path / f"{name}.yaml").write_text(yaml.safe_dump(session))
         out = tmp_path / name
         proc = subprocess.run([sys.executable, "-m", "hil", "ident", str(tmp_path / f"{name}.yaml"), "--loopback",
-                               "--out", str(out), "--sweep-s", "8", "--f-stop-hz", "300"], capture_output=True,
+                               "--out", str(out), "--sweep-s", "8", "--f-start-hz", "0.5", "--f-stop-hz", "300",
+                               "--amplitude-dps", "2", "--offset-dps", "2.5", "--no-level"], capture_output=True,
                               text=True, timeout=300, check=False)
         assert proc.returncode == 0, proc.stderr[-2000:]
         report = json.loads((out / "ident-el.json").read_text())
