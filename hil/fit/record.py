@@ -15,10 +15,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hil.analysis import SweptSine
+from hil.analysis import IDENT_SWEEP, SweptSine
 from hil.campaign import load_campaign, run_campaign
 from hil.config import PROFILES, SessionConfig, load_session, session_yaml
-from hil.session import emulator_for_plant, run
+from hil.session import emulator_for_plant, ident_sweeps, run
 
 SWING_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
 
@@ -61,16 +61,18 @@ class Recording:
         return path
 
 
-def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: float = 20.0, sweep_s: float = 6.0,
-                   f_start_hz: float = 1.0, f_stop_hz: float = 450.0, amplitude_dps: float = 1.5,
-                   offset_dps: float = 3.0,
+def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: float = 20.0,
+                   sweep_s: float = IDENT_SWEEP.duration_s, f_start_hz: float = IDENT_SWEEP.f_start_hz,
+                   f_stop_hz: float = IDENT_SWEEP.f_stop_hz, amplitude_dps: float = IDENT_SWEEP.amplitude_dps,
+                   offset_dps: float = IDENT_SWEEP.offset_dps,
                    swings: tuple[tuple[str, str], ...] = (("swing-1deg-1hz", "eso"), ("swing-3deg-1hz", "eso"),
                                                           ("swing-3deg-1hz", "eso_kf_high_gain")),
                    axes: tuple[str, ...] = ("el", "az")) -> list[Recording]:
     """The logs a fit needs, as sessions derived from ``base`` (the lab's own session: its ports, limits and lab):
-    a static session, an ident sweep per axis, swing sessions. The sweep is the session ``hil ident`` runs
-    (docs/ident.md) around a rate offset (no friction reversal), kept short (``offset_dps * (sweep_s + 1 s)`` = 21 deg
-    by default) because a cable harness restrains the travel."""
+    a static session, an ident sweep per axis, swing sessions. The sweep is where ``hil ident`` starts by default
+    (docs/ident.md, ``hil.analysis.IDENT_SWEEP``): around a rate offset (no friction reversal), kept short
+    (``offset_dps * (sweep_s + 1 s)`` = 27 deg) because a cable harness restrains the travel; `hil ident` levels it
+    from there, the fit's recording does not (:func:`record`)."""
 
     def session(name: str, swing: str | None, controller: str, seconds: float, tracking: bool) -> SessionConfig:
         data = base.model_dump(mode="json", exclude_none=True)
@@ -99,14 +101,22 @@ def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: floa
 
 
 def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None = None,
-           progress: Callable[[str], Any] | None = None) -> list[Path]:
-    """Run a recording plan: on the emulated lab (``loopback``: the sim clock) or on the lab's boards. The logs'
-    paths, in the plan's order; RuntimeError naming the recording when one does not complete."""
+           progress: Callable[[str], Any] | None = None, level: bool = False) -> list[Path]:
+    """Run a recording plan: on the emulated lab (``loopback``: the sim clock) or on the lab's boards; an ident
+    recording as `hil ident` runs it with level=False (its sweep as planned: the twin's fit is measured on it,
+    docs/fit.md "Hidden plants"), or levelled as `hil ident` runs it by default with ``level``. The logs' paths, in
+    the plan's order; RuntimeError naming the recording when one does not complete."""
     logs: list[Path] = []
+    clock = "sim" if loopback else None
     for i, rec in enumerate(plan, 1):
         if progress is not None:
-            progress(f"{i}/{len(plan)} {rec.name} ({rec.seconds:g} s)")
-        result = run(rec.config, loopback=loopback, clock="sim" if loopback else None, out=out_dir)
+            each = " a sweep, up to 6 sweeps when levelled" if rec.sweep is not None and level else ""
+            progress(f"{i}/{len(plan)} {rec.name} ({rec.seconds:g} s{each})")
+        if rec.sweep is not None:
+            result = ident_sweeps(rec.config, rec.sweep, level=level, loopback=loopback, clock=clock,
+                                  out=out_dir).run
+        else:
+            result = run(rec.config, loopback=loopback, clock=clock, out=out_dir)
         if result.status != "completed" or result.log_path is None:
             raise RuntimeError(f"{rec.name}: {result.status}: {result.message}")
         logs.append(result.log_path)
@@ -114,11 +124,11 @@ def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None 
 
 
 def record_platform_logs(plant: str | Path, out_dir: str | Path, *, seed: int = 1, progress: Callable[[str], Any]
-                         | None = None, **plan: Any) -> list[Path]:
+                         | None = None, level: bool = False, **plan: Any) -> list[Path]:
     """Record a fit's logs on ``plant`` (sim clock, ``seed``): :func:`recording_plan` on the shipped swing session
-    with the emulator pointed at ``plant``. Their paths."""
+    with the emulator pointed at ``plant``, the sweeps as planned (levelled with ``level``). Their paths."""
     base = session_on_plant(plant, out_dir, name="fit", swing=None, seed=seed)
-    return record(recording_plan(base, **plan), loopback=True, progress=progress)
+    return record(recording_plan(base, **plan), loopback=True, progress=progress, level=level)
 
 
 ACCEPTANCE_CAMPAIGN = PROFILES / "campaigns" / "swing-miss-distance.yaml"
