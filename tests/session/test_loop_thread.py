@@ -54,11 +54,12 @@ def test_five_watchdog_trips_are_five_recoveries_each_with_a_new_loop_thread(tmp
                 await asyncio.sleep(0.15)
         await wait_armed(session)
         threads.append(session.loop_thread)
+        session.stop("five stalls done")  # the duration is a ceiling: a busy machine recovers slower
 
     safety = {"watchdog_ms": 20, "on_fault": "recover", "max_recoveries": 50, "recover_after_ms": 20}
-    run = run_session(session_config(duration_s=4.0, safety=safety), tmp_path, clock="realtime",
+    run = run_session(session_config(duration_s=30.0, safety=safety), tmp_path, clock="realtime",
                       during=stall_five_times)
-    assert run.result.status == "completed", run.result.message
+    assert run.result.status in ("completed", "stopped"), run.result.message
     faults = run.result.stats.faults
     assert sum("watchdog" in f for f in faults) >= 5 and run.result.stats.recoveries >= 5, faults
     assert len({id(t) for t in threads}) == 6  # each recovery ran a loop thread of its own
