@@ -33,7 +33,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from hil.control.pos_kinematics import Vec3
 
@@ -108,6 +107,9 @@ class ImbalanceUKF:
         self.mass_kg = float(mass_kg)
         self.inertia_kg_m2 = float(inertia_kg_m2)
         self.dt_s = float(dt_s)
+        # filterpy loads scipy.stats (about 60 % of the bench's import time): only a UKF controller needs it
+        from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter  # noqa: PLC0415
+
         points = MerweScaledSigmaPoints(self.DIM_X, alpha=alpha, beta=beta, kappa=kappa)
         ukf = UnscentedKalmanFilter(
             dim_x=self.DIM_X, dim_z=self.DIM_Z, dt=self.dt_s, hx=self._hx, fx=self._fx, points=points
