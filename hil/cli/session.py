@@ -56,16 +56,12 @@ def run_and_print(config, out: Path | None, loopback: bool, clock: str | None, j
 
 def print_result(result, json_out: bool) -> None:  # type: ignore[no-untyped-def]
     summary = result.summary()
-    lost = log_loss(result)
+    if json_out:
+        print_json(result.record(summary))
+        return
+    lost = result.log_loss()
     if lost:  # the log says only that no summary was written; the session knows why
         summary["incomplete"] = lost
-    if json_out:
-        print_json({"status": result.status, "exit_code": result.exit_code, "message": result.message,
-                    "log": str(result.log_path) if result.log_path else None, "clock": result.clock,
-                    **({"capture": result.capture} if result.capture else {}),
-                    **({"log_error": result.session.log_error, "log_rows_kept": result.session.log_rows,
-                        "cycles_run": result.session.stats.cycles} if result.session.log_error else {}), **summary})
-        return
     if summary:
         print_summary(summary)
     elif lost:
@@ -82,16 +78,6 @@ def print_result(result, json_out: bool) -> None:  # type: ignore[no-untyped-def
         trouble = f"; {cap['dropped']} records lost: {cap['error']}" if cap.get("dropped") or cap.get("error") else ""
         text = f"capture: {cap['path']} ({cap['records']} records, {cap['bytes']} bytes{trouble})"
         console.print(text, style="red" if trouble else None, markup=False, highlight=False)
-
-
-def log_loss(result) -> str:  # type: ignore[no-untyped-def]
-    """What a session whose logging stopped early kept: '' when it did not stop early."""
-    session = result.session
-    if not session.log_error:
-        return ""
-    where = "no log file is left" if result.log_path is None else f"{session.log_rows} rows kept"
-    return (f"logging stopped early: {session.log_error}; {where} of {session.stats.cycles} cycles run "
-            "(the session ended as a fault)")
 
 
 def _fmt(x: float | None, digits: int = 3) -> str:

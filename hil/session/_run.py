@@ -77,6 +77,28 @@ class RunResult:
             return {}
         return summarize_log(self.log_path, settle_s)
 
+    def log_loss(self) -> str:
+        """What a session whose logging stopped early kept: '' when it did not stop early."""
+        session = self.session
+        if not session.log_error:
+            return ""
+        where = "no log file is left" if self.log_path is None else f"{session.log_rows} rows kept"
+        return (f"logging stopped early: {session.log_error}; {where} of {session.stats.cycles} cycles run "
+                "(the session ended as a fault)")
+
+    def record(self, summary: dict[str, Any] | None = None) -> dict[str, Any]:
+        """What `hil run --json` prints: status, exit code, message, log, clock, the capture and the log's loss if
+        any, and :meth:`summary` (given, or read here) with ``incomplete`` when logging stopped early."""
+        summary = dict(self.summary() if summary is None else summary)
+        lost = self.log_loss()
+        if lost:  # the log says only that no summary was written; the session knows why
+            summary["incomplete"] = lost
+        return {"status": self.status, "exit_code": self.exit_code, "message": self.message,
+                "log": str(self.log_path) if self.log_path else None, "clock": self.clock,
+                **({"capture": self.capture} if self.capture else {}),
+                **({"log_error": self.session.log_error, "log_rows_kept": self.session.log_rows,
+                    "cycles_run": self.session.stats.cycles} if self.session.log_error else {}), **summary}
+
 
 def as_session_config(config: SessionConfig | str | Path) -> SessionConfig:
     """``config`` itself, or the session file at that path, loaded and checked (ConfigError)."""
