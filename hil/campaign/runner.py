@@ -1,10 +1,11 @@
 """Run a campaign's cells, keep each cell's log, resume, judge thresholds and acceptance.
 
-Each cell is one `hil run` of ``CELL/session.yaml`` in its own process (against its own emulated lab unless
+Each cell is one `hil run` of ``CELL/session.yaml`` in a process of its own (against its own emulated lab unless
 ``hardware``, on the ``sim`` clock by default or ``lockstep`` over ptys, so cells are reproducible and may run
-``jobs`` at a time; on the lab's hardware one after another). An engine (:mod:`hil.campaign.engines`) runs them:
-``local`` here, ``dask`` on a dask.distributed cluster, where a worker runs the same
-:func:`run_cell` and sends the cell's files back (or leaves them in a shared directory) for this process to
+``jobs`` at a time; on the lab's hardware one after another). A sim-clock cell runs in a warm worker
+(:mod:`hil.campaign.warm`): the same session code, in a process that outlives the cell. An engine
+(:mod:`hil.campaign.engines`) runs them: ``local`` here, ``dask`` on a dask.distributed cluster, where a worker runs
+the same :func:`run_cell` and sends the cell's files back (or leaves them in a shared directory) for this process to
 put where the local engine would. A cell's ``result.json`` is written when it finishes, and the campaign's
 ``campaign.json`` after every cell, so an interrupted campaign resumes where it stopped, with either engine.
 
@@ -32,7 +33,7 @@ import time
 import uuid
 from collections.abc import Callable, Collection, Generator, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 from pydantic import ValidationError
@@ -40,11 +41,13 @@ from pydantic import ValidationError
 from hil.campaign.engines import Engine, EngineError, Interrupted, check_options, open_engine
 from hil.campaign.metrics import METRICS, compute_metrics, score
 from hil.campaign.model import CampaignConfig, CampaignResult, CellResult, CellSpec, RuleResult
+from hil.campaign.warm import WARM, WarmCell, WorkerDied
 from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line, read_file_bytes
 
 RESULT = "result.json"
 CAMPAIGN_JSON = "campaign.json"
 MAX_RESULTS_BYTES = 64 << 20  # campaign.json and result.json are read only up to this size
+P = TypeVar("P")
 STOP_GRACE_S = 60.0  # a stopped cell's session has this long to wind down before it is killed
 
 
@@ -74,7 +77,7 @@ class _LiveCells:
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
-        self._cells: dict[tuple[Path, str], subprocess.Popen[str] | None] = {}
+        self._cells: dict[tuple[Path, str], Any] = {}  # a cell's process (send_signal), None before it starts
         self._stopping: set[Path] = set()
 
     @contextlib.contextmanager
@@ -93,13 +96,14 @@ class _LiveCells:
                     self._cells.pop(key, None)
                     self._cond.notify_all()
 
-    def start(self, out_dir: Path, cell_id: str, cmd: list[str], **popen: Any) -> subprocess.Popen[str] | None:
-        """Start a held cell's process (``subprocess.Popen(cmd, **popen)``); None if its campaign is stopping."""
+    def start(self, out_dir: Path, cell_id: str, start: Callable[[], P]) -> P | None:
+        """Start a held cell's process (``start()``: a `hil run` process or a warm worker lent to the cell, anything
+        with ``send_signal``); None if its campaign is stopping."""
         key = (out_dir.absolute(), cell_id)
         with self._cond:
             if key[0] in self._stopping:
                 return None
-            proc: subprocess.Popen[str] = subprocess.Popen(cmd, **popen)
+            proc = start()
             self._cells[key] = proc
             return proc
 
@@ -204,18 +208,20 @@ def _not_run(config: CampaignConfig, spec: CellSpec, status: str, why: str, wall
 
 
 def run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware: bool = False,
-             timeout_s: float | None = None, session: dict[str, Any] | None = None) -> CellResult:
-    """Run one cell in its own process; its log, session file and result.json go to ``out_dir/cells/ID``.
-    ``session``: the cell's session from :func:`cell_session` (built here if not given). A cell of a campaign
-    that is stopping (:class:`CampaignInterrupted`) does not start: it comes back ``interrupted``."""
+             timeout_s: float | None = None, session: dict[str, Any] | None = None, warm: bool = True) -> CellResult:
+    """Run one cell in a process of its own: a `hil run` process, or (``warm``, a cell on the sim clock) a warm
+    worker (:mod:`hil.campaign.warm`) that runs the same session code without starting an interpreter; its log,
+    session file and result.json go to ``out_dir/cells/ID``. ``session``: the cell's session from
+    :func:`cell_session` (built here if not given). A cell of a campaign that is stopping
+    (:class:`CampaignInterrupted`) does not start: it comes back ``interrupted``."""
     with _LIVE.cell(out_dir, spec.cell_id) as held:
         if not held:
             return _not_run(config, spec, "interrupted", "the campaign was stopped before the cell started")
-        return _run_cell(config, spec, out_dir, hardware=hardware, timeout_s=timeout_s, session=session)
+        return _run_cell(config, spec, out_dir, hardware=hardware, timeout_s=timeout_s, session=session, warm=warm)
 
 
 def _run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware: bool,
-              timeout_s: float | None, session: dict[str, Any] | None) -> CellResult:
+              timeout_s: float | None, session: dict[str, Any] | None, warm: bool) -> CellResult:
     cell_dir = out_dir / "cells" / spec.cell_id
     data = session if session is not None else cell_session(config, spec, cell_dir, hardware)
     if cell_dir.exists():
@@ -223,29 +229,26 @@ def _run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware
     cell_dir.mkdir(parents=True)
     session_file = cell_dir / "session.yaml"
     session_file.write_text(yaml.safe_dump(data, sort_keys=False))
-    cmd = [sys.executable, "-m", "hil", "run", str(session_file), "--json", "--out", str(cell_dir)]
-    if not hardware:
-        cmd.append("--loopback")
     duration = float(data["duration_s"])
+    timeout = timeout_s or 120.0 + 30.0 * duration
     t0 = time.monotonic()
     base = {"cell_id": spec.cell_id, "profile": spec.profile.label, "controller": spec.controller.label,
             "controller_name": spec.controller.name, "seed": spec.seed}
     try:
-        proc = _hil_run(out_dir, spec.cell_id, cmd, timeout_s or 120.0 + 30.0 * duration)
+        if warm and not hardware and data.get("emulator", {}).get("clock") == "sim":
+            summary = _warm_run(out_dir, spec.cell_id, session_file, cell_dir, timeout)
+        else:
+            cmd = [sys.executable, "-m", "hil", "run", str(session_file), "--json", "--out", str(cell_dir)]
+            summary = _hil_run(out_dir, spec.cell_id, [*cmd, *([] if hardware else ["--loopback"])], cell_dir,
+                               timeout)
     except subprocess.TimeoutExpired:
         result = CellResult(**base, status="error", exit_code=-1, message="timed out",
                             failures=["the session did not finish in time"], wall_s=time.monotonic() - t0)
     else:
-        if proc is None:
+        if summary is None:
             result = _not_run(config, spec, "interrupted", "the campaign was stopped before the cell started")
             (cell_dir / RESULT).write_text(result.model_dump_json(indent=2))
             return result
-        (cell_dir / "stderr.txt").write_text(proc.stderr)
-        try:
-            summary = json.loads(proc.stdout)
-        except json.JSONDecodeError:
-            last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
-            summary = {"status": "error", "exit_code": proc.returncode, "message": last}
         log = Path(summary["log"]) if summary.get("log") else None
         metrics: dict[str, float] = {}
         failures: list[str] = []
@@ -257,8 +260,7 @@ def _run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware
                 metrics = {k: v for k, v in computed.items() if math.isfinite(v)}
             except (ValueError, KeyError, OSError) as exc:
                 failures.append(f"metrics: {exc}")
-        result = CellResult(**base, status=summary.get("status", "error"),
-                            exit_code=int(summary.get("exit_code", proc.returncode)),
+        result = CellResult(**base, status=summary.get("status", "error"), exit_code=int(summary["exit_code"]),
                             message=str(summary.get("message") or ""),
                             log=str(log.relative_to(out_dir)) if log is not None and log.is_relative_to(out_dir)
                             else (str(log) if log else None),
@@ -268,11 +270,18 @@ def _run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware
     return result
 
 
-def _hil_run(out_dir: Path, cell_id: str, cmd: list[str], timeout_s: float) -> subprocess.CompletedProcess[str] | None:
-    """``subprocess.run(cmd)`` for a held cell, its process known to ``_LIVE`` so a campaign's stop reaches it
-    (None: the campaign is stopping, nothing started). TimeoutExpired after ``timeout_s``, the process killed."""
-    proc = _LIVE.start(out_dir, cell_id, cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                       env={**os.environ, "COLUMNS": "200"})
+def _last_line(text: str) -> str:
+    return (text.strip().splitlines() or ["no output"])[-1]
+
+
+def _hil_run(out_dir: Path, cell_id: str, cmd: list[str], cell_dir: Path, timeout_s: float) -> dict[str, Any] | None:
+    """``cmd`` (a `hil run ... --json`) for a held cell, its process known to ``_LIVE`` so a campaign's stop reaches
+    it: the JSON it printed (or an error record with its exit status and last line on stderr), its stderr in
+    ``cell_dir/stderr.txt``. None: the campaign is stopping, nothing started. TimeoutExpired after ``timeout_s``,
+    the process killed."""
+    env = {**os.environ, "COLUMNS": "200"}
+    proc = _LIVE.start(out_dir, cell_id, lambda: subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                                                 text=True, env=env))
     if proc is None:
         return None
     with proc:
@@ -282,7 +291,31 @@ def _hil_run(out_dir: Path, cell_id: str, cmd: list[str], timeout_s: float) -> s
             proc.kill()
             proc.communicate()
             raise
-    return subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr)
+    (cell_dir / "stderr.txt").write_text(stderr)
+    try:
+        summary = json.loads(stdout)
+    except json.JSONDecodeError:
+        return {"status": "error", "exit_code": proc.returncode, "message": _last_line(stderr)}
+    return {"exit_code": proc.returncode, **summary}
+
+
+def _warm_run(out_dir: Path, cell_id: str, session_file: Path, cell_dir: Path,
+              timeout_s: float) -> dict[str, Any] | None:
+    """The cell's session in a warm worker lent for it (:data:`hil.campaign.warm.WARM`), known to ``_LIVE`` while it
+    runs: the record `hil run --json` would print, its stderr in ``cell_dir/stderr.txt``. None: the campaign is
+    stopping. TimeoutExpired after ``timeout_s``, the worker killed."""
+    worker: WarmCell | None = _LIVE.start(out_dir, cell_id, WARM.lend)
+    if worker is None:
+        return None
+    stderr = cell_dir / "stderr.txt"
+    try:
+        return worker.run(session_file, cell_dir, stderr, timeout_s)
+    except WorkerDied as exc:
+        last = _last_line(stderr.read_text(errors="replace")) if stderr.exists() else "no output"
+        return {"status": "error", "exit_code": exc.returncode if exc.returncode is not None else -1,
+                "message": f"{exc}; {last}"}
+    finally:
+        WARM.give_back(worker)
 
 
 def judge(config: CampaignConfig, cells: list[CellResult]) -> list[RuleResult]:
@@ -360,7 +393,7 @@ def _worker_tmp() -> str | None:
     return None
 
 
-def run_cell_remote(config: CampaignConfig, hardware: bool, shared: str | None,
+def run_cell_remote(config: CampaignConfig, hardware: bool, shared: str | None, warm: bool,
                     item: tuple[CellSpec, dict[str, Any]]) -> CellOutput:
     """On a worker: :func:`run_cell` for ``item`` (the cell's spec and session) into a directory of its own,
     then the cell's files as bytes, or (``shared``: a directory the campaign's process sees too) left under
@@ -369,11 +402,11 @@ def run_cell_remote(config: CampaignConfig, hardware: bool, shared: str | None,
     spec, session = item
     if shared is not None:
         base = Path(shared) / f"{spec.cell_id}-{uuid.uuid4().hex[:12]}"
-        result = run_cell(config, spec, base, hardware=hardware, session=session)
+        result = run_cell(config, spec, base, hardware=hardware, session=session, warm=warm)
         return CellOutput(result=result, path=str(base / "cells" / spec.cell_id))
     base = Path(tempfile.mkdtemp(prefix="hil-cell-", dir=_worker_tmp()))
     try:
-        result = run_cell(config, spec, base, hardware=hardware, session=session)
+        result = run_cell(config, spec, base, hardware=hardware, session=session, warm=warm)
         cell_dir = base / "cells" / spec.cell_id
         files = [(path.relative_to(cell_dir).as_posix(), path.read_bytes())
                  for path in sorted(cell_dir.rglob("*")) if path.is_file() and path.name != RESULT]
@@ -417,21 +450,22 @@ def _store(out: CellOutput, out_dir: Path, spec: CellSpec, session: dict[str, An
     return out.result
 
 
-def _run_here(config: CampaignConfig, out_dir: Path, hardware: bool,
+def _run_here(config: CampaignConfig, out_dir: Path, hardware: bool, warm: bool,
               item: tuple[CellSpec, dict[str, Any]]) -> CellResult:
     spec, session = item
-    return run_cell(config, spec, out_dir, hardware=hardware, session=session)
+    return run_cell(config, spec, out_dir, hardware=hardware, session=session, warm=warm)
 
 
 def iter_cells(config: CampaignConfig, out_dir: Path, specs: list[CellSpec], engine: Engine, *,
-               sessions: dict[str, dict[str, Any]], hardware: bool = False) -> Generator[CellResult, None, None]:
+               sessions: dict[str, dict[str, Any]], hardware: bool = False,
+               warm: bool = True) -> Generator[CellResult, None, None]:
     """Run ``specs`` on ``engine`` (an open :class:`hil.campaign.engines.Engine`); yield each cell's result as it
     completes, its directory in place under ``out_dir/cells/ID`` whichever engine ran it. ``sessions``: every
     cell's session by id (:func:`cell_sessions`). A cell whose worker failed (every retry used) comes back as an
     ``error`` result; on the local engine an exception raised by a cell is raised here."""
     items = [(spec, sessions[spec.cell_id]) for spec in specs]
     if not engine.remote:
-        for _, result in engine.map_cells(functools.partial(_run_here, config, out_dir, hardware), items,
+        for _, result in engine.map_cells(functools.partial(_run_here, config, out_dir, hardware, warm), items,
                                           key=lambda item: item[0].cell_id):
             yield result
         return
@@ -439,7 +473,7 @@ def iter_cells(config: CampaignConfig, out_dir: Path, specs: list[CellSpec], eng
     if engine.shared_dir is not None:  # this run's corner of the shared directory; each attempt has its own
         staging = Path(engine.shared_dir) / f".hil-{config.name}-{uuid.uuid4().hex[:8]}"
         staging.mkdir(parents=True)
-    fn = functools.partial(run_cell_remote, config, hardware, None if staging is None else str(staging))
+    fn = functools.partial(run_cell_remote, config, hardware, None if staging is None else str(staging), warm)
     try:
         for (spec, session), out in engine.map_cells(fn, items, key=lambda item: item[0].cell_id,
                                                      on_error=lambda item, exc: _lost_cell(config, item[0], exc)):
@@ -514,7 +548,7 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
                  hardware: bool = False, on_cell: Callable[[CellResult], None] | None = None,
                  sessions: dict[str, dict[str, Any]] | None = None, engine: str | Engine = "local",
                  scheduler: str | None = None, workers: int | None = None,
-                 shared_dir: str | Path | None = None) -> CampaignResult:
+                 shared_dir: str | Path | None = None, warm: bool = True) -> CampaignResult:
     """Run (or finish) every cell; returns the campaign's result, also written to ``out_dir/campaign.json``.
     Every cell is validated before anything is written (``sessions``: from :func:`cell_sessions`, if the
     caller already built them), so a campaign with a bad cell leaves nothing behind.
@@ -524,6 +558,9 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
     worker processes started here; ``shared_dir`` a directory the workers and this process share, else the cells'
     files come back as bytes), or an open :class:`hil.campaign.engines.Engine`. The engine is started (or the
     scheduler reached) before anything is written.
+
+    ``warm`` (default): the cells on the sim clock run in warm workers (:mod:`hil.campaign.warm`), the same
+    session code without an interpreter's start per cell; False: each cell is a `hil run` process.
 
     A KeyboardInterrupt (or :class:`hil.campaign.engines.Interrupted` for SIGTERM) stops the cells running here
     with that signal, waits until they have ended, writes ``campaign.json`` and raises :class:`CampaignInterrupted`:
@@ -566,7 +603,7 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
                 if on_cell is not None:
                     on_cell(cell)
             todo = [s for s in specs if s.cell_id not in done]
-            running = iter_cells(config, out_dir, todo, runner, sessions=sessions, hardware=hardware)
+            running = iter_cells(config, out_dir, todo, runner, sessions=sessions, hardware=hardware, warm=warm)
             for cell in running:
                 results[cell.cell_id] = cell
                 _write_json(out_dir / CAMPAIGN_JSON, snapshot(False).model_dump_json(indent=2))

@@ -1,0 +1,206 @@
+"""Warm cell processes: a campaign's loopback cells run in worker processes that outlive a cell.
+
+A `hil run` process per cell pays, before its session, an interpreter's start, the bench's imports and the load
+of the plant's compiled kernels: most of a short sim-clock cell's wall time (docs/performance.md, "Warm cells").
+A warm worker pays them once, then runs cell after cell, each through :func:`hil.session.run`, the function `hil
+run` calls, in the worker's main thread (so SIGINT and SIGTERM end the session there as they end `hil run`), with
+its file descriptors 1 and 2 sent to the cell's ``stderr.txt`` while it runs. The worker answers with the record
+`hil run --json` prints (:meth:`hil.session.RunResult.record`).
+
+One cell at a time per worker: :data:`WARM` lends an idle worker, or starts one, to each cell that runs, so a
+campaign running ``jobs`` cells at once keeps ``jobs`` workers. Workers end with the process that started them
+(they read EOF on their pipe). A worker that dies (killed, out of memory) takes only its cell, which comes back
+an error naming how it ended; the next cell gets a new worker.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import logging
+import os
+import select
+import signal
+import subprocess
+import sys
+import threading
+import traceback
+from pathlib import Path
+from typing import Any
+
+from hil.config import ConfigError
+from hil.log.ipc import helper_argv, recv, send, spawn_helper
+from hil.session import run as run_session
+
+__all__ = ["WARM", "WarmCell", "WarmCells", "WorkerDied"]
+
+WORKER_ENTRY = "hil.campaign.warm:serve"
+STARTUP_TIMEOUT_S = 300.0  # the first answer of a new worker: its imports, on a machine that may be busy
+
+
+class WorkerDied(RuntimeError):
+    """A warm worker ended while it ran a cell (``returncode``: its exit status, negative for a signal)."""
+
+    def __init__(self, returncode: int | None) -> None:
+        self.returncode = returncode
+        how = (f"killed by {signal.Signals(-returncode).name}" if returncode is not None and returncode < 0
+               else f"exit status {returncode}")
+        super().__init__(f"the cell's process ended ({how})")
+
+
+class WarmCell:
+    """One worker process: :meth:`run` a session file in it, :meth:`send_signal` to it while it runs."""
+
+    def __init__(self) -> None:
+        self.proc: subprocess.Popen[bytes] = spawn_helper(helper_argv(WORKER_ENTRY))
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self._wfd, self._rfd = self.proc.stdin.fileno(), self.proc.stdout.fileno()
+        self.cells = 0  # cells run so far
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def send_signal(self, signum: int) -> None:
+        self.proc.send_signal(signum)
+
+    def run(self, session_file: Path, out_dir: Path, stderr_path: Path, timeout_s: float) -> dict[str, Any]:
+        """Run the session in ``session_file`` on its loopback lab, its log in ``out_dir``; the record `hil run
+        --json` prints. TimeoutExpired (the worker killed) after ``timeout_s``; :class:`WorkerDied` if it ends."""
+        try:
+            send(self._wfd, ("run", str(session_file), str(out_dir), str(stderr_path)))
+        except OSError:
+            raise WorkerDied(self.proc.wait()) from None
+        ready, _, _ = select.select([self._rfd], [], [], timeout_s)
+        if not ready:
+            self.kill()
+            raise subprocess.TimeoutExpired(WORKER_ENTRY, timeout_s)
+        try:
+            reply = recv(self._rfd)
+        except OSError:
+            reply = None
+        if reply is None:
+            raise WorkerDied(self.proc.wait())
+        self.cells += 1
+        return reply[1]
+
+    def kill(self) -> None:
+        with contextlib.suppress(OSError):
+            self.proc.kill()
+        self.close()
+
+    def close(self) -> None:
+        """End the worker: EOF on its pipe; killed if it has not ended within a few seconds."""
+        for pipe in (self.proc.stdin, self.proc.stdout):
+            with contextlib.suppress(OSError):
+                if pipe is not None:
+                    pipe.close()
+        try:
+            self.proc.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+class WarmCells:
+    """The idle warm workers of this process."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._idle: list[WarmCell] = []
+
+    def lend(self) -> WarmCell:
+        """An idle worker that is still alive, or a new one."""
+        with self._lock:
+            while self._idle:
+                worker = self._idle.pop()
+                if worker.alive():
+                    return worker
+                worker.close()
+        return WarmCell()
+
+    def give_back(self, worker: WarmCell) -> None:
+        """A worker whose cell ended: kept for the next cell if it is still alive."""
+        if not worker.alive():
+            worker.close()
+            return
+        with self._lock:
+            self._idle.append(worker)
+
+    def close(self) -> None:
+        """End every idle worker (those lent out end when given back, or with this process)."""
+        with self._lock:
+            idle, self._idle = self._idle, []
+        for worker in idle:
+            worker.close()
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._idle)
+
+
+WARM = WarmCells()
+
+
+# --- the worker's side -----------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def _output_to(path: str) -> Any:
+    """File descriptors 1 and 2 (and sys.stdout, sys.stderr) to ``path`` inside the block."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        os.dup2(fd, 1)
+        os.dup2(fd, 2)
+        yield
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for f in (fd, *saved):
+            os.close(f)
+
+
+def run_cell_here(session_file: str, out_dir: str) -> dict[str, Any]:
+    """One cell in this process: what `hil run SESSION --loopback --json --out OUT` prints (its exit code 2 and
+    one line on stderr for bad input, as there)."""
+    try:
+        return run_session(session_file, loopback=True, out=out_dir).record()
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return {"status": "error", "exit_code": 2, "message": str(exc)}
+    except KeyboardInterrupt:  # SIGINT outside the session's own handler (before it armed, after it ended)
+        return {"status": "interrupted", "exit_code": 130, "message": "SIGINT"}
+    except Exception as exc:  # a bug must end the cell, not the worker
+        traceback.print_exc()
+        return {"status": "error", "exit_code": 1, "message": f"{type(exc).__name__}: {exc}"}
+
+
+def serve() -> None:
+    """The worker's main loop: requests on stdin, replies on stdout, until EOF. SIGINT is ignored between cells
+    (a Ctrl-C in the terminal reaches the whole process group; the campaign passes it on to the cells running)."""
+    rfd, wfd = 0, os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)  # a stray print never reaches the reply pipe
+    os.close(devnull)
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    while True:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        message = recv(rfd)
+        if message is None:
+            return
+        _, session_file, out_dir, stderr_path = message
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        with _output_to(stderr_path):
+            record = run_cell_here(session_file, out_dir)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        send(wfd, ("done", record))
+        gc.unfreeze()  # the session froze what its setup built; let what it left behind be collected
+        gc.collect()
