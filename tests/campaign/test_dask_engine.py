@@ -113,15 +113,16 @@ def test_resume_with_the_dask_engine_runs_only_the_missing_cell(cluster: distrib
 
 
 def kill_a_worker_in_a_cell(address: str, killed: list[int], stop: threading.Event) -> None:
-    """Wait until a worker runs a cell's `hil run` process, then SIGKILL that worker (and the orphaned cell)."""
+    """Wait until a worker runs a cell's session (its process, `hil run` or a warm worker, has a log writer), then
+    SIGKILL that worker and everything it started."""
     with distributed.Client(address, set_as_default=False) as client:
         deadline = time.monotonic() + 120.0
         while not stop.is_set() and time.monotonic() < deadline:
             for pid in client.run(os.getpid).values():
                 with contextlib.suppress(psutil.Error):
                     worker = psutil.Process(pid)
-                    cells = [p for p in worker.children(recursive=True) if p.cmdline()[1:4] == ["-m", "hil", "run"]]
-                    if cells:
+                    cells = worker.children(recursive=True)
+                    if any("hil.log.writer" in " ".join(p.cmdline()) for p in cells):
                         worker.kill()
                         for cell in cells:
                             with contextlib.suppress(psutil.Error):
