@@ -559,6 +559,9 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
     files come back as bytes), or an open :class:`hil.campaign.engines.Engine`. The engine is started (or the
     scheduler reached) before anything is written.
 
+    ``on_cell``: called with each cell's result as it finishes; an exception it raises stops the campaign (the
+    cells still running are stopped as by Ctrl-C, no other starts) and propagates.
+
     ``warm`` (default): the cells on the sim clock run in warm workers (:mod:`hil.campaign.warm`), the same
     session code without an interpreter's start per cell; False: each cell is a `hil run` process.
 
@@ -608,7 +611,12 @@ def run_campaign(config: CampaignConfig, out_dir: Path, *, jobs: int = 1, resume
                 results[cell.cell_id] = cell
                 _write_json(out_dir / CAMPAIGN_JSON, snapshot(False).model_dump_json(indent=2))
                 if on_cell is not None:
-                    on_cell(cell)
+                    try:
+                        on_cell(cell)
+                    except Exception:  # the caller has seen enough (a pruned trial): stop the cells still running
+                        _stop_cells(out_dir, signal.SIGINT)
+                        running.close()
+                        raise
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
         cut_short = {*(exc.running if isinstance(exc, Interrupted) else ()), *_LIVE.running(out_dir)}

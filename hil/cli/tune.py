@@ -39,6 +39,12 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
         help="Also write the tuned controller YAML here (e.g. profiles/controllers/eso_kf-tuned.yaml).")] = None,
     seed: Annotated[int, typer.Option(min=0, max=2**32 - 1, help="The sampler's seed.")] = 0,
     keep_logs: Annotated[bool, typer.Option("--keep-logs", help="Keep every trial's session logs.")] = False,
+    prune: Annotated[bool, typer.Option(
+        "--prune/--no-prune", help="Stop a trial after a cell once its running mean of --objective trails the best "
+        "trial's over the same cells by more than 25 % (docs/tuning.md, Pruning).")] = True,
+    warm_start: Annotated[bool, typer.Option(
+        "--warm-start/--no-warm-start", help="A new study's first trial is the controller's own parameters (the "
+        "shipped gains).")] = True,
     report_too: Annotated[bool, typer.Option("--report/--no-report", help="Write tune.md and tune.html.")] = True,
     json_out: Annotated[bool, typer.Option("--json", help="Print the outcome as JSON.")] = False,
 ) -> None:
@@ -62,7 +68,8 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
         task = bar.add_task("trials", total=None, last="")
 
         def on_trial(t) -> None:  # type: ignore[no-untyped-def]
-            what = "failed" if t.state == "FAIL" else f"{t.value:.4g}" + ("" if t.feasible else " infeasible")
+            what = ({"FAIL": "failed", "PRUNED": "pruned"}.get(t.state)
+                    or f"{t.value:.4g}" + ("" if t.feasible else " infeasible"))
             bar.update(task, advance=1, last=f"trial {t.number}: {what}")
 
         try:
@@ -70,7 +77,8 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
                               constraints=constraint, engine=engine, scheduler=scheduler, shared_dir=shared_dir,
                               workers=workers, jobs=jobs,
                               storage=storage, study=study, resume=resume, out=out, write_profile=write_profile,
-                              seed=seed, keep_logs=keep_logs, write_report=report_too, on_trial=on_trial)
+                              seed=seed, keep_logs=keep_logs, write_report=report_too, on_trial=on_trial,
+                              prune=prune, warm_start=warm_start)
         except ConfigError as exc:
             raise fail(str(exc)) from None
     if json_out:
@@ -78,7 +86,7 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
     else:
         console.print(f"study {result.study}: {len(result.trials)} trials ({result.trials_run} this run, "
                       f"{result.wall_s:.1f} s wall): {result.n_complete} complete, {result.n_infeasible} infeasible, "
-                      f"{result.n_failed} failed", highlight=False)
+                      f"{result.n_failed} failed, {result.n_pruned} pruned", highlight=False)
         if result.best_trial is None:
             console.print("[bold red]no feasible trial[/]", highlight=False)
         else:

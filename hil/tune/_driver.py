@@ -2,8 +2,9 @@
 
 A study has a name (checked here), lives in an RDB storage (:mod:`hil.tune._store`), is created or resumed (a study
 that exists is continued only with ``resume``, and only if it was made with the same ``meta``), is sampled by a
-seeded multivariate TPE, and owes this run the trials still missing to its target. A trial whose objective raises is
-a failed trial (its ``failure`` attribute says why; a NaN objective is Optuna's FAIL), never the study's end.
+seeded multivariate TPE (pruned by the caller's rule, if any), and owes this run the trials still missing to its
+target. A trial whose objective raises is a failed trial (its ``failure`` attribute says why; a NaN objective is
+Optuna's FAIL), never the study's end.
 """
 
 from __future__ import annotations
@@ -52,10 +53,11 @@ class StudyRun:
 
 def start_study(name: str, url: str, *, trials: int, resume: bool, direction: str, meta: Mapping[str, Any],
                 seed: int, startup_trials: int, constant_liar: bool = False,
-                first_params: Mapping[str, Any] | None = None) -> StudyRun:
+                first_params: Mapping[str, Any] | None = None, pruner: Any = None) -> StudyRun:
     """Create the study ``name`` in ``url``, or resume it (``resume``; ConfigError if it exists without). TPE seeded
     with ``seed``, random for its first ``startup_trials``; ``constant_liar`` for trials run in parallel.
-    ``first_params``: enqueued as a new study's first trial (the prior's values)."""
+    ``first_params``: enqueued as a new study's first trial (the prior's values, the shipped gains). ``pruner``: an
+    Optuna pruner (default none: every trial runs to its end)."""
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     check_study_name(name)
@@ -68,7 +70,8 @@ def start_study(name: str, url: str, *, trials: int, resume: bool, direction: st
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=startup_trials, multivariate=True,
                                              constant_liar=constant_liar)
-    study = open_study(rdb, name, sampler, direction, meta=dict(meta), exists=exists)
+    study = open_study(rdb, name, sampler, direction, meta=dict(meta), exists=exists,
+                       pruner=pruner if pruner is not None else optuna.pruners.NopPruner())
     if not exists and first_params:
         study.enqueue_trial(dict(first_params))
     done = sum(t.state.name in FINISHED for t in study.get_trials(deepcopy=False))
@@ -86,11 +89,18 @@ def failed(trial: Any, exc: BaseException, t0: float | None = None) -> float:
 def run_study(run: StudyRun, objective: Callable[[Any], float], *, n_jobs: int = 1, timeout_s: float | None = None,
               callbacks: Sequence[Callable[[Any, Any], None]] = ()) -> float:
     """Run the trials ``run`` owes (``n_jobs`` at a time; ``timeout_s`` stops earlier). Returns the wall time (s)."""
+    from optuna.trial import TrialState  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
+
     t0 = time.monotonic()
-    if run.todo:
-        with quiet_nan_warnings():
-            run.study.optimize(objective, n_trials=run.todo, n_jobs=n_jobs, timeout=timeout_s,
-                               callbacks=list(callbacks))
+    todo = run.todo
+    # An enqueued trial (the shipped gains) that two threads take at once runs twice and one of them fails to
+    # record it (optuna#4002): the enqueued trials run one at a time, then the rest n_jobs at a time.
+    waiting = len(run.study.get_trials(deepcopy=False, states=(TrialState.WAITING,))) if n_jobs > 1 else 0
+    with quiet_nan_warnings():
+        for n, jobs in ((min(waiting, todo), 1), (todo - min(waiting, todo), n_jobs)):
+            left_s = None if timeout_s is None else timeout_s - (time.monotonic() - t0)
+            if n and (left_s is None or left_s > 0):
+                run.study.optimize(objective, n_trials=n, n_jobs=jobs, timeout=left_s, callbacks=list(callbacks))
     return time.monotonic() - t0
 
 

@@ -136,6 +136,9 @@ def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> 
                              + " (and the campaign's thresholds, on every cell)"),
                         Item(f"sampler: TPE (multivariate), seeded; {result.workers} trial(s) at a time, "
                              f"engine {result.engine}"),
+                        Item(f"trials: {result.n_complete} complete, {result.n_failed} failed (unstable or broken; "
+                             f"stopped at the first such cell), {result.n_pruned} pruned (stopped after a cell, "
+                             "over 25 % behind the best trial on the same cells)"),
                         Item(f"storage: {result.storage}, study {result.study}")]))
     hist = _plot_history(result, out / "tune-history.png")
     if hist is not None:

@@ -40,6 +40,11 @@ class ParamSpec:
             return trial.suggest_int(self.name, int(self.low), int(self.high), log=self.log)
         return trial.suggest_float(self.name, self.low, self.high, log=self.log)
 
+    def clip(self, value: float) -> float | int:
+        """``value`` moved into the range (and rounded for ``:int``): a shipped gain enqueued as a trial."""
+        x = min(max(float(value), self.low), self.high)
+        return round(x) if self.integer else x
+
     def __str__(self) -> str:
         kind = (":int" if self.integer else "") + (":log" if self.log else "")
         return f"{self.name}={self.low:g}..{self.high:g}{kind}"

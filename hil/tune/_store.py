@@ -70,6 +70,10 @@ class TuneResult:
         return sum(t.state == "FAIL" for t in self.trials)
 
     @property
+    def n_pruned(self) -> int:
+        return sum(t.state == "PRUNED" for t in self.trials)
+
+    @property
     def n_infeasible(self) -> int:
         return sum(t.state == "COMPLETE" and t.feasible is False for t in self.trials)
 
@@ -79,7 +83,8 @@ class TuneResult:
                 "objective": self.objective, "direction": self.direction,
                 "space": [str(s) for s in self.space], "constraints": [str(c) for c in self.constraints],
                 "trials": len(self.trials), "trials_run": self.trials_run, "complete": self.n_complete,
-                "failed": self.n_failed, "infeasible": self.n_infeasible, "wall_s": self.wall_s,
+                "failed": self.n_failed, "pruned": self.n_pruned, "infeasible": self.n_infeasible,
+                "wall_s": self.wall_s,
                 "engine": self.engine, "workers": self.workers, "best_trial": self.best_trial,
                 "best_value": self.best_value, "best_params": self.best_params, "params": self.params,
                 "yaml": None if self.yaml_path is None else str(self.yaml_path),
@@ -114,12 +119,12 @@ def rdb_storage(url: str) -> Any:
 
 
 def open_study(rdb: Any, study_name: str, sampler: Any, direction: str, *, meta: dict[str, Any],
-               exists: bool) -> Any:
+               exists: bool, pruner: Any = None) -> Any:
     """Create the study, or load it (``exists``) and check it was made with the same ``meta`` (its user attributes:
     the space, the objective, ...); ConfigError naming ``resume`` if not. A new study gets ``meta`` stored."""
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
-    st = optuna.create_study(storage=rdb, sampler=sampler, study_name=study_name, direction=direction,
+    st = optuna.create_study(storage=rdb, sampler=sampler, pruner=pruner, study_name=study_name, direction=direction,
                              load_if_exists=True)
     for key, value in meta.items():
         if not exists:

@@ -18,6 +18,7 @@ target. The best feasible trial's parameters are written as a controller YAML (`
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import shutil
@@ -33,7 +34,7 @@ import yaml
 from hil.campaign import CampaignError, load_campaign
 from hil.campaign.engines import EngineError, check_options
 from hil.campaign.metrics import METRICS
-from hil.campaign.model import ControllerEntry
+from hil.campaign.model import CellResult, ControllerEntry
 from hil.campaign.runner import cell_sessions, run_campaign
 from hil.config import ConfigError, require_writable_dir
 from hil.control.registry import effective_params
@@ -119,35 +120,56 @@ def unstable_reason(saturated_frac: float, valid_frac: float | None) -> str:
     return ""
 
 
+def drive_limit(config: CampaignConfig) -> float:
+    """The drive limit (counts) of the trial campaign's one controller."""
+    entry = config.controllers[0]
+    return float(effective_params({"name": entry.name, "params": entry.params})["u_max_counts"])
+
+
+def cell_score(cell: CellResult, out_dir: Path, objective: str, *, settle_s: float,
+               u_max: float | None) -> tuple[float, float | None, float | None]:
+    """One cell of a trial -> (its objective value, scored by magnitude for a lag; the fraction of the time the drive
+    sat at its limit; the fraction of valid tracking frames). ValueError (one line) when the cell did not complete,
+    is unstable (:func:`unstable_reason`) or lacks the metric. ``u_max`` None: the log is not read."""
+    if cell.status != "completed":
+        raise ValueError(f"cell {cell.cell_id}: session {cell.status}: {cell.message}".rstrip(": "))
+    sat = valid = None
+    if u_max is not None:
+        if cell.log is None:
+            raise ValueError(f"cell {cell.cell_id}: no log")
+        log = Path(cell.log) if Path(cell.log).is_absolute() else out_dir / cell.log
+        sat, valid = log_health(log, settle_s, u_max)
+        why = unstable_reason(sat, valid)
+        if why:
+            raise ValueError(f"cell {cell.cell_id}: {why}")
+    value = cell.metrics.get(objective, math.nan)
+    if not math.isfinite(value):
+        raise ValueError(f"cell {cell.cell_id}: {objective} is not available")
+    return (abs(value) if METRICS[objective].magnitude else float(value)), sat, valid
+
+
 def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints: Sequence[Constraint],
-             *, check_logs: bool = True) -> tuple[float, list[float], dict[str, Any]]:
+             *, check_logs: bool = True,
+             scored: dict[str, tuple[float, float | None, float | None]] | None = None,
+             ) -> tuple[float, list[float], dict[str, Any]]:
     """A trial's campaign result -> (objective, constraint values, attributes). ValueError (one line) when the
-    trial is unstable or its numbers are missing: the caller scores it as failed."""
+    trial is unstable or its numbers are missing: the caller scores it as failed. ``scored``: the cells already
+    scored by :func:`cell_score` as they finished, by id (their logs are not read again)."""
 
     config: CampaignConfig = result.config
     cells = result.cells
     if len(cells) != len(config.cells()):
         raise ValueError(f"{len(config.cells()) - len(cells)} cell(s) did not run")
-    for c in cells:
+    for c in cells:  # the result's own word on each cell, whatever was scored as it ended
         if c.status != "completed":
             raise ValueError(f"cell {c.cell_id}: session {c.status}: {c.message}".rstrip(": "))
+    u_max = drive_limit(config) if check_logs else None
+    scores = [(scored or {}).get(c.cell_id) or cell_score(c, out_dir, objective, settle_s=config.settle_s,
+                                                          u_max=u_max) for c in cells]
     attrs: dict[str, Any] = {}
     if check_logs:
-        entry = config.controllers[0]
-        u_max = float(effective_params({"name": entry.name, "params": entry.params})["u_max_counts"])
-        sats, valids = [], []
-        for c in cells:
-            if c.log is None:
-                raise ValueError(f"cell {c.cell_id}: no log")
-            log = Path(c.log) if Path(c.log).is_absolute() else out_dir / c.log
-            sat, valid = log_health(log, config.settle_s, u_max)
-            sats.append(sat)
-            if valid is not None:
-                valids.append(valid)
-            why = unstable_reason(sat, valid)
-            if why:
-                raise ValueError(f"cell {c.cell_id}: {why}")
-        attrs["saturated_frac"] = max(sats)
+        attrs["saturated_frac"] = max(s[1] for s in scores if s[1] is not None)
+        valids = [s[2] for s in scores if s[2] is not None]
         if valids:
             attrs["track_valid_frac"] = min(valids)
 
@@ -160,9 +182,7 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
             out.append(float(v))
         return out
 
-    obj = values(objective)
-    if METRICS[objective].magnitude:  # a lag's lead is no better than the same lag: scored by its magnitude
-        obj = [abs(v) for v in obj]
+    obj = [s[0] for s in scores]
     attrs["cells"] = {c.cell_id: c.metrics.get(objective) for c in cells}
     every = list(constraints) + [Constraint(m, op, bound) for m, t in config.thresholds.items()  # type: ignore[arg-type]
                                  for op, bound in (("<=", t.max), (">=", t.min)) if bound is not None]
@@ -236,7 +256,8 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
          storage: str | None = None,
          study: str | None = None, resume: bool = False, out: str | Path | None = None,
          write_profile: str | Path | None = None, seed: int = 0, keep_logs: bool = False,
-         write_report: bool = True, on_trial: Callable[[TrialInfo], None] | None = None) -> TuneResult:
+         write_report: bool = True, on_trial: Callable[[TrialInfo], None] | None = None,
+         prune: bool = True, warm_start: bool = True) -> TuneResult:
     """Tune one controller of ``campaign`` with Optuna (TPE, seeded): ``trials`` trials in total in the study
     (``resume`` runs only those still missing), ``workers`` at a time (threads; each trial runs its cells ``jobs``
     at a time through the campaign runner, or on the dask ``engine``: a LocalCluster of ``workers`` started for
@@ -248,8 +269,11 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     controller label (default: the first that is not the baseline). ``out``: default ``runs/tune/STUDY``;
     ``storage``: an SQLAlchemy URL (default SQLite ``OUT/tune.db``); ``study``: default the campaign's name.
     Writes ``OUT/NAME-tuned.yaml`` (and ``write_profile``) from the best feasible trial, and the report.
-    ``on_trial``: called after every trial of this run. ConfigError (one line) for bad input or an existing study
-    without ``resume``."""
+    ``on_trial``: called after every trial of this run. ``prune``: a trial reports the running mean of the objective
+    after each cell and stops once it trails the best trial over the same cells by more than 25 %
+    (:class:`hil.tune._prune.CellPruner`); a cell that fails or is unstable fails the trial at once either way.
+    ``warm_start``: a new study's first trial is the entry's own parameters (the shipped gains, moved into the
+    space's ranges). ConfigError (one line) for bad input or an existing study without ``resume``."""
 
 
     try:
@@ -283,9 +307,17 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     url = storage_url(storage, out_dir)
     meta = {"campaign": config.name, "controller_label": entry.label, "controller": entry.name,
             "objective": objective, "space": [str(s) for s in space]}
+    import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
+
+    from hil.tune._prune import PRUNE_MARGIN, CellPruner  # noqa: PLC0415  (subclasses Optuna's pruner: heavy, as above)
+
+    shipped = effective_params({"name": entry.name, "params": entry.params})
+    first = {s.name: s.clip(shipped[s.name]) for s in space if shipped.get(s.name) is not None} if warm_start else None
     run = start_study(study_name, url, trials=trials, resume=resume, direction=direction, meta=meta, seed=seed,
-                      startup_trials=min(10, max(2, trials // 10)))
+                      startup_trials=min(10, max(2, trials // 10)), first_params=first,
+                      pruner=CellPruner() if prune else None)
     st, todo = run.study, run.todo
+    cell_ids = [spec.cell_id for spec in trial_campaign(config, entry, {}).cells()]  # the order cells report in
 
     lock = threading.Lock()
 
@@ -300,8 +332,28 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
                 raise ValueError(f"parameters: {' '.join(str(exc).split())}") from None
             if trial_dir.exists():
                 shutil.rmtree(trial_dir)
-            result = run_campaign(cfg, trial_dir, jobs=jobs, **kwargs)
-            value, cvals, attrs = evaluate(result, trial_dir, objective, cons)
+            scored: dict[str, tuple[float, float | None, float | None]] = {}
+            reported = [0]  # cells reported so far, a prefix of cell_ids
+            u_max = drive_limit(cfg)
+
+            def on_cell(cell: CellResult) -> None:  # score each cell as it ends; report the running mean in order
+                scored[cell.cell_id] = cell_score(cell, trial_dir, objective, settle_s=cfg.settle_s, u_max=u_max)
+                done = sum(1 for _ in itertools.takewhile(scored.__contains__, cell_ids))
+                for step in range(reported[0], done):
+                    mean = sum(scored[c][0] for c in cell_ids[:step + 1]) / (step + 1)
+                    trial.report(mean, step)
+                    reported[0] = step + 1
+                    if step + 1 < len(cell_ids) and trial.should_prune():
+                        trial.set_user_attr("failure", f"pruned after {step + 1} of {len(cell_ids)} cells: mean "
+                                            f"{objective} {mean:.4g}, over {100 * PRUNE_MARGIN:.0f} % behind the "
+                                            "best trial's on those cells")
+                        raise optuna.TrialPruned()
+
+            result = run_campaign(cfg, trial_dir, jobs=jobs, on_cell=on_cell, **kwargs)
+            value, cvals, attrs = evaluate(result, trial_dir, objective, cons, scored=scored)
+        except optuna.TrialPruned:
+            trial.set_user_attr("wall_s", time.monotonic() - t0)
+            raise
         except Exception as exc:  # an unstable or broken trial is a failed trial, never the study's end
             return failed(trial, exc, t0)
         finally:
