@@ -16,13 +16,15 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
     params: Annotated[str, typer.Option(
         "--params", help='Search space: "name=low..high[:log|:int], ..." over the controller\'s parameters.')],
     objective: Annotated[str, typer.Option(
-        help="Metric to minimise: its mean over the campaign's profiles and seeds.")] = "miss_std_px",
+        help="Metric to minimise: its mean over the campaign's profiles and seeds; METRIC@GLOB: over the cells whose "
+        "profile label matches GLOB only (e.g. 'los_rate_std_dps@vibration*').")] = "miss_std_px",
     trials: Annotated[int, typer.Option(min=1, max=100_000, help="Trials in the study in all (with --resume: "
                                                                    "only the missing ones run).")] = 100,
     controller: Annotated[str | None, typer.Option(
         help="The campaign's controller label to tune (default: the first that is not the baseline).")] = None,
     constraint: Annotated[list[str] | None, typer.Option(
-        "--constraint", help='"metric<=value" or "metric>=value" on every cell; repeatable.')] = None,
+        "--constraint", help='"metric<=value" or "metric>=value" on every cell, or "metric<=value@GLOB" on the cells '
+        "whose profile label matches GLOB; repeatable.")] = None,
     engine: Annotated[Literal["local", "dask"], typer.Option(
         help="local: cells as processes here; dask: on a LocalCluster of --workers, or --scheduler.")] = "local",
     scheduler: Annotated[str | None, typer.Option(help="dask scheduler address (tcp://host:8786).")] = None,

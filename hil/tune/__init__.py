@@ -15,7 +15,15 @@ from hil.tune._driver import (
     start_study,
 )
 from hil.tune._report import write_tune_report
-from hil.tune._space import Constraint, ParamSpec, parse_constraints, parse_params
+from hil.tune._space import (
+    Constraint,
+    Objective,
+    ParamSpec,
+    check_cells,
+    parse_constraints,
+    parse_objective,
+    parse_params,
+)
 from hil.tune._store import TrialInfo, TuneResult, open_study, rdb_storage, storage_url
 from hil.tune._study import (
     choose_controller,
@@ -28,10 +36,12 @@ from hil.tune._study import (
 
 __all__ = [
     "Constraint",
+    "Objective",
     "ParamSpec",
     "StudyRun",
     "TrialInfo",
     "TuneResult",
+    "check_cells",
     "check_study_name",
     "check_trials",
     "choose_controller",
@@ -40,6 +50,7 @@ __all__ = [
     "log_health",
     "open_study",
     "parse_constraints",
+    "parse_objective",
     "parse_params",
     "quiet_nan_warnings",
     "rdb_storage",

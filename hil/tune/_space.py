@@ -2,11 +2,13 @@
 
 ``parse_params`` reads ``name=low..high[:log][:int]`` against the controller's own numeric parameters (a name the
 controller does not have is refused, naming the controller's); ``parse_constraints`` reads ``metric<=value`` or
-``metric>=value`` against the campaign metrics."""
+``metric>=value`` against the campaign metrics, and ``parse_objective`` the metric to minimise; either may end in
+``@GLOB``, an fnmatch glob over the campaign's profile labels naming the cells it is judged on."""
 
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import math
 import re
 from collections.abc import Sequence
@@ -128,13 +130,57 @@ def parse_params(text: str | Sequence[str], controller: str, base: dict[str, Any
     return specs
 
 
+def split_cells(text: str, what: str) -> tuple[str, str]:
+    """``"metric...@GLOB"`` -> (``"metric..."``, ``GLOB``); ``"*"`` (every cell) without ``@``. ConfigError naming
+    ``what`` for an empty glob."""
+    head, at, glob = text.partition("@")
+    if at and not glob.strip():
+        raise ConfigError(f"{what}={text.strip()!r}: nothing after '@' (a glob over the campaign's profile labels)")
+    return head.strip(), glob.strip() if at else "*"
+
+
+def cells_suffix(cells: str) -> str:
+    return "" if cells == "*" else f"@{cells}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Objective:
+    """The study's objective: the mean of ``metric`` over the trial's cells whose profile label matches ``cells``
+    (an fnmatch glob; ``*``: every cell). Written ``metric`` or ``metric@GLOB``."""
+
+    metric: str
+    cells: str = "*"
+
+    def covers(self, profile_label: str) -> bool:
+        return fnmatch.fnmatchcase(profile_label, self.cells)
+
+    def __str__(self) -> str:
+        return self.metric + cells_suffix(self.cells)
+
+
+def parse_objective(text: str | Objective) -> Objective:
+    """``"miss_std_px"`` or ``"los_rate_std_dps@vibration*"`` -> :class:`Objective`; ConfigError for an unknown
+    metric."""
+    if isinstance(text, Objective):
+        return text
+    metric, cells = split_cells(text, "objective")
+    if metric not in METRICS:
+        raise ConfigError(f"objective={text!r}: unknown metric {metric!r} (metrics: {', '.join(METRICS)})")
+    return Objective(metric, cells)
+
+
 @dataclasses.dataclass(frozen=True)
 class Constraint:
-    """``metric <= bound`` (or ``>=``) on every cell of a trial: its Optuna value is the worst cell's excess."""
+    """``metric <= bound`` (or ``>=``) on every cell of a trial whose profile label matches ``cells`` (a glob;
+    ``*``: every cell): its Optuna value is the worst such cell's excess. Written ``metric<=bound[@GLOB]``."""
 
     metric: str
     op: Literal["<=", ">="]
     bound: float
+    cells: str = "*"
+
+    def covers(self, profile_label: str) -> bool:
+        return fnmatch.fnmatchcase(profile_label, self.cells)
 
     def value(self, values: Sequence[float]) -> float:
         """<= 0 when every value meets it; else how far the worst misses."""
@@ -143,7 +189,17 @@ class Constraint:
         return self.bound - min(values)
 
     def __str__(self) -> str:
-        return f"{self.metric}{self.op}{self.bound:g}"
+        return f"{self.metric}{self.op}{self.bound:g}{cells_suffix(self.cells)}"
+
+
+def check_cells(scoped: Sequence[Objective | Constraint], profiles: Sequence[str], what: str = "") -> None:
+    """Every ``@GLOB`` matches a profile label of the campaign; ConfigError naming the item and the labels if not."""
+    for item in scoped:
+        if not any(item.covers(label) for label in profiles):
+            name = "objective" if isinstance(item, Objective) else "constraints"
+            where = what or "the campaign"
+            raise ConfigError(f"{name}={str(item)!r}: @{item.cells!r} matches no profile label of {where} "
+                              f"({', '.join(repr(p) for p in profiles)})")
 
 
 def parse_constraints(items: str | Sequence[str | Constraint] | None) -> list[Constraint]:
@@ -159,12 +215,14 @@ def parse_constraints(items: str | Sequence[str | Constraint] | None) -> list[Co
             out.append(item)
             continue
         for part in (p for p in item.split(",") if p.strip()):
-            m = _CONSTRAINT.match(part)
+            text, cells = split_cells(part, "constraints")
+            m = _CONSTRAINT.match(text)
             if m is None:
                 raise ConfigError(f"constraints={part.strip()!r}: not metric<=value or metric>=value")
             metric, op, bound = m.groups()
             if metric not in METRICS:
                 raise ConfigError(f"constraints={part.strip()!r}: unknown metric {metric!r} "
                                   f"(metrics: {', '.join(METRICS)})")
-            out.append(Constraint(metric, op, _number(bound, f"constraints={part.strip()!r}")))  # type: ignore[arg-type]
+            out.append(Constraint(metric, op, _number(bound, f"constraints={part.strip()!r}"),  # type: ignore[arg-type]
+                                  cells))
     return out

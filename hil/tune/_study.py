@@ -42,7 +42,15 @@ from hil.log import read_log
 from hil.log.truth import truth_path
 from hil.tune._driver import check_study_name, check_trials, failed, run_study, start_study
 from hil.tune._report import write_tune_report
-from hil.tune._space import Constraint, ParamSpec, parse_constraints, parse_params
+from hil.tune._space import (
+    Constraint,
+    Objective,
+    ParamSpec,
+    check_cells,
+    parse_constraints,
+    parse_objective,
+    parse_params,
+)
 from hil.tune._store import TRIALS, TrialInfo, TuneResult, storage_url
 
 if TYPE_CHECKING:
@@ -126,11 +134,12 @@ def drive_limit(config: CampaignConfig) -> float:
     return float(effective_params({"name": entry.name, "params": entry.params})["u_max_counts"])
 
 
-def cell_score(cell: CellResult, out_dir: Path, objective: str, *, settle_s: float,
+def cell_score(cell: CellResult, out_dir: Path, metric: str | None, *, settle_s: float,
                u_max: float | None) -> tuple[float, float | None, float | None]:
     """One cell of a trial -> (its objective value, scored by magnitude for a lag; the fraction of the time the drive
     sat at its limit; the fraction of valid tracking frames). ValueError (one line) when the cell did not complete,
-    is unstable (:func:`unstable_reason`) or lacks the metric. ``u_max`` None: the log is not read."""
+    is unstable (:func:`unstable_reason`) or lacks the metric. ``metric`` None: a cell outside the objective's
+    cells (its value NaN). ``u_max`` None: the log is not read."""
     if cell.status != "completed":
         raise ValueError(f"cell {cell.cell_id}: session {cell.status}: {cell.message}".rstrip(": "))
     sat = valid = None
@@ -142,13 +151,15 @@ def cell_score(cell: CellResult, out_dir: Path, objective: str, *, settle_s: flo
         why = unstable_reason(sat, valid)
         if why:
             raise ValueError(f"cell {cell.cell_id}: {why}")
-    value = cell.metrics.get(objective, math.nan)
+    if metric is None:
+        return math.nan, sat, valid
+    value = cell.metrics.get(metric, math.nan)
     if not math.isfinite(value):
-        raise ValueError(f"cell {cell.cell_id}: {objective} is not available")
-    return (abs(value) if METRICS[objective].magnitude else float(value)), sat, valid
+        raise ValueError(f"cell {cell.cell_id}: {metric} is not available")
+    return (abs(value) if METRICS[metric].magnitude else float(value)), sat, valid
 
 
-def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints: Sequence[Constraint],
+def evaluate(result: CampaignResult, out_dir: Path, objective: str | Objective, constraints: Sequence[Constraint],
              *, check_logs: bool = True,
              scored: dict[str, tuple[float, float | None, float | None]] | None = None,
              ) -> tuple[float, list[float], dict[str, Any]]:
@@ -164,8 +175,10 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
         if c.status != "completed":
             raise ValueError(f"cell {c.cell_id}: session {c.status}: {c.message}".rstrip(": "))
     u_max = drive_limit(config) if check_logs else None
-    scores = [(scored or {}).get(c.cell_id) or cell_score(c, out_dir, objective, settle_s=config.settle_s,
-                                                          u_max=u_max) for c in cells]
+    objective = parse_objective(objective)
+    scores = [(scored or {}).get(c.cell_id)
+              or cell_score(c, out_dir, objective.metric if objective.covers(c.profile) else None,
+                            settle_s=config.settle_s, u_max=u_max) for c in cells]
     attrs: dict[str, Any] = {}
     if check_logs:
         attrs["saturated_frac"] = max(s[1] for s in scores if s[1] is not None)
@@ -173,20 +186,22 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str, constraints:
         if valids:
             attrs["track_valid_frac"] = min(valids)
 
-    def values(metric: str) -> list[float]:
+    def values(metric: str, judged: Constraint) -> list[float]:
         out = []
         for c in cells:
+            if not judged.covers(c.profile):
+                continue
             v = c.metrics.get(metric, math.nan)
             if not math.isfinite(v):
                 raise ValueError(f"cell {c.cell_id}: {metric} is not available")
             out.append(float(v))
         return out
 
-    obj = [s[0] for s in scores]
-    attrs["cells"] = {c.cell_id: c.metrics.get(objective) for c in cells}
+    obj = [s[0] for c, s in zip(cells, scores, strict=True) if objective.covers(c.profile)]
+    attrs["cells"] = {c.cell_id: c.metrics.get(objective.metric) for c in cells if objective.covers(c.profile)}
     every = list(constraints) + [Constraint(m, op, bound) for m, t in config.thresholds.items()  # type: ignore[arg-type]
                                  for op, bound in (("<=", t.max), (">=", t.min)) if bound is not None]
-    cons = [c.value(values(c.metric)) for c in every]
+    cons = [c.value(values(c.metric, c)) for c in every]
     attrs["constraint_names"] = [str(c) for c in every]
     return sum(obj) / len(obj), cons, attrs
 
@@ -262,8 +277,9 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     (``resume`` runs only those still missing), ``workers`` at a time (threads; each trial runs its cells ``jobs``
     at a time through the campaign runner, or on the dask ``engine``: a LocalCluster of ``workers`` started for
     the study, or ``scheduler``'s cluster; ``shared_dir``: a directory the workers share with this process). The
-    objective (mean of ``objective`` over the campaign's profiles and
-    seeds) is minimised; ``constraints`` and the campaign's thresholds must hold on every cell.
+    objective (mean of ``objective`` over the campaign's profiles and seeds; ``metric@GLOB``: over the cells whose
+    profile label matches the glob) is minimised; ``constraints`` (``metric<=value[@GLOB]``: on every cell, or on
+    the matching ones) and the campaign's thresholds must hold.
 
     ``params``: ``"name=low..high[:log|:int], ..."`` (:func:`parse_params`). ``controller``: the campaign's
     controller label (default: the first that is not the baseline). ``out``: default ``runs/tune/STUDY``;
@@ -280,8 +296,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore
     except CampaignError as exc:
         raise ConfigError(str(exc)) from None
-    if objective not in METRICS:
-        raise ConfigError(f"objective={objective!r}: unknown metric (metrics: {', '.join(METRICS)})")
+    goal = parse_objective(objective)
     check_trials(trials)
     if not 1 <= workers <= 256 or not 1 <= jobs <= 64:
         raise ConfigError(f"workers={workers} / jobs={jobs}: need 1..256 and 1..64")
@@ -290,12 +305,13 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         parse_params(params, entry.name, entry.params)  # type: ignore[arg-type]
     space = list(space)  # type: ignore[arg-type]
     cons = parse_constraints(constraints)
+    check_cells([goal, *cons], [p.label for p in config.profiles], f"campaign {config.name!r}")
     study_name = check_study_name(study or config.name)
     out_dir = Path(out) if out is not None else TUNE_DIR / study_name
     require_writable_dir(out_dir, "out")
     if write_profile is not None and Path(write_profile).is_dir():
         raise ConfigError(f"write_profile={str(write_profile)!r}: a directory (give the YAML file's path)")
-    direction = "minimize" if METRICS[objective].lower_is_better else "maximize"
+    direction = "minimize" if METRICS[goal.metric].lower_is_better else "maximize"
     try:  # every cell of a trial, before anything is written
         cell_sessions(trial_campaign(config, entry, {}), out_dir / TRIALS / "probe")
     except (CampaignError, ValueError) as exc:
@@ -306,7 +322,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     out_dir.mkdir(parents=True, exist_ok=True)
     url = storage_url(storage, out_dir)
     meta = {"campaign": config.name, "controller_label": entry.label, "controller": entry.name,
-            "objective": objective, "space": [str(s) for s in space]}
+            "objective": str(goal), "space": [str(s) for s in space]}
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     from hil.tune._prune import PRUNE_MARGIN, CellPruner  # noqa: PLC0415  (subclasses Optuna's pruner: heavy, as above)
@@ -317,7 +333,8 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
                       startup_trials=min(10, max(2, trials // 10)), first_params=first,
                       pruner=CellPruner() if prune else None)
     st, todo = run.study, run.todo
-    cell_ids = [spec.cell_id for spec in trial_campaign(config, entry, {}).cells()]  # the order cells report in
+    cell_ids = [spec.cell_id for spec in trial_campaign(config, entry, {}).cells()  # the objective's cells, in the
+                if goal.covers(spec.profile.label)]                                # order they report in
 
     lock = threading.Lock()
 
@@ -337,7 +354,8 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
             u_max = drive_limit(cfg)
 
             def on_cell(cell: CellResult) -> None:  # score each cell as it ends; report the running mean in order
-                scored[cell.cell_id] = cell_score(cell, trial_dir, objective, settle_s=cfg.settle_s, u_max=u_max)
+                metric = goal.metric if goal.covers(cell.profile) else None
+                scored[cell.cell_id] = cell_score(cell, trial_dir, metric, settle_s=cfg.settle_s, u_max=u_max)
                 done = sum(1 for _ in itertools.takewhile(scored.__contains__, cell_ids))
                 for step in range(reported[0], done):
                     mean = sum(scored[c][0] for c in cell_ids[:step + 1]) / (step + 1)
@@ -345,12 +363,12 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
                     reported[0] = step + 1
                     if step + 1 < len(cell_ids) and trial.should_prune():
                         trial.set_user_attr("failure", f"pruned after {step + 1} of {len(cell_ids)} cells: mean "
-                                            f"{objective} {mean:.4g}, over {100 * PRUNE_MARGIN:.0f} % behind the "
+                                            f"{goal} {mean:.4g}, over {100 * PRUNE_MARGIN:.0f} % behind the "
                                             "best trial's on those cells")
                         raise optuna.TrialPruned()
 
             result = run_campaign(cfg, trial_dir, jobs=jobs, on_cell=on_cell, **kwargs)
-            value, cvals, attrs = evaluate(result, trial_dir, objective, cons, scored=scored)
+            value, cvals, attrs = evaluate(result, trial_dir, goal, cons, scored=scored)
         except optuna.TrialPruned:
             trial.set_user_attr("wall_s", time.monotonic() - t0)
             raise
@@ -389,7 +407,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
                 cluster.close()
     infos = _trial_infos(st)
     result = TuneResult(study=study_name, storage=url, out_dir=out_dir, campaign=config.name,
-                        controller_label=entry.label, controller=entry.name, objective=objective,
+                        controller_label=entry.label, controller=entry.name, objective=str(goal),
                         direction=direction, space=space, constraints=cons, trials=infos, trials_run=todo,
                         wall_s=wall, engine=engine, workers=workers)
     best = _best(infos, direction)
@@ -397,7 +415,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         result.best_trial, result.best_value, result.best_params = best.number, best.value, best.params
         result.params = {**entry.params, **best.params}
         note = [f"Tuned by `hil tune` (study {study_name!r}, trial {best.number} of {len(infos)}): mean "
-                f"{objective} {best.value:.6g} over the profiles and seeds of campaign {config.name!r}, {entry.label}.",
+                f"{goal} {best.value:.6g} over the profiles and seeds of campaign {config.name!r}, {entry.label}.",
                 "Empty params = the registry's defaults; these override them."]
         text = _controller_yaml(entry, result.params, note)
         result.yaml_path = out_dir / f"{entry.name}-tuned.yaml"

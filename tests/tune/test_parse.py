@@ -9,7 +9,18 @@ import pytest
 
 from hil.campaign.model import CampaignConfig, CampaignResult, CellResult
 from hil.config import PROFILES, ConfigError
-from hil.tune import Constraint, ParamSpec, choose_controller, evaluate, parse_constraints, parse_params, trial_campaign
+from hil.tune import (
+    Constraint,
+    Objective,
+    ParamSpec,
+    check_cells,
+    choose_controller,
+    evaluate,
+    parse_constraints,
+    parse_objective,
+    parse_params,
+    trial_campaign,
+)
 
 CAMPAIGN = PROFILES / "campaigns" / "swing-miss-distance.yaml"
 
@@ -116,3 +127,35 @@ def test_the_score_is_the_mean_over_cells_and_constraints_take_the_worst_cell(tm
     with pytest.raises(ValueError, match="1 cell"):
         evaluate(partial.model_copy(update={"cells": partial.cells[:-1]}), tmp_path, "miss_std_px", [],
                  check_logs=False)
+
+
+def test_an_objective_or_a_constraint_on_some_cells_is_judged_on_those_only(tmp_path) -> None:
+    from hil.campaign import load_campaign
+
+    config = load_campaign(CAMPAIGN)
+    labels = [p.label for p in config.profiles]
+    assert labels == ["1 deg / 1 Hz", "3 deg / 1 Hz"]
+    goal = parse_objective("miss_std_px@3 deg*")
+    assert goal == Objective("miss_std_px", "3 deg*") and str(goal) == "miss_std_px@3 deg*"
+    assert parse_objective("miss_std_px") == Objective("miss_std_px", "*")
+    bound = parse_constraints("rate_err_el_std_dps<=0.3 @ 1 deg*")
+    assert bound == [Constraint("rate_err_el_std_dps", "<=", 0.3, "1 deg*")]
+    assert str(bound[0]) == "rate_err_el_std_dps<=0.3@1 deg*"
+    trial = trial_campaign(config, choose_controller(config, None), {})
+    cells = trial.cells()
+    ms = [{"miss_std_px": 1.0 + i, "rate_err_el_std_dps": 0.1 * (i + 1), "missed_cycles": 0.0}
+          for i in range(len(cells))]
+    value, cons, attrs = evaluate(_result(trial, ms), tmp_path, goal, bound, check_logs=False)
+    on_3deg = [m["miss_std_px"] for s, m in zip(cells, ms, strict=True) if s.profile.label.startswith("3 deg")]
+    on_1deg = [m["rate_err_el_std_dps"] for s, m in zip(cells, ms, strict=True) if s.profile.label.startswith("1 deg")]
+    assert len(on_3deg) == len(on_1deg) == 3
+    assert value == pytest.approx(sum(on_3deg) / 3)
+    assert cons[0] == pytest.approx(max(on_1deg) - 0.3)  # the worst 1 deg cell, not the worst cell
+    assert sorted(attrs["cells"]) == sorted(s.cell_id for s in cells if s.profile.label.startswith("3 deg"))
+    check_cells([goal, *bound], labels)
+    with pytest.raises(ConfigError, match=r"^objective='miss_std_px@vib\*': @'vib\*' matches no profile label of "
+                                          r"the campaign \('1 deg / 1 Hz', '3 deg / 1 Hz'\)"):
+        check_cells([parse_objective("miss_std_px@vib*")], labels)
+    for bad, message in (("miss_std_px@", "nothing after '@'"), ("ripple@3*", "unknown metric 'ripple'")):
+        with pytest.raises(ConfigError, match=message):
+            parse_objective(bad)
