@@ -15,9 +15,11 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
     file: Annotated[Path, typer.Argument(help="Campaign YAML whose cells every trial runs (see profiles/campaigns/).")],
     params: Annotated[str, typer.Option(
         "--params", help='Search space: "name=low..high[:log|:int], ..." over the controller\'s parameters.')],
-    objective: Annotated[str, typer.Option(
+    objective: Annotated[list[str] | None, typer.Option(
         help="Metric to minimise: its mean over the campaign's profiles and seeds; METRIC@GLOB: over the cells whose "
-        "profile label matches GLOB only (e.g. 'los_rate_std_dps@vibration*').")] = "miss_std_px",
+        "profile label matches GLOB only (e.g. 'los_rate_std_dps@vibration*'). Give it 2-3 times for a "
+        "multi-objective study: the report shows the Pareto front and the controller file holds its point nearest "
+        "the best of each. Default miss_std_px.")] = None,
     trials: Annotated[int, typer.Option(min=1, max=100_000, help="Trials in the study in all (with --resume: "
                                                                    "only the missing ones run).")] = 100,
     controller: Annotated[str | None, typer.Option(
@@ -75,7 +77,7 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
             bar.update(task, advance=1, last=f"trial {t.number}: {what}")
 
         try:
-            result = run_tune(file, params, objective=objective, trials=trials, controller=controller,
+            result = run_tune(file, params, objective=objective or "miss_std_px", trials=trials, controller=controller,
                               constraints=constraint, engine=engine, scheduler=scheduler, shared_dir=shared_dir,
                               workers=workers, jobs=jobs,
                               storage=storage, study=study, resume=resume, out=out, write_profile=write_profile,
@@ -94,8 +96,10 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
         else:
             shown = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}"
                               for k, v in (result.best_params or {}).items())
-            console.print(f"best: trial {result.best_trial}, mean {result.objective} {result.best_value:.4g} "
-                          f"({result.direction}d): {shown}", highlight=False)
+            scores = ", ".join(f"mean {o} {v:.4g} ({d}d)" for o, v, d in zip(
+                result.objectives, result.best_values or [], result.directions, strict=False))
+            front = f" (of the Pareto front's {len(result.pareto)})" if len(result.objectives) > 1 else ""
+            console.print(f"best: trial {result.best_trial}{front}, {scores}: {shown}", highlight=False)
             note(f"controller: {result.yaml_path}" + (f"\n            {result.profile_path}"
                                                       if result.profile_path else ""))
         if result.report is not None:

@@ -51,11 +51,13 @@ class StudyRun:
     todo: int  # trials this run runs: the target less the finished ones
 
 
-def start_study(name: str, url: str, *, trials: int, resume: bool, direction: str, meta: Mapping[str, Any],
+def start_study(name: str, url: str, *, trials: int, resume: bool, direction: str | Sequence[str],
+                meta: Mapping[str, Any],
                 seed: int, startup_trials: int, constant_liar: bool = False,
                 first_params: Mapping[str, Any] | None = None, pruner: Any = None) -> StudyRun:
     """Create the study ``name`` in ``url``, or resume it (``resume``; ConfigError if it exists without). TPE seeded
-    with ``seed``, random for its first ``startup_trials``; ``constant_liar`` for trials run in parallel.
+    with ``seed``, random for its first ``startup_trials``; ``constant_liar`` for trials run in parallel;
+    ``direction``: one, or one per objective (a multi-objective study).
     ``first_params``: enqueued as a new study's first trial (the prior's values, the shipped gains). ``pruner``: an
     Optuna pruner (default none: every trial runs to its end)."""
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)

@@ -68,6 +68,36 @@ def _plot_history(result: TuneResult, path: Path) -> Path | None:
     return save_figure(fig, path)
 
 
+def _plot_pareto(result: TuneResult, path: Path) -> Path | None:
+    """The first two objectives of every complete trial, the feasible Pareto front joined, the chosen point ringed."""
+    done = [t for t in result.trials if t.state == "COMPLETE" and t.values is not None]
+    if len(result.objectives) < 2 or not done:
+        return None
+    fig, ax = new_figure()
+    a = ax[0, 0]
+    on_front = set(result.pareto)
+    rest = [t for t in done if t.number not in on_front]
+    for group, style, label in (([t for t in rest if t.feasible], dict(marker="o", color="0.6", ms=3.5), "feasible"),
+                                ([t for t in rest if not t.feasible], dict(marker="x", color="C3", ms=4),
+                                 "infeasible")):
+        if group:
+            a.plot([t.values[0] for t in group], [t.values[1] for t in group], ls="", label=label, **style)  # type: ignore[index]
+    front = sorted((t for t in done if t.number in on_front), key=lambda t: t.values[0])  # type: ignore[index]
+    if front:
+        a.plot([t.values[0] for t in front], [t.values[1] for t in front], "o-", color="C0", ms=5,  # type: ignore[index]
+               label="Pareto front (feasible)")
+    chosen = next((t for t in done if t.number == result.best_trial), None)
+    if chosen is not None:
+        a.plot([chosen.values[0]], [chosen.values[1]], "o", ms=12, mfc="none", mec="k", mew=1.5,  # type: ignore[index]
+               label=f"chosen: trial {chosen.number}")
+    a.set(title=f"{result.study}: {result.objectives[0]} against {result.objectives[1]}",
+          xlabel=f"{result.objectives[0]} ({result.directions[0]}d)",
+          ylabel=f"{result.objectives[1]} ({result.directions[1]}d)")
+    a.grid(alpha=0.3)
+    legend_below(fig, a)
+    return save_figure(fig, path)
+
+
 MIN_IMPORTANCE_TRIALS = 4  # complete trials below which importances are not computed
 
 
@@ -81,7 +111,8 @@ def _importances(study: optuna.Study) -> tuple[dict[str, float], str]:
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
         try:
-            imp = optuna.importance.get_param_importances(study)
+            first = (lambda t: t.values[0]) if len(study.directions) > 1 else None  # the first objective's
+            imp = optuna.importance.get_param_importances(study, target=first)
         except (RuntimeError, ValueError, ZeroDivisionError) as exc:
             return {}, " ".join(str(exc).split())
     for w in seen:
@@ -115,12 +146,16 @@ def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> 
     pngs: list[Path] = []
     doc: list[Any] = [Heading(1, f"Tuning {result.controller_label} ({result.controller}) on {result.campaign}")]
     feasible = result.best_trial is not None
-    head = (f"trial {result.best_trial}: {result.objective} {format_number(result.best_value or math.nan)}" if feasible
-            else "no feasible trial")
+    shown = ", ".join(f"{o} {format_number(v)}" for o, v in zip(result.objectives or [result.objective],
+                                                                  result.best_values or [math.nan], strict=False))
+    head = f"trial {result.best_trial}: {shown}" if feasible else "no feasible trial"
+    aim = ("objectives: " + ", ".join(f"mean {o} ({d}d)" for o, d in zip(result.objectives, result.directions,
+                                                                         strict=True))
+           + f"; the tuned point: the Pareto front's ({len(result.pareto)} trials) nearest the best of each"
+           if len(result.objectives) > 1 else f"objective: mean {result.objective}, {result.direction}d")
     doc.append(Banner(head, f"{len(result.trials)} trials: {result.n_complete} complete "
-                            f"({result.n_infeasible} infeasible), {result.n_failed} failed (unstable); objective: "
-                            f"mean {result.objective} over the campaign's profiles and seeds, {result.direction}d.",
-                      feasible))
+                            f"({result.n_infeasible} infeasible), {result.n_failed} failed (unstable), "
+                            f"{result.n_pruned} pruned; {aim}.", feasible))
     doc.append(Heading(2, "Best parameters"))
     if result.params is not None:
         rows = [[Cell(k), Cell(f"{v:.6g}" if isinstance(v, float) else str(v)),
@@ -144,6 +179,19 @@ def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> 
     if hist is not None:
         pngs.append(hist)
         doc.append(Figure(hist, "optimisation history: each complete trial, the best feasible so far"))
+    pareto = _plot_pareto(result, out / "tune-pareto.png")
+    if pareto is not None:
+        pngs.append(pareto)
+        doc.append(Heading(2, "Pareto front"))
+        doc.append(Figure(pareto, "every complete trial; the feasible trials no other beats on every objective"))
+        front = [t for t in result.trials if t.number in set(result.pareto)]
+        doc.append(Table(["trial", *result.objectives, "parameters"],
+                         [[Cell(str(t.number) + (" (chosen)" if t.number == result.best_trial else "")),
+                           *(Cell(format_number(v)) for v in t.values or ()),
+                           Cell(", ".join(f"{k}={v:.4g}" for k, v in t.params.items()))] for t in front],
+                         align="l" + "r" * len(result.objectives) + "l"))
+        doc.append(Text("The chosen point (the controller file) is the front's nearest the best of every "
+                        "objective, each scaled from its best (0) to its worst (1) on the front."))
     imp, why = _importances(study)
     doc.append(Heading(2, "Parameter importances"))
     if imp:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ class TrialInfo:
     constraints: dict[str, float]  # name (metric<=bound) -> the worst cell's excess, <= 0 holds
     failure: str
     wall_s: float | None
+    values: tuple[float, ...] | None = None  # every objective's value (``value`` is the first's)
 
 
 @dataclasses.dataclass
@@ -58,6 +60,10 @@ class TuneResult:
     best_params: dict[str, Any] | None = None
     params: dict[str, Any] | None = None
     yaml_path: Path | None = None
+    objectives: list[str] = dataclasses.field(default_factory=list)  # every objective (``objective``: the first)
+    directions: list[str] = dataclasses.field(default_factory=list)
+    pareto: list[int] = dataclasses.field(default_factory=list)  # the feasible Pareto front's trials (2+ objectives)
+    best_values: list[float] | None = None
     profile_path: Path | None = None
     report: Any = None  # hil.reporting.ReportFiles
 
@@ -81,6 +87,8 @@ class TuneResult:
         return {"study": self.study, "storage": self.storage, "dir": str(self.out_dir), "campaign": self.campaign,
                 "controller": {"label": self.controller_label, "name": self.controller},
                 "objective": self.objective, "direction": self.direction,
+                "objectives": self.objectives, "directions": self.directions, "pareto": self.pareto,
+                "best_values": self.best_values,
                 "space": [str(s) for s in self.space], "constraints": [str(c) for c in self.constraints],
                 "trials": len(self.trials), "trials_run": self.trials_run, "complete": self.n_complete,
                 "failed": self.n_failed, "pruned": self.n_pruned, "infeasible": self.n_infeasible,
@@ -118,14 +126,15 @@ def rdb_storage(url: str) -> Any:
         raise ConfigError(f"storage={url!r}: cannot open: {msg[:200]}") from None
 
 
-def open_study(rdb: Any, study_name: str, sampler: Any, direction: str, *, meta: dict[str, Any],
+def open_study(rdb: Any, study_name: str, sampler: Any, direction: str | Sequence[str], *, meta: dict[str, Any],
                exists: bool, pruner: Any = None) -> Any:
     """Create the study, or load it (``exists``) and check it was made with the same ``meta`` (its user attributes:
     the space, the objective, ...); ConfigError naming ``resume`` if not. A new study gets ``meta`` stored."""
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
-    st = optuna.create_study(storage=rdb, sampler=sampler, pruner=pruner, study_name=study_name, direction=direction,
-                             load_if_exists=True)
+    directions = [direction] if isinstance(direction, str) else list(direction)
+    st = optuna.create_study(storage=rdb, sampler=sampler, pruner=pruner, study_name=study_name,
+                             directions=directions, load_if_exists=True)
     for key, value in meta.items():
         if not exists:
             st.set_user_attr(key, value)

@@ -64,6 +64,7 @@ __all__ = [
 
 TUNE_DIR = Path("runs") / "tune"
 SATURATION_MAX_FRAC = 0.05  # a cell whose drive sits at its limit longer than this (after settling) is unstable
+MAX_OBJECTIVES = 3  # a multi-objective study's metrics at most
 TRACK_VALID_MIN_FRAC = 0.5  # a tracking cell with fewer valid frames than this (after settling) lost the target
 
 
@@ -151,21 +152,37 @@ def cell_score(cell: CellResult, out_dir: Path, metric: str | None, *, settle_s:
         why = unstable_reason(sat, valid)
         if why:
             raise ValueError(f"cell {cell.cell_id}: {why}")
-    if metric is None:
-        return math.nan, sat, valid
+    return (math.nan if metric is None else metric_value(cell, metric)), sat, valid
+
+
+def metric_value(cell: CellResult, metric: str) -> float:
+    """The cell's ``metric`` as a study scores it (a lag by its magnitude: a lead is no better than the same lag);
+    ValueError (one line) when the cell lacks it."""
     value = cell.metrics.get(metric, math.nan)
     if not math.isfinite(value):
         raise ValueError(f"cell {cell.cell_id}: {metric} is not available")
-    return (abs(value) if METRICS[metric].magnitude else float(value)), sat, valid
+    return abs(value) if METRICS[metric].magnitude else float(value)
 
 
 def evaluate(result: CampaignResult, out_dir: Path, objective: str | Objective, constraints: Sequence[Constraint],
              *, check_logs: bool = True,
              scored: dict[str, tuple[float, float | None, float | None]] | None = None,
              ) -> tuple[float, list[float], dict[str, Any]]:
-    """A trial's campaign result -> (objective, constraint values, attributes). ValueError (one line) when the
-    trial is unstable or its numbers are missing: the caller scores it as failed. ``scored``: the cells already
-    scored by :func:`cell_score` as they finished, by id (their logs are not read again)."""
+    """A trial's campaign result -> (objective, constraint values, attributes): :func:`evaluate_all` for one
+    objective."""
+    values, cons, attrs = evaluate_all(result, out_dir, [objective], constraints, check_logs=check_logs,
+                                       scored=scored)
+    return values[0], cons, attrs
+
+
+def evaluate_all(result: CampaignResult, out_dir: Path, objectives: Sequence[str | Objective],
+                 constraints: Sequence[Constraint], *, check_logs: bool = True,
+                 scored: dict[str, tuple[float, float | None, float | None]] | None = None,
+                 ) -> tuple[list[float], list[float], dict[str, Any]]:
+    """A trial's campaign result -> (each objective's mean over its cells, constraint values, attributes).
+    ValueError (one line) when the trial is unstable or its numbers are missing: the caller scores it as failed.
+    ``scored``: the cells already checked by :func:`cell_score` as they finished, by id (their logs are not read
+    again)."""
 
     config: CampaignConfig = result.config
     cells = result.cells
@@ -175,10 +192,9 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str | Objective, 
         if c.status != "completed":
             raise ValueError(f"cell {c.cell_id}: session {c.status}: {c.message}".rstrip(": "))
     u_max = drive_limit(config) if check_logs else None
-    objective = parse_objective(objective)
-    scores = [(scored or {}).get(c.cell_id)
-              or cell_score(c, out_dir, objective.metric if objective.covers(c.profile) else None,
-                            settle_s=config.settle_s, u_max=u_max) for c in cells]
+    goals = [parse_objective(o) for o in objectives]
+    scores = [(scored or {}).get(c.cell_id) or cell_score(c, out_dir, None, settle_s=config.settle_s, u_max=u_max)
+              for c in cells]
     attrs: dict[str, Any] = {}
     if check_logs:
         attrs["saturated_frac"] = max(s[1] for s in scores if s[1] is not None)
@@ -197,29 +213,59 @@ def evaluate(result: CampaignResult, out_dir: Path, objective: str | Objective, 
             out.append(float(v))
         return out
 
-    obj = [s[0] for c, s in zip(cells, scores, strict=True) if objective.covers(c.profile)]
-    attrs["cells"] = {c.cell_id: c.metrics.get(objective.metric) for c in cells if objective.covers(c.profile)}
+    means = []
+    for goal in goals:
+        judged = [metric_value(c, goal.metric) for c in cells if goal.covers(c.profile)]
+        means.append(sum(judged) / len(judged))
+    attrs["cells"] = {c.cell_id: c.metrics.get(goals[0].metric) for c in cells if goals[0].covers(c.profile)}
     every = list(constraints) + [Constraint(m, op, bound) for m, t in config.thresholds.items()  # type: ignore[arg-type]
                                  for op, bound in (("<=", t.max), (">=", t.min)) if bound is not None]
     cons = [c.value(values(c.metric, c)) for c in every]
     attrs["constraint_names"] = [str(c) for c in every]
-    return sum(obj) / len(obj), cons, attrs
+    return means, cons, attrs
 
 
 # --- the study -------------------------------------------------------------------------------
 
 
-def _trial_infos(study: optuna.Study) -> list[TrialInfo]:
-    from optuna.trial import TrialState  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
+def trial_info(t: optuna.trial.FrozenTrial) -> TrialInfo:
+    """A finished (or running) trial as the result lists it; ``value`` the first objective's."""
+    done = t.state.name == "COMPLETE" and t.values is not None
+    cons = dict(t.constraints)
+    return TrialInfo(t.number, t.state.name, t.values[0] if done else None, dict(t.params),
+                     all(c <= 0 for c in cons.values()) if done else None, cons, str(t.user_attrs.get("failure", "")),
+                     t.duration.total_seconds() if t.duration is not None else None,
+                     tuple(t.values) if done else None)
 
-    out = []
-    for t in study.get_trials(deepcopy=False):
-        cons = dict(t.constraints)
-        feasible = None if t.state != TrialState.COMPLETE else all(c <= 0 for c in cons.values())
-        wall = t.duration.total_seconds() if t.duration is not None else None
-        out.append(TrialInfo(t.number, t.state.name, t.value if t.state == TrialState.COMPLETE else None,
-                             dict(t.params), feasible, cons, str(t.user_attrs.get("failure", "")), wall))
-    return out
+
+def pareto_front(trials: Sequence[TrialInfo], directions: Sequence[str]) -> list[TrialInfo]:
+    """The complete feasible trials no other complete feasible trial dominates (as good on every objective, better
+    on one), by trial number."""
+    sign = [1.0 if d == "minimize" else -1.0 for d in directions]
+    ok = [t for t in trials if t.state == "COMPLETE" and t.feasible and t.values is not None
+          and all(math.isfinite(v) for v in t.values)]
+    keyed = [(t, [s * v for s, v in zip(sign, t.values or (), strict=True)]) for t in ok]
+
+    def dominated(x: list[float]) -> bool:
+        return any(all(a <= b for a, b in zip(y, x, strict=True)) and y != x for _, y in keyed)
+
+    return sorted((t for t, x in keyed if not dominated(x)), key=lambda t: t.number)
+
+
+def choose_on_front(front: Sequence[TrialInfo], directions: Sequence[str]) -> TrialInfo | None:
+    """The point of the front nearest the best of every objective: each objective scaled to 0 (its best on the
+    front) .. 1 (its worst), the smallest Euclidean norm (ties: the earlier trial)."""
+    if not front:
+        return None
+    sign = [1.0 if d == "minimize" else -1.0 for d in directions]
+    cols = list(zip(*[[s * v for s, v in zip(sign, t.values or (), strict=True)] for t in front], strict=True))
+    lo, span = [min(c) for c in cols], [max(c) - min(c) for c in cols]
+
+    def distance(t: TrialInfo) -> float:
+        return math.hypot(*((s * v - a) / w if w > 0 else 0.0
+                            for s, v, a, w in zip(sign, t.values or (), lo, span, strict=True)))
+
+    return min(front, key=lambda t: (distance(t), t.number))
 
 
 def _best(trials: list[TrialInfo], direction: str) -> TrialInfo | None:
@@ -265,7 +311,7 @@ def _controller_yaml(entry: ControllerEntry, params: dict[str, Any], note: list[
 
 
 def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Sequence[ParamSpec], *,
-         objective: str = "miss_std_px", trials: int = 100, controller: str | None = None,
+         objective: str | Sequence[str] = "miss_std_px", trials: int = 100, controller: str | None = None,
          constraints: str | Sequence[str | Constraint] | None = None, engine: str = "local",
          scheduler: str | None = None, shared_dir: str | Path | None = None, workers: int = 1, jobs: int = 1,
          storage: str | None = None,
@@ -296,7 +342,10 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore
     except CampaignError as exc:
         raise ConfigError(str(exc)) from None
-    goal = parse_objective(objective)
+    goals = [parse_objective(o) for o in ([objective] if isinstance(objective, str | Objective) else objective)]
+    if not 1 <= len(goals) <= MAX_OBJECTIVES:
+        raise ConfigError(f"objective: give 1 to {MAX_OBJECTIVES} metrics (got {len(goals)})")
+    goal, multi = goals[0], len(goals) > 1
     check_trials(trials)
     if not 1 <= workers <= 256 or not 1 <= jobs <= 64:
         raise ConfigError(f"workers={workers} / jobs={jobs}: need 1..256 and 1..64")
@@ -305,13 +354,14 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         parse_params(params, entry.name, entry.params)  # type: ignore[arg-type]
     space = list(space)  # type: ignore[arg-type]
     cons = parse_constraints(constraints)
-    check_cells([goal, *cons], [p.label for p in config.profiles], f"campaign {config.name!r}")
+    check_cells([*goals, *cons], [p.label for p in config.profiles], f"campaign {config.name!r}")
     study_name = check_study_name(study or config.name)
     out_dir = Path(out) if out is not None else TUNE_DIR / study_name
     require_writable_dir(out_dir, "out")
     if write_profile is not None and Path(write_profile).is_dir():
         raise ConfigError(f"write_profile={str(write_profile)!r}: a directory (give the YAML file's path)")
-    direction = "minimize" if METRICS[goal.metric].lower_is_better else "maximize"
+    directions = ["minimize" if METRICS[g.metric].lower_is_better else "maximize" for g in goals]
+    direction = directions[0]
     try:  # every cell of a trial, before anything is written
         cell_sessions(trial_campaign(config, entry, {}), out_dir / TRIALS / "probe")
     except (CampaignError, ValueError) as exc:
@@ -322,23 +372,23 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     out_dir.mkdir(parents=True, exist_ok=True)
     url = storage_url(storage, out_dir)
     meta = {"campaign": config.name, "controller_label": entry.label, "controller": entry.name,
-            "objective": str(goal), "space": [str(s) for s in space]}
+            "objective": str(goal) if not multi else [str(g) for g in goals], "space": [str(s) for s in space]}
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     from hil.tune._prune import PRUNE_MARGIN, CellPruner  # noqa: PLC0415  (subclasses Optuna's pruner: heavy, as above)
 
     shipped = effective_params({"name": entry.name, "params": entry.params})
     first = {s.name: s.clip(shipped[s.name]) for s in space if shipped.get(s.name) is not None} if warm_start else None
-    run = start_study(study_name, url, trials=trials, resume=resume, direction=direction, meta=meta, seed=seed,
+    run = start_study(study_name, url, trials=trials, resume=resume, direction=directions, meta=meta, seed=seed,
                       startup_trials=min(10, max(2, trials // 10)), first_params=first,
-                      pruner=CellPruner() if prune else None)
+                      pruner=CellPruner() if prune and not multi else None)  # Optuna prunes one objective only
     st, todo = run.study, run.todo
     cell_ids = [spec.cell_id for spec in trial_campaign(config, entry, {}).cells()  # the objective's cells, in the
                 if goal.covers(spec.profile.label)]                                # order they report in
 
     lock = threading.Lock()
 
-    def objective_fn(trial: optuna.Trial) -> float:
+    def objective_fn(trial: optuna.Trial) -> float | tuple[float, ...]:
         values = {s.name: s.suggest(trial) for s in space}
         trial_dir = out_dir / TRIALS / f"{trial.number:05d}"
         t0 = time.monotonic()
@@ -354,8 +404,10 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
             u_max = drive_limit(cfg)
 
             def on_cell(cell: CellResult) -> None:  # score each cell as it ends; report the running mean in order
-                metric = goal.metric if goal.covers(cell.profile) else None
+                metric = goal.metric if goal.covers(cell.profile) and not multi else None
                 scored[cell.cell_id] = cell_score(cell, trial_dir, metric, settle_s=cfg.settle_s, u_max=u_max)
+                if multi:
+                    return
                 done = sum(1 for _ in itertools.takewhile(scored.__contains__, cell_ids))
                 for step in range(reported[0], done):
                     mean = sum(scored[c][0] for c in cell_ids[:step + 1]) / (step + 1)
@@ -368,7 +420,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
                         raise optuna.TrialPruned()
 
             result = run_campaign(cfg, trial_dir, jobs=jobs, on_cell=on_cell, **kwargs)
-            value, cvals, attrs = evaluate(result, trial_dir, goal, cons, scored=scored)
+            values, cvals, attrs = evaluate_all(result, trial_dir, goals, cons, scored=scored)
         except optuna.TrialPruned:
             trial.set_user_attr("wall_s", time.monotonic() - t0)
             raise
@@ -385,18 +437,13 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         for name, v in zip(attrs["constraint_names"], cvals, strict=True):
             trial.set_constraint(name, v)  # TPE: feasible when every value is <= 0
         trial.set_user_attr("wall_s", time.monotonic() - t0)
-        return value
+        return tuple(values) if multi else values[0]
 
     def callback(s: optuna.Study, frozen: optuna.trial.FrozenTrial) -> None:
         if on_trial is None:
             return
         with lock:
-            cons_v = dict(frozen.constraints)
-            ok = frozen.state.name == "COMPLETE"
-            on_trial(TrialInfo(frozen.number, frozen.state.name, frozen.value if ok else None, dict(frozen.params),
-                               all(c <= 0 for c in cons_v.values()) if ok else None, cons_v,
-                               str(frozen.user_attrs.get("failure", "")),
-                               frozen.duration.total_seconds() if frozen.duration else None))
+            on_trial(trial_info(frozen))
 
     cluster = _start_cluster(kwargs, workers) if todo else None
     try:
@@ -405,17 +452,27 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         if cluster is not None:
             with contextlib.suppress(Exception):
                 cluster.close()
-    infos = _trial_infos(st)
+    infos = [trial_info(t) for t in st.get_trials(deepcopy=False)]
     result = TuneResult(study=study_name, storage=url, out_dir=out_dir, campaign=config.name,
                         controller_label=entry.label, controller=entry.name, objective=str(goal),
                         direction=direction, space=space, constraints=cons, trials=infos, trials_run=todo,
-                        wall_s=wall, engine=engine, workers=workers)
-    best = _best(infos, direction)
+                        wall_s=wall, engine=engine, workers=workers, objectives=[str(g) for g in goals],
+                        directions=directions)
+    if multi:
+        front = pareto_front(infos, directions)
+        result.pareto = [t.number for t in front]
+        best = choose_on_front(front, directions)
+    else:
+        best = _best(infos, direction)
     if best is not None:
         result.best_trial, result.best_value, result.best_params = best.number, best.value, best.params
+        result.best_values = list(best.values or (best.value,))
         result.params = {**entry.params, **best.params}
-        note = [f"Tuned by `hil tune` (study {study_name!r}, trial {best.number} of {len(infos)}): mean "
-                f"{goal} {best.value:.6g} over the profiles and seeds of campaign {config.name!r}, {entry.label}.",
+        scores = ", ".join(f"mean {g} {v:.6g}" for g, v in zip(goals, result.best_values, strict=True))
+        how = (f"the point of the Pareto front ({len(result.pareto)} trials) nearest the best of every objective; "
+               if multi else "")
+        note = [f"Tuned by `hil tune` (study {study_name!r}, trial {best.number} of {len(infos)}): {how}{scores} "
+                f"over the profiles and seeds of campaign {config.name!r}, {entry.label}.",
                 "Empty params = the registry's defaults; these override them."]
         text = _controller_yaml(entry, result.params, note)
         result.yaml_path = out_dir / f"{entry.name}-tuned.yaml"
@@ -425,7 +482,8 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
             result.profile_path.parent.mkdir(parents=True, exist_ok=True)
             result.profile_path.write_text(text)
         (out_dir / "best.json").write_text(json.dumps({"trial": best.number, "value": best.value,
-                                                      "params": result.params}, indent=2))
+                                                      "values": result.best_values, "params": result.params,
+                                                      **({"pareto": result.pareto} if multi else {})}, indent=2))
     if write_report:
         result.report = write_tune_report(result, st)
     return result
