@@ -48,11 +48,13 @@ def scratch_session(tree: Path, session: Path, seconds: float, where: Path) -> P
 def timed(cmd: list[str], cwd: Path) -> tuple[float, float]:
     """(wall s, CPU s: user + system of the process and every process it waited for) of ``cmd`` run in ``cwd``."""
     r0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
-    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(cwd)})
+    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(cwd)},
+                          check=False)
     wall, r1 = time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     if proc.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} (in {cwd}): exit {proc.returncode}: {(proc.stderr.strip() or proc.stdout.strip())[-600:]}")
+        said = proc.stderr.strip() or proc.stdout.strip()
+        raise SystemExit(f"{' '.join(cmd)} (in {cwd}): exit {proc.returncode}: {said[-600:]}")
     if "--json" in cmd and json.loads(proc.stdout).get("status") != "completed":
         raise SystemExit(f"{' '.join(cmd)}: {proc.stdout[-400:]}")
     return wall, cpu

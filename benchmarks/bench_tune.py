@@ -22,18 +22,16 @@ import argparse
 import json
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.campaign import load_campaign, run_campaign  # noqa: E402
+from hil.campaign import load_campaign  # noqa: E402
 from hil.campaign.model import ControllerEntry  # noqa: E402
 from hil.config import ControllerConfig, load_model  # noqa: E402
-from hil.control import registry  # noqa: E402
-from hil.tune import choose_controller, tune  # noqa: E402
+from hil.tune import choose_controller, compare_controllers, tune  # noqa: E402
 
 SPACE = "omega_o_rad_s=100..2000:log, kp_counts_per_dps=1000..20000:log, q_dps2=1e-6..1e-2:log"
 ORACLE_SPACE = "kp_counts_per_dps=300..40000:log, ki_counts_per_deg=1..1000000:log"  # kp k_m dt < 1, ki dt <= kp
@@ -48,7 +46,7 @@ def tune_oracle(config, objective: str, trials: int, *, workers: int, out: Path,
                                     "name": f"{config.name}-oracle", "acceptance": [], "paper": {}})
     t0 = time.perf_counter()
     result = tune(cfg, ORACLE_SPACE, objective=objective, trials=trials, controller="oracle", workers=workers,
-                  out=out, resume=resume, seed=seed)
+                  out=out, resume=resume, seed=seed, heldout_seeds=0)
     wall = time.perf_counter() - t0
     print(f"oracle study {result.study}: {result.trials_run} trials run, {wall:.0f} s wall; {result.n_complete} "
           f"complete, {result.n_failed} failed; best trial {result.best_trial}: {objective} {result.best_value}: "
@@ -60,36 +58,18 @@ def compare(config, entry, tuned_params, objective: str, *, jobs: int, seeds: li
             duration_s: float | None, also: list[str] = (), show: str | None = None,
             oracle_params: dict | None = None) -> dict[str, dict[str, float]]:
     """The objective's mean (and per-cell values) for baseline, the campaign's entries ``also``, default, tuned and
-    oracle (with ``oracle_params``: its own tuned gains) on one set of cells; ``show``: a second metric's mean
-    beside it."""
-    base = next(c for c in config.controllers if c.label == config.baseline)
-    others = [c for c in config.controllers if c.label in also and c.label not in (base.label, entry.label)]
-    controllers = [base, *others, entry,
-                   ControllerEntry(label=f"{entry.label} tuned", name=entry.name, params=tuned_params)]
-    if "oracle" in {**registry.REGISTRY, **getattr(registry, "SIM_ONLY", {})}:
-        controllers.append(ControllerEntry(label="oracle", name="oracle", params=oracle_params or {}))
-    update = {"controllers": controllers, "acceptance": [], "paper": {}, "name": f"{config.name}-compare"}
-    if seeds:
-        update["seeds"] = seeds
-    if duration_s:
-        update["duration_s"] = duration_s
-    cfg = config.model_copy(update=update)
-    with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
-        result = run_campaign(cfg, Path(tmp) / "c", jobs=jobs)
-        wall = time.perf_counter() - t0
-    out: dict[str, dict[str, float]] = {}
-    for c in controllers:
-        v = [x.metrics.get(objective, math.nan) for x in result.cells if x.controller == c.label]
-        bad = [x.cell_id for x in result.cells if x.controller == c.label and x.status != "completed"]
-        out[c.label] = {"mean": sum(v) / len(v) if v else math.nan, "values": v, "failed": bad,
-                        "ripple": _mean([x.metrics.get("drive_ripple_el_counts", math.nan) for x in result.cells
-                                         if x.controller == c.label])}
-        if show:
-            out[c.label]["show"] = _mean([x.metrics.get(show, math.nan) for x in result.cells
-                                          if x.controller == c.label])
-    out["_wall_s"] = {"mean": wall}
-    return out
+    oracle (with ``oracle_params``: its own tuned gains) on one set of cells (:func:`hil.tune.compare_controllers`,
+    the comparison a study's report makes on held-out seeds); ``show``: a second metric's mean beside it."""
+    numbers = compare_controllers(config, entry, tuned_params, [objective, "drive_ripple_el_counts",
+                                                                 *([show] if show else [])],
+                                  seeds=seeds, duration_s=duration_s, jobs=jobs, also=also,
+                                  oracle_params=oracle_params)
+    for label, n in numbers.items():
+        if not label.startswith("_"):
+            n["ripple"] = n["means"]["drive_ripple_el_counts"]
+            if show:
+                n["show"] = n["means"][show]
+    return numbers
 
 
 def _mean(v: list[float]) -> float:
@@ -153,7 +133,8 @@ def main() -> None:
         t0 = time.perf_counter()
         result = tune(config, args.params, objective=args.objective, trials=args.trials, controller=entry.label,
                       constraints=args.constraint, workers=args.workers, study=args.study, resume=args.resume,
-                      out=out, seed=args.seed, write_profile=args.write_profile)
+                      out=out, seed=args.seed, write_profile=args.write_profile,
+                      heldout_seeds=0)  # the comparison below is this benchmark's own
         wall = time.perf_counter() - t0
         print(f"study {result.study}: {result.trials_run} trials run ({len(result.trials)} in the study), "
               f"{args.workers} workers: {wall:.0f} s wall ({wall / max(result.trials_run, 1):.1f} s per trial); "

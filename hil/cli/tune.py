@@ -49,6 +49,11 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
     warm_start: Annotated[bool, typer.Option(
         "--warm-start/--no-warm-start", help="A new study's first trial is the controller's own parameters (the "
         "shipped gains).")] = True,
+    heldout_seeds: Annotated[int, typer.Option(
+        min=0, max=50, help="After the study, compare the tuned gains with the shipped ones, the baseline and the "
+        "oracle on this many seeds after the campaign's own (0: none); in the report and the summary.")] = 3,
+    heldout_duration: Annotated[float | None, typer.Option(
+        min=0.5, help="The held-out cells' duration, s (default the campaign's).")] = None,
     report_too: Annotated[bool, typer.Option("--report/--no-report", help="Write tune.md and tune.html.")] = True,
     json_out: Annotated[bool, typer.Option("--json", help="Print the outcome as JSON.")] = False,
 ) -> None:
@@ -82,7 +87,8 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
                               workers=workers, jobs=jobs,
                               storage=storage, study=study, resume=resume, out=out, write_profile=write_profile,
                               seed=seed, keep_logs=keep_logs, write_report=report_too, on_trial=on_trial,
-                              prune=prune, warm_start=warm_start)
+                              prune=prune, warm_start=warm_start, heldout_seeds=heldout_seeds,
+                              heldout_duration_s=heldout_duration)
         except ConfigError as exc:
             raise fail(str(exc)) from None
     if json_out:
@@ -100,6 +106,10 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
                 result.objectives, result.best_values or [], result.directions, strict=False))
             front = f" (of the Pareto front's {len(result.pareto)})" if len(result.objectives) > 1 else ""
             console.print(f"best: trial {result.best_trial}{front}, {scores}: {shown}", highlight=False)
+            if result.heldout:
+                held = {k: v["mean"] for k, v in result.heldout.items() if not k.startswith("_")}
+                console.print(f"held-out seeds {', '.join(map(str, result.heldout_seeds))}: mean {result.objective} "
+                              + ", ".join(f"{k} {v:.4g}" for k, v in held.items()), highlight=False)
             note(f"controller: {result.yaml_path}" + (f"\n            {result.profile_path}"
                                                       if result.profile_path else ""))
         if result.report is not None:

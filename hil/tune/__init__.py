@@ -27,6 +27,7 @@ from hil.tune._space import (
 from hil.tune._store import TrialInfo, TuneResult, open_study, rdb_storage, storage_url
 from hil.tune._study import (
     choose_controller,
+    compare_controllers,
     evaluate,
     log_health,
     trial_campaign,
@@ -45,6 +46,7 @@ __all__ = [
     "check_study_name",
     "check_trials",
     "choose_controller",
+    "compare_controllers",
     "evaluate",
     "failed",
     "log_health",

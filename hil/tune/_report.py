@@ -98,6 +98,29 @@ def _plot_pareto(result: TuneResult, path: Path) -> Path | None:
     return save_figure(fig, path)
 
 
+def _heldout_section(result: TuneResult) -> list[Any]:
+    """The tuned gains beside the shipped ones, the baseline and the oracle on seeds the study never saw."""
+    numbers = {k: v for k, v in (result.heldout or {}).items() if not k.startswith("_")}
+    names = result.objectives or [result.objective]
+    baseline = next(iter(numbers), None)
+    ref, oracle = (numbers[baseline]["mean"] if baseline else math.nan), numbers.get("oracle", {}).get("mean", math.nan)
+    rows = []
+    for label, n in numbers.items():
+        gap = (ref - n["mean"]) / (ref - oracle) if math.isfinite(oracle) and math.isfinite(ref) and ref != oracle \
+            else math.nan
+        rows.append([Cell(label), *(Cell(format_number(n["means"].get(o, math.nan))) for o in names),
+                     Cell(", ".join(format_number(x) for x in n["values"])),
+                     Cell("—" if not math.isfinite(gap) else f"{100 * gap:.0f} %"),
+                     Cell(", ".join(n["failed"]) or "none", status="fail" if n["failed"] else None)])
+    wall = (result.heldout or {}).get("_wall_s", {}).get("mean", math.nan)
+    return [Heading(2, "On held-out seeds"),
+            Text(f"Seeds {', '.join(map(str, result.heldout_seeds))} (the study ran seeds of its campaign only), "
+                 f"{result.heldout_duration_s or 'the campaign'}{' s' if result.heldout_duration_s else ''} cells, "
+                 f"{wall:.0f} s wall. Gap closed: (first row - x) / (first row - oracle) on {names[0]}."),
+            Table(["controller", *(f"{o}, mean" for o in names), f"{names[0]} per cell", "gap closed",
+                   "failed cells"], rows, align="l" + "r" * len(names) + "lrl")]
+
+
 MIN_IMPORTANCE_TRIALS = 4  # complete trials below which importances are not computed
 
 
@@ -165,6 +188,8 @@ def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> 
             doc.append(Text(f"Controller file: {result.yaml_path.name} (hil check {result.yaml_path.name})."))
     else:
         doc.append(Text("No trial was complete and feasible: nothing to write."))
+    if result.heldout:
+        doc.extend(_heldout_section(result))
     doc.append(Heading(2, "Search"))
     doc.append(Bullets([Item(f"space: {', '.join(str(s) for s in result.space)}"),
                         Item("constraints: " + (", ".join(str(c) for c in result.constraints) or "none")

@@ -64,6 +64,9 @@ class TuneResult:
     directions: list[str] = dataclasses.field(default_factory=list)
     pareto: list[int] = dataclasses.field(default_factory=list)  # the feasible Pareto front's trials (2+ objectives)
     best_values: list[float] | None = None
+    heldout: dict[str, Any] | None = None  # hil.tune.compare_controllers on the held-out seeds
+    heldout_seeds: list[int] = dataclasses.field(default_factory=list)
+    heldout_duration_s: float | None = None
     profile_path: Path | None = None
     report: Any = None  # hil.reporting.ReportFiles
 
@@ -88,7 +91,8 @@ class TuneResult:
                 "controller": {"label": self.controller_label, "name": self.controller},
                 "objective": self.objective, "direction": self.direction,
                 "objectives": self.objectives, "directions": self.directions, "pareto": self.pareto,
-                "best_values": self.best_values,
+                "best_values": self.best_values, "heldout_seeds": self.heldout_seeds,
+                "heldout_duration_s": self.heldout_duration_s, "heldout": self.heldout,
                 "space": [str(s) for s in self.space], "constraints": [str(c) for c in self.constraints],
                 "trials": len(self.trials), "trials_run": self.trials_run, "complete": self.n_complete,
                 "failed": self.n_failed, "pruned": self.n_pruned, "infeasible": self.n_infeasible,

@@ -22,6 +22,7 @@ import itertools
 import json
 import math
 import shutil
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -37,6 +38,7 @@ from hil.campaign.metrics import METRICS
 from hil.campaign.model import CellResult, ControllerEntry
 from hil.campaign.runner import cell_sessions, run_campaign
 from hil.config import ConfigError, require_writable_dir
+from hil.control import registry
 from hil.control.registry import effective_params
 from hil.log import read_log
 from hil.log.truth import truth_path
@@ -65,6 +67,7 @@ __all__ = [
 TUNE_DIR = Path("runs") / "tune"
 SATURATION_MAX_FRAC = 0.05  # a cell whose drive sits at its limit longer than this (after settling) is unstable
 MAX_OBJECTIVES = 3  # a multi-objective study's metrics at most
+HELDOUT_SEEDS = 3  # seeds after the campaign's own on which the report compares the tuned gains
 TRACK_VALID_MIN_FRAC = 0.5  # a tracking cell with fewer valid frames than this (after settling) lost the target
 
 
@@ -225,6 +228,53 @@ def evaluate_all(result: CampaignResult, out_dir: Path, objectives: Sequence[str
     return means, cons, attrs
 
 
+def compare_controllers(config: CampaignConfig, entry: ControllerEntry, tuned_params: dict[str, Any],
+                        metrics: Sequence[str | Objective], *, seeds: Sequence[int] | None = None,
+                        duration_s: float | None = None, jobs: int = 1, also: Sequence[str] = (),
+                        oracle_params: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+    """One campaign of the baseline, the entries labelled ``also``, ``entry`` with its own parameters (the shipped
+    gains), ``entry`` with ``tuned_params`` and the oracle (the plant's true rate; the sim clock's, with
+    ``oracle_params`` if given) on ``config``'s cells, or on ``seeds`` at ``duration_s``. Per controller label:
+    ``mean`` and ``values`` (per cell) of ``metrics[0]`` (a lag by its magnitude), ``means`` of every metric,
+    ``failed`` (cells that did not complete); ``_wall_s``: the campaign's wall time. A metric ``METRIC@GLOB``
+    is averaged over the cells whose profile label matches."""
+    goals = [parse_objective(m) for m in metrics]
+    base = next((c for c in config.controllers if c.label == config.baseline), None)
+    others = [c for c in config.controllers if c.label in also and c.label not in (entry.label,)
+              and (base is None or c.label != base.label)]
+    controllers = [*([base] if base is not None and base.label != entry.label else []), *others, entry,
+                   ControllerEntry(label=f"{entry.label} tuned", name=entry.name, params=tuned_params)]
+    if "oracle" in {**registry.REGISTRY, **getattr(registry, "SIM_ONLY", {})}:
+        controllers.append(ControllerEntry(label="oracle", name="oracle", params=oracle_params or {}))
+    update: dict[str, Any] = {"controllers": controllers, "acceptance": [], "paper": {}, "baseline": None,
+                              "name": f"{config.name}-compare"}
+    if seeds:
+        update["seeds"] = list(seeds)
+    if duration_s:
+        update["duration_s"] = duration_s
+    cfg = config.model_copy(update=update)
+    with tempfile.TemporaryDirectory(prefix="hil-compare-") as tmp:
+        t0 = time.monotonic()
+        result = run_campaign(cfg, Path(tmp) / "c", jobs=jobs)
+        wall = time.monotonic() - t0
+    out: dict[str, dict[str, Any]] = {}
+    for c in controllers:
+        mine = [x for x in result.cells if x.controller == c.label]
+
+        def mean_of(goal: Objective, cells: list[CellResult] = mine) -> float:
+            judged = [cell.metrics.get(goal.metric, math.nan) for cell in cells if goal.covers(cell.profile)]
+            v = [abs(x) if METRICS[goal.metric].magnitude else x for x in judged if math.isfinite(x)]
+            return sum(v) / len(v) if v and len(v) == len(judged) else math.nan
+
+        first = goals[0]
+        out[c.label] = {"mean": mean_of(first),
+                        "values": [x.metrics.get(first.metric, math.nan) for x in mine if first.covers(x.profile)],
+                        "means": {str(g): mean_of(g) for g in goals},
+                        "failed": [x.cell_id for x in mine if x.status != "completed"]}
+    out["_wall_s"] = {"mean": wall}
+    return out
+
+
 # --- the study -------------------------------------------------------------------------------
 
 
@@ -318,7 +368,8 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
          study: str | None = None, resume: bool = False, out: str | Path | None = None,
          write_profile: str | Path | None = None, seed: int = 0, keep_logs: bool = False,
          write_report: bool = True, on_trial: Callable[[TrialInfo], None] | None = None,
-         prune: bool = True, warm_start: bool = True) -> TuneResult:
+         prune: bool = True, warm_start: bool = True, heldout_seeds: int = HELDOUT_SEEDS,
+         heldout_duration_s: float | None = None) -> TuneResult:
     """Tune one controller of ``campaign`` with Optuna (TPE, seeded): ``trials`` trials in total in the study
     (``resume`` runs only those still missing), ``workers`` at a time (threads; each trial runs its cells ``jobs``
     at a time through the campaign runner, or on the dask ``engine``: a LocalCluster of ``workers`` started for
@@ -335,7 +386,9 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     after each cell and stops once it trails the best trial over the same cells by more than 25 %
     (:class:`hil.tune._prune.CellPruner`); a cell that fails or is unstable fails the trial at once either way.
     ``warm_start``: a new study's first trial is the entry's own parameters (the shipped gains, moved into the
-    space's ranges). ConfigError (one line) for bad input or an existing study without ``resume``."""
+    space's ranges). ``heldout_seeds`` (0: none): the shipped, the tuned and the oracle's gains (with the
+    baseline) are compared on that many seeds after the campaign's own, at ``heldout_duration_s`` (default the
+    campaign's), for the report. ConfigError (one line) for bad input or an existing study without ``resume``."""
 
 
     try:
@@ -484,6 +537,12 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         (out_dir / "best.json").write_text(json.dumps({"trial": best.number, "value": best.value,
                                                       "values": result.best_values, "params": result.params,
                                                       **({"pareto": result.pareto} if multi else {})}, indent=2))
+    if best is not None and heldout_seeds > 0:
+        first_seed = max(config.seeds) + 1
+        result.heldout_seeds = list(range(first_seed, first_seed + heldout_seeds))
+        result.heldout_duration_s = heldout_duration_s or config.duration_s
+        result.heldout = compare_controllers(config, entry, result.params or {}, goals, seeds=result.heldout_seeds,
+                                             duration_s=result.heldout_duration_s, jobs=max(jobs, workers))
     if write_report:
         result.report = write_tune_report(result, st)
     return result
