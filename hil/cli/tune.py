@@ -16,7 +16,8 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
     params: Annotated[str, typer.Option(
         "--params", help='Search space: "name=low..high[:log|:int], ..." over the controller\'s parameters.')],
     objective: Annotated[list[str] | None, typer.Option(
-        metavar="METRIC[@GLOB]", help="Metric to minimise: its mean over the campaign's profiles and seeds; METRIC@GLOB: over the cells whose "
+        metavar="METRIC[@GLOB]",
+        help="Metric to minimise: its mean over the campaign's profiles and seeds; METRIC@GLOB: over the cells whose "
         "profile label matches GLOB only (e.g. 'los_rate_std_dps@vibration*'). Give it 2-3 times for a "
         "multi-objective study: the report shows the Pareto front and the controller file holds its point nearest "
         "the best of each. Default miss_std_px.")] = None,
