@@ -236,7 +236,7 @@ def _run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware
             "controller_name": spec.controller.name, "seed": spec.seed}
     try:
         if warm and not hardware and data.get("emulator", {}).get("clock") == "sim":
-            summary = _warm_run(out_dir, spec.cell_id, session_file, cell_dir, timeout)
+            summary = _warm_run(out_dir, spec.cell_id, session_file, cell_dir, timeout, config=config)
         else:
             cmd = [sys.executable, "-m", "hil", "run", str(session_file), "--json", "--out", str(cell_dir)]
             summary = _hil_run(out_dir, spec.cell_id, [*cmd, *([] if hardware else ["--loopback"])], cell_dir,
@@ -254,7 +254,11 @@ def _run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware
         failures: list[str] = []
         if summary.get("status") != "completed":
             failures.append(f"session {summary.get('status')}: {summary.get('message', '')}".rstrip(": "))
-        if log is not None and log.exists():
+        if "metrics" in summary or "metrics_error" in summary:  # worked out where the cell ran
+            metrics = dict(summary.get("metrics") or {})
+            if summary.get("metrics_error"):
+                failures.append(summary["metrics_error"])
+        elif log is not None and log.exists():
             try:
                 computed = compute_metrics(log, config.analysis, config.settle_s)
                 metrics = {k: v for k, v in computed.items() if math.isfinite(v)}
@@ -299,17 +303,19 @@ def _hil_run(out_dir: Path, cell_id: str, cmd: list[str], cell_dir: Path, timeou
     return {"exit_code": proc.returncode, **summary}
 
 
-def _warm_run(out_dir: Path, cell_id: str, session_file: Path, cell_dir: Path,
-              timeout_s: float) -> dict[str, Any] | None:
+def _warm_run(out_dir: Path, cell_id: str, session_file: Path, cell_dir: Path, timeout_s: float, *,
+              config: CampaignConfig) -> dict[str, Any] | None:
     """The cell's session in a warm worker lent for it (:data:`hil.campaign.warm.WARM`), known to ``_LIVE`` while it
-    runs: the record `hil run --json` would print, its stderr in ``cell_dir/stderr.txt``. None: the campaign is
-    stopping. TimeoutExpired after ``timeout_s``, the worker killed."""
+    runs: the record `hil run --json` would print with the campaign's metrics (worked out in the worker), its
+    stderr in ``cell_dir/stderr.txt``. None: the campaign is stopping. TimeoutExpired after ``timeout_s``, the
+    worker killed."""
     worker: WarmCell | None = _LIVE.start(out_dir, cell_id, WARM.lend)
     if worker is None:
         return None
     stderr = cell_dir / "stderr.txt"
     try:
-        return worker.run(session_file, cell_dir, stderr, timeout_s)
+        return worker.run(session_file, cell_dir, stderr, timeout_s, analysis=config.analysis,
+                          settle_s=config.settle_s)
     except WorkerDied as exc:
         last = _last_line(stderr.read_text(errors="replace")) if stderr.exists() else "no output"
         return {"status": "error", "exit_code": exc.returncode if exc.returncode is not None else -1,

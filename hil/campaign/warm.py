@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import math
 import os
 import select
 import signal
@@ -28,7 +29,9 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from hil.campaign.metrics import compute_metrics
 from hil.config import ConfigError
+from hil.log import prestart_writer
 from hil.log.ipc import helper_argv, recv, send, spawn_helper
 from hil.session import run as run_session
 
@@ -67,11 +70,15 @@ class WarmCell:
     def send_signal(self, signum: int) -> None:
         self.proc.send_signal(signum)
 
-    def run(self, session_file: Path, out_dir: Path, stderr_path: Path, timeout_s: float) -> dict[str, Any]:
-        """Run the session in ``session_file`` on its loopback lab, its log in ``out_dir``; the record `hil run
-        --json` prints. TimeoutExpired (the worker killed) after ``timeout_s``; :class:`WorkerDied` if it ends."""
+    def run(self, session_file: Path, out_dir: Path, stderr_path: Path, timeout_s: float, *,
+            analysis: str | None = None, settle_s: float = 1.0) -> dict[str, Any]:
+        """Run the session in ``session_file`` on its loopback lab, its log in ``out_dir``: the record `hil run
+        --json` prints, without the summary's metrics; with ``analysis``, ``metrics`` holds the campaign's
+        (:func:`hil.campaign.metrics.compute_metrics` of the log, finite ones; ``metrics_error`` if they could not
+        be computed), worked out in the worker. TimeoutExpired (the worker killed) after ``timeout_s``;
+        :class:`WorkerDied` if it ends."""
         try:
-            send(self._wfd, ("run", str(session_file), str(out_dir), str(stderr_path)))
+            send(self._wfd, ("run", str(session_file), str(out_dir), str(stderr_path), analysis, settle_s))
         except OSError:
             raise WorkerDied(self.proc.wait()) from None
         ready, _, _ = select.select([self._rfd], [], [], timeout_s)
@@ -168,11 +175,13 @@ def _output_to(path: str) -> Any:
             os.close(f)
 
 
-def run_cell_here(session_file: str, out_dir: str) -> dict[str, Any]:
+def run_cell_here(session_file: str, out_dir: str, analysis: str | None = None,
+                  settle_s: float = 1.0) -> dict[str, Any]:
     """One cell in this process: what `hil run SESSION --loopback --json --out OUT` prints (its exit code 2 and
-    one line on stderr for bad input, as there)."""
+    one line on stderr for bad input, as there) but the summary's metrics; with ``analysis``, the campaign's
+    metrics of the log under ``metrics`` (or ``metrics_error``)."""
     try:
-        return run_session(session_file, loopback=True, out=out_dir).record()
+        record = run_session(session_file, loopback=True, out=out_dir).record(summary={})
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return {"status": "error", "exit_code": 2, "message": str(exc)}
@@ -181,6 +190,16 @@ def run_cell_here(session_file: str, out_dir: str) -> dict[str, Any]:
     except Exception as exc:  # a bug must end the cell, not the worker
         traceback.print_exc()
         return {"status": "error", "exit_code": 1, "message": f"{type(exc).__name__}: {exc}"}
+    log = record.get("log")
+    if analysis is not None and log and Path(log).exists():
+        try:
+            computed = compute_metrics(log, analysis, settle_s)
+            record["metrics"] = {k: v for k, v in computed.items() if math.isfinite(v)}
+        except (ValueError, KeyError, OSError) as exc:
+            record["metrics_error"] = f"metrics: {exc}"
+        except KeyboardInterrupt:
+            record["metrics_error"] = "metrics: interrupted"
+    return record
 
 
 def serve() -> None:
@@ -191,16 +210,18 @@ def serve() -> None:
     os.dup2(devnull, 1)  # a stray print never reaches the reply pipe
     os.close(devnull)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    prestart_writer()
     while True:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         message = recv(rfd)
         if message is None:
             return
-        _, session_file, out_dir, stderr_path = message
+        _, session_file, out_dir, stderr_path, analysis, settle_s = message
         signal.signal(signal.SIGINT, signal.default_int_handler)
         with _output_to(stderr_path):
-            record = run_cell_here(session_file, out_dir)
+            record = run_cell_here(session_file, out_dir, analysis, settle_s)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         send(wfd, ("done", record))
         gc.unfreeze()  # the session froze what its setup built; let what it left behind be collected
         gc.collect()
+        prestart_writer()  # the next cell's log writer starts while this worker waits

@@ -545,6 +545,29 @@ def _writer_argv() -> list[str]:
     return helper_argv("hil.log.writer:_child_main")
 
 
+_SPARE: list[subprocess.Popen[bytes]] = []  # a writer started ahead, for this process's next SessionLog
+
+
+def prestart_writer() -> None:
+    """Start a writer process now, for the next :class:`SessionLog` of this process to take: its start (an
+    interpreter, numpy and h5py: ~0.3-0.6 s) is then off the next session's path. A campaign's warm worker calls it
+    between cells. The spare waits for its ``open`` like any writer, and ends at EOF when this process does."""
+    if _SPARE and _SPARE[0].poll() is None:
+        return
+    _SPARE.clear()
+    with contextlib.suppress(OSError):  # no spare: the next log starts its own writer, as usual
+        _SPARE.append(spawn_helper(_writer_argv()))
+
+
+def _writer_process() -> subprocess.Popen[bytes]:
+    """The spare writer if one is waiting and alive, else a new one (OSError if it cannot start)."""
+    while _SPARE:
+        proc = _SPARE.pop()
+        if proc.poll() is None:
+            return proc
+    return spawn_helper(_writer_argv())
+
+
 # --- the bench side -------------------------------------------------------------------------
 
 
@@ -610,7 +633,7 @@ class SessionLog:
         if self.path.exists() and not overwrite:
             raise LogError(f"{where}: the file already exists")
         try:
-            self._proc = spawn_helper(_writer_argv())
+            self._proc = _writer_process()
         except OSError as exc:
             raise LogError(f"{where}: cannot start the writer process: {describe_error(exc)}") from None
         assert self._proc.stdin is not None and self._proc.stdout is not None

@@ -3,6 +3,7 @@ gives, a worker runs cell after cell, bad input and a killed worker end only the
 
 from __future__ import annotations
 
+import math
 import signal
 import threading
 import time
@@ -12,6 +13,7 @@ import pytest
 import yaml
 
 from hil.campaign import load_campaign, run_campaign
+from hil.campaign.metrics import compute_metrics
 from hil.campaign.runner import cell_sessions
 from hil.campaign.warm import WarmCell, WorkerDied
 from hil.config import PROFILES
@@ -56,15 +58,18 @@ def test_a_worker_runs_cell_after_cell_and_a_bad_session_ends_only_its_cell(tmp_
     bad = session_file(tmp_path, "bad", duration_s=-1)
     worker = WarmCell()
     try:
-        first = worker.run(good, tmp_path / "a", tmp_path / "a.txt", 300.0)
+        first = worker.run(good, tmp_path / "a", tmp_path / "a.txt", 300.0, analysis="control", settle_s=1.0)
         refused = worker.run(bad, tmp_path / "b", tmp_path / "b.txt", 300.0)
         second = worker.run(good, tmp_path / "c", tmp_path / "c.txt", 300.0)
         assert worker.alive() and worker.cells == 3
     finally:
         worker.close()
     assert first["status"] == second["status"] == "completed" and first["exit_code"] == 0
-    assert first["cycles"] == second["cycles"] > 1000
     assert Path(first["log"]).parent == tmp_path / "a" and Path(second["log"]).exists()
+    assert read_log(first["log"]).groups["loop"]["tick"].size == read_log(second["log"]).groups["loop"]["tick"].size
+    # the campaign's metrics, worked out in the worker, are those of the log read here
+    here = {k: v for k, v in compute_metrics(first["log"], "control", 1.0).items() if math.isfinite(v)}
+    assert first["metrics"] == here and here["miss_std_px"] > 0 and "metrics" not in second
     assert refused["exit_code"] == 2 and "duration_s" in refused["message"]
     assert "duration_s" in (tmp_path / "b.txt").read_text()  # the cell's stderr, as `hil run` writes it
 
