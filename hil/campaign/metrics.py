@@ -229,3 +229,30 @@ def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float
         m["lag_lpf_cycles"] = lag_cycles(raw, lpf, freq)
         m["lag_kf_cycles"] = lag_cycles(raw, kf, freq)
     return m
+
+
+def log_health(path: Path, settle_s: float, u_max: float) -> tuple[float, float | None]:
+    """(fraction of the samples with either drive at its limit, fraction of valid tracking frames or None when the
+    session did not track) after ``settle_s``."""
+
+
+    data = read_log(path)
+    loop, image = data.groups["loop"], data.groups.get("image") or {}
+    t = loop["t_s"]
+    t0 = float(t[0]) if t.size else 0.0
+    keep = (t - t0) >= settle_s
+    n = int(keep.sum())
+    sat = 0.0
+    if n:
+        at_limit = np.zeros(n, dtype=bool)
+        for axis in ("el", "az"):
+            at_limit |= np.abs(loop[f"drive_{axis}_counts"][keep].astype(float)) >= u_max - 1.0
+        sat = float(at_limit.mean())
+    valid = None
+    config = data.attrs.get("config") or {}
+    tracking = isinstance(config, dict) and bool((config.get("tracking") or {}).get("enabled"))
+    if tracking and image and "t_exposure_s" in image and image["t_exposure_s"].size:
+        frames = (image["t_exposure_s"] - t0) >= settle_s
+        if frames.any():
+            valid = float((image["track_valid"][frames] > 0).mean())
+    return sat, valid

@@ -29,18 +29,16 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 import yaml
 
 from hil.campaign import CampaignError, load_campaign
 from hil.campaign.engines import EngineError, check_options
-from hil.campaign.metrics import METRICS
+from hil.campaign.metrics import METRICS, log_health
 from hil.campaign.model import CellResult, ControllerEntry
 from hil.campaign.runner import cell_sessions, run_campaign
 from hil.config import ConfigError, require_writable_dir
 from hil.control import registry
 from hil.control.registry import effective_params
-from hil.log import read_log
 from hil.log.truth import truth_path
 from hil.tune._driver import check_study_name, check_trials, failed, run_study, start_study
 from hil.tune._report import write_tune_report
@@ -92,33 +90,6 @@ def trial_campaign(config: CampaignConfig, entry: ControllerEntry, params: dict[
 
     merged = ControllerEntry(label=entry.label, name=entry.name, params={**entry.params, **params})
     return config.model_copy(update={"controllers": [merged], "baseline": None, "acceptance": [], "paper": {}})
-
-
-def log_health(path: Path, settle_s: float, u_max: float) -> tuple[float, float | None]:
-    """(fraction of the samples with either drive at its limit, fraction of valid tracking frames or None when the
-    session did not track) after ``settle_s``."""
-
-
-    data = read_log(path)
-    loop, image = data.groups["loop"], data.groups.get("image") or {}
-    t = loop["t_s"]
-    t0 = float(t[0]) if t.size else 0.0
-    keep = (t - t0) >= settle_s
-    n = int(keep.sum())
-    sat = 0.0
-    if n:
-        at_limit = np.zeros(n, dtype=bool)
-        for axis in ("el", "az"):
-            at_limit |= np.abs(loop[f"drive_{axis}_counts"][keep].astype(float)) >= u_max - 1.0
-        sat = float(at_limit.mean())
-    valid = None
-    config = data.attrs.get("config") or {}
-    tracking = isinstance(config, dict) and bool((config.get("tracking") or {}).get("enabled"))
-    if tracking and image and "t_exposure_s" in image and image["t_exposure_s"].size:
-        frames = (image["t_exposure_s"] - t0) >= settle_s
-        if frames.any():
-            valid = float((image["track_valid"][frames] > 0).mean())
-    return sat, valid
 
 
 def unstable_reason(saturated_frac: float, valid_frac: float | None) -> str:
