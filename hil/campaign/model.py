@@ -213,6 +213,9 @@ class CellResult(BaseModel):
     metrics: dict[str, float] = Field(default_factory=dict)
     failures: list[str] = Field(default_factory=list, description="thresholds not met, or why the run failed")
     wall_s: float = 0.0
+    health: tuple[float, float | None] | None = Field(
+        None, description="hil.campaign.metrics.log_health of the log (drive at its limit, valid tracking frames), "
+        "when the cell's worker worked it out")
 
     @property
     def passed(self) -> bool:

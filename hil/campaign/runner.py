@@ -268,7 +268,8 @@ def _run_cell(config: CampaignConfig, spec: CellSpec, out_dir: Path, *, hardware
                             message=str(summary.get("message") or ""),
                             log=str(log.relative_to(out_dir)) if log is not None and log.is_relative_to(out_dir)
                             else (str(log) if log else None),
-                            metrics=metrics, failures=failures, wall_s=time.monotonic() - t0)
+                            metrics=metrics, failures=failures, wall_s=time.monotonic() - t0,
+                            health=summary.get("health"))
     result = _check(config, spec, result)
     (cell_dir / RESULT).write_text(result.model_dump_json(indent=2))
     return result

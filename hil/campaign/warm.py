@@ -29,8 +29,9 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from hil.campaign.metrics import compute_metrics
-from hil.config import ConfigError
+from hil.campaign.metrics import compute_metrics, log_health
+from hil.config import ConfigError, load_session
+from hil.control.registry import effective_params
 from hil.log import prestart_writer
 from hil.log.ipc import helper_argv, recv, send, spawn_helper
 from hil.session import run as run_session
@@ -179,7 +180,8 @@ def run_cell_here(session_file: str, out_dir: str, analysis: str | None = None,
                   settle_s: float = 1.0) -> dict[str, Any]:
     """One cell in this process: what `hil run SESSION --loopback --json --out OUT` prints (its exit code 2 and
     one line on stderr for bad input, as there) but the summary's metrics; with ``analysis``, the campaign's
-    metrics of the log under ``metrics`` (or ``metrics_error``)."""
+    metrics of the log under ``metrics`` (or ``metrics_error``) and its :func:`log_health` (the session's own drive
+    limit) under ``health``."""
     try:
         record = run_session(session_file, loopback=True, out=out_dir).record(summary={})
     except ConfigError as exc:
@@ -195,6 +197,9 @@ def run_cell_here(session_file: str, out_dir: str, analysis: str | None = None,
         try:
             computed = compute_metrics(log, analysis, settle_s)
             record["metrics"] = {k: v for k, v in computed.items() if math.isfinite(v)}
+            controller = load_session(session_file).controller
+            u_max = float(effective_params({"name": controller.name, "params": controller.params})["u_max_counts"])
+            record["health"] = log_health(log, settle_s, u_max)
         except (ValueError, KeyError, OSError) as exc:
             record["metrics_error"] = f"metrics: {exc}"
         except KeyboardInterrupt:

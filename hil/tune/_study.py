@@ -122,7 +122,8 @@ def cell_score(cell: CellResult, out_dir: Path, metric: str | None, *, settle_s:
         if cell.log is None:
             raise ValueError(f"cell {cell.cell_id}: no log")
         log = Path(cell.log) if Path(cell.log).is_absolute() else out_dir / cell.log
-        sat, valid = log_health(log, settle_s, u_max)
+        # the cell's worker read the log already, with the session's own drive limit (the trial's)
+        sat, valid = cell.health if cell.health is not None else log_health(log, settle_s, u_max)
         why = unstable_reason(sat, valid)
         if why:
             raise ValueError(f"cell {cell.cell_id}: {why}")

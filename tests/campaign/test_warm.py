@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from hil.campaign import load_campaign, run_campaign
-from hil.campaign.metrics import compute_metrics
+from hil.campaign.metrics import compute_metrics, log_health
 from hil.campaign.runner import cell_sessions
 from hil.campaign.warm import WarmCell, WorkerDied
 from hil.config import PROFILES
@@ -70,6 +70,7 @@ def test_a_worker_runs_cell_after_cell_and_a_bad_session_ends_only_its_cell(tmp_
     # the campaign's metrics, worked out in the worker, are those of the log read here
     here = {k: v for k, v in compute_metrics(first["log"], "control", 1.0).items() if math.isfinite(v)}
     assert first["metrics"] == here and here["miss_std_px"] > 0 and "metrics" not in second
+    assert first["health"] == log_health(first["log"], 1.0, 32767.0)  # the registry's default drive limit
     assert refused["exit_code"] == 2 and "duration_s" in refused["message"]
     assert "duration_s" in (tmp_path / "b.txt").read_text()  # the cell's stderr, as `hil run` writes it
 
