@@ -14,6 +14,7 @@ from hil.tune._driver import (
     run_study,
     start_study,
 )
+from hil.tune._prune import PRUNE_MARGIN, PRUNE_STARTUP_TRIALS, CellPruner
 from hil.tune._report import write_tune_report
 from hil.tune._space import (
     Constraint,
@@ -36,6 +37,9 @@ from hil.tune._study import (
 )
 
 __all__ = [
+    "PRUNE_MARGIN",
+    "PRUNE_STARTUP_TRIALS",
+    "CellPruner",
     "Constraint",
     "Objective",
     "ParamSpec",

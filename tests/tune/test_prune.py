@@ -10,8 +10,7 @@ from pathlib import Path
 import optuna
 import pytest
 
-from hil.tune import _prune, tune
-from hil.tune._prune import CellPruner
+from hil.tune import CellPruner, _prune, tune
 from tests.tune.test_study import tiny_campaign
 
 KP = "kp_counts_per_dps=1000..20000:log"
