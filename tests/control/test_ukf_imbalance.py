@@ -6,6 +6,8 @@ Eccentricity RMSE is reported in mm (the paper's "0.024" has no unit; mm is the 
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -189,3 +191,12 @@ def test_feedforward_beats_feedback_alone() -> None:
     assert math.sqrt(sum(e * e for e in err) / len(err)) < 0.02 * amp
     assert rms_ff < rms_fb
     assert improvement >= 0.78
+
+
+def test_filterpy_loads_only_when_a_ukf_is_built() -> None:
+    """The bench's start-up (docs/performance.md, issue 30): filterpy pulls in scipy.stats, which only a UKF needs."""
+    probe = ("import sys, hil.cli, hil.session, hil.campaign.warm, hil.control.ukf_imbalance as u; "
+             "before = [m for m in ('filterpy', 'scipy.stats') if m in sys.modules]; "
+             "u.ImbalanceUKF(mass_kg=8.0, inertia_kg_m2=0.04); print(before, 'filterpy' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.split("\n")
+    assert out[0] == "[] True"
