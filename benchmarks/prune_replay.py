@@ -38,6 +38,7 @@ def main() -> int:
     ap.add_argument("--study", default=None, help="default: the campaign's name")
     ap.add_argument("--controller", default=None)
     args = ap.parse_args()
+    optuna.logging.set_verbosity(optuna.logging.WARNING)  # one in-memory study per trial replayed
     config = load_campaign(args.campaign)
     entry = choose_controller(config, args.controller)
     study = optuna.load_study(study_name=args.study or config.name, storage=args.storage)
