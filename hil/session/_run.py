@@ -87,7 +87,7 @@ class RunResult:
                 "(the session ended as a fault)")
 
     def record(self, summary: dict[str, Any] | None = None) -> dict[str, Any]:
-        """What `hil run --json` prints: status, exit code, message, log, clock, the capture and the log's loss if
+        """The JSON record `hil run` prints: status, exit code, message, log, clock, the capture and the log's loss if
         any, and :meth:`summary` (given, or read here) with ``incomplete`` when logging stopped early."""
         summary = dict(self.summary() if summary is None else summary)
         lost = self.log_loss()
