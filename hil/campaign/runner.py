@@ -41,7 +41,7 @@ from pydantic import ValidationError
 from hil.campaign.engines import Engine, EngineError, Interrupted, check_options, open_engine
 from hil.campaign.metrics import METRICS, compute_metrics, score
 from hil.campaign.model import CampaignConfig, CampaignResult, CellResult, CellSpec, RuleResult
-from hil.campaign.warm import WARM, WarmCell, WorkerDied
+from hil.campaign.warm import WARM, CellHandle, WorkerDied
 from hil.config import ConfigError, SessionConfig, load_model, load_session, one_line, read_file_bytes
 
 RESULT = "result.json"
@@ -280,10 +280,10 @@ def _last_line(text: str) -> str:
 
 
 def _hil_run(out_dir: Path, cell_id: str, cmd: list[str], cell_dir: Path, timeout_s: float) -> dict[str, Any] | None:
-    """``cmd`` (a `hil run ... --json`) for a held cell, its process known to ``_LIVE`` so a campaign's stop reaches
-    it: the JSON it printed (or an error record with its exit status and last line on stderr), its stderr in
-    ``cell_dir/stderr.txt``. None: the campaign is stopping, nothing started. TimeoutExpired after ``timeout_s``,
-    the process killed."""
+    """``cmd`` (a `hil run` asked for its JSON record) for a held cell, its process known to ``_LIVE`` so a
+    campaign's stop reaches it: the JSON it printed (or an error record with its exit status and last line on
+    stderr), its stderr in ``cell_dir/stderr.txt``. None: the campaign is stopping, nothing started.
+    TimeoutExpired after ``timeout_s``, the process killed."""
     env = {**os.environ, "COLUMNS": "200"}
     proc = _LIVE.start(out_dir, cell_id, lambda: subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                                                  text=True, env=env))
@@ -307,12 +307,13 @@ def _hil_run(out_dir: Path, cell_id: str, cmd: list[str], cell_dir: Path, timeou
 def _warm_run(out_dir: Path, cell_id: str, session_file: Path, cell_dir: Path, timeout_s: float, *,
               config: CampaignConfig) -> dict[str, Any] | None:
     """The cell's session in a warm worker lent for it (:data:`hil.campaign.warm.WARM`), known to ``_LIVE`` while it
-    runs: the record `hil run --json` would print with the campaign's metrics (worked out in the worker), its
+    runs: the JSON record `hil run` would print with the campaign's metrics (worked out in the worker), its
     stderr in ``cell_dir/stderr.txt``. None: the campaign is stopping. TimeoutExpired after ``timeout_s``, the
     worker killed."""
-    worker: WarmCell | None = _LIVE.start(out_dir, cell_id, WARM.lend)
-    if worker is None:
+    handle: CellHandle | None = _LIVE.start(out_dir, cell_id, lambda: WARM.lend().begin())
+    if handle is None:
         return None
+    worker = handle.worker
     stderr = cell_dir / "stderr.txt"
     try:
         return worker.run(session_file, cell_dir, stderr, timeout_s, analysis=config.analysis,

@@ -4,8 +4,10 @@ A `hil run` process per cell pays, before its session, an interpreter's start, t
 of the plant's compiled kernels: most of a short sim-clock cell's wall time (docs/performance.md, "Warm cells").
 A warm worker pays them once, then runs cell after cell, each through :func:`hil.session.run`, the function `hil
 run` calls, in the worker's main thread (so SIGINT and SIGTERM end the session there as they end `hil run`), with
-its file descriptors 1 and 2 sent to the cell's ``stderr.txt`` while it runs. The worker answers with the record
-`hil run --json` prints (:meth:`hil.session.RunResult.record`).
+its file descriptors 1 and 2 sent to the cell's ``stderr.txt`` while it runs. The worker answers with the JSON
+record `hil run` prints (:meth:`hil.session.RunResult.record`) and the campaign's metrics of the log, worked out
+there (off the campaign process, whose threads share one interpreter). Between cells it starts the next cell's log
+writer (:func:`hil.log.prestart_writer`).
 
 One cell at a time per worker: :data:`WARM` lends an idle worker, or starts one, to each cell that runs, so a
 campaign running ``jobs`` cells at once keeps ``jobs`` workers. Workers end with the process that started them
@@ -25,6 +27,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import traceback
 from pathlib import Path
 from typing import Any
@@ -36,7 +39,7 @@ from hil.log import prestart_writer
 from hil.log.ipc import helper_argv, recv, send, spawn_helper
 from hil.session import run as run_session
 
-__all__ = ["WARM", "WarmCell", "WarmCells", "WorkerDied"]
+__all__ = ["WARM", "CellHandle", "WarmCell", "WarmCells", "WorkerDied"]
 
 WORKER_ENTRY = "hil.campaign.warm:serve"
 STARTUP_TIMEOUT_S = 300.0  # the first answer of a new worker: its imports, on a machine that may be busy
@@ -60,6 +63,10 @@ class WarmCell:
         assert self.proc.stdin is not None and self.proc.stdout is not None
         self._wfd, self._rfd = self.proc.stdin.fileno(), self.proc.stdout.fileno()
         self.cells = 0  # cells run so far
+        self._lock = threading.Lock()
+        self._generation = 0  # the cell the worker is lent for; a handle of an earlier one signals nothing
+        self._started = False  # the worker has taken the current cell and listens for SIGINT
+        self._pending: int | None = None  # a signal sent before it had
 
     @property
     def pid(self) -> int:
@@ -68,21 +75,58 @@ class WarmCell:
     def alive(self) -> bool:
         return self.proc.poll() is None
 
+    def begin(self) -> CellHandle:
+        """Lend the worker to one cell: the handle a campaign's stop signals it through (:class:`CellHandle`)."""
+        with self._lock:
+            self._generation += 1
+            self._started, self._pending = False, None
+            return CellHandle(self, self._generation)
+
+    def signal_cell(self, generation: int, signum: int) -> None:
+        """``signum`` to the worker if it still runs cell ``generation``; before it has taken the cell (it ignores
+        SIGINT between cells) held and sent as soon as it has."""
+        with self._lock:
+            if generation != self._generation:
+                return  # that cell is over; the worker may be running another campaign's
+            if not self._started and signum != signal.SIGKILL:
+                self._pending = signum
+                return
+            self.proc.send_signal(signum)
+
     def send_signal(self, signum: int) -> None:
         self.proc.send_signal(signum)
 
     def run(self, session_file: Path, out_dir: Path, stderr_path: Path, timeout_s: float, *,
             analysis: str | None = None, settle_s: float = 1.0) -> dict[str, Any]:
-        """Run the session in ``session_file`` on its loopback lab, its log in ``out_dir``: the record `hil run
-        --json` prints, without the summary's metrics; with ``analysis``, ``metrics`` holds the campaign's
+        """Run the session in ``session_file`` on its loopback lab, its log in ``out_dir``: the JSON record `hil run`
+        prints, without the summary's metrics; with ``analysis``, ``metrics`` holds the campaign's
         (:func:`hil.campaign.metrics.compute_metrics` of the log, finite ones; ``metrics_error`` if they could not
         be computed), worked out in the worker. TimeoutExpired (the worker killed) after ``timeout_s``;
-        :class:`WorkerDied` if it ends."""
+        :class:`WorkerDied` if it ends. Signals go through the handle of :meth:`begin`."""
         try:
-            send(self._wfd, ("run", str(session_file), str(out_dir), str(stderr_path), analysis, settle_s))
-        except OSError:
-            raise WorkerDied(self.proc.wait()) from None
-        ready, _, _ = select.select([self._rfd], [], [], timeout_s)
+            try:
+                send(self._wfd, ("run", str(session_file), str(out_dir), str(stderr_path), analysis, settle_s))
+            except OSError:
+                raise WorkerDied(self.proc.wait()) from None
+            deadline = time.monotonic() + timeout_s
+            started = self._reply(deadline, timeout_s)
+            with self._lock:
+                self._started, pending = True, self._pending
+                if pending is not None:
+                    self.proc.send_signal(pending)
+            if started[0] != "started":
+                raise WorkerDied(self.proc.wait())
+            reply = self._reply(deadline, timeout_s)
+            self.cells += 1
+            return reply[1]
+        finally:
+            with self._lock:  # the cell is over: its handle signals nothing from now on
+                self._generation += 1
+                self._started, self._pending = False, None
+
+    def _reply(self, deadline: float, timeout_s: float) -> Any:
+        """The worker's next message; TimeoutExpired (the worker killed) at ``deadline``, WorkerDied at EOF."""
+        ready, _, _ = select.select([self._rfd], [], [], max(0.0, deadline - time.monotonic()))
         if not ready:
             self.kill()
             raise subprocess.TimeoutExpired(WORKER_ENTRY, timeout_s)
@@ -92,8 +136,7 @@ class WarmCell:
             reply = None
         if reply is None:
             raise WorkerDied(self.proc.wait())
-        self.cells += 1
-        return reply[1]
+        return reply
 
     def kill(self) -> None:
         with contextlib.suppress(OSError):
@@ -111,6 +154,16 @@ class WarmCell:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
+
+
+class CellHandle:
+    """A warm worker as one cell has it: :meth:`send_signal` reaches the worker only while it runs that cell."""
+
+    def __init__(self, worker: WarmCell, generation: int) -> None:
+        self.worker, self.generation = worker, generation
+
+    def send_signal(self, signum: int) -> None:
+        self.worker.signal_cell(self.generation, signum)
 
 
 class WarmCells:
@@ -178,10 +231,10 @@ def _output_to(path: str) -> Any:
 
 def run_cell_here(session_file: str, out_dir: str, analysis: str | None = None,
                   settle_s: float = 1.0) -> dict[str, Any]:
-    """One cell in this process: what `hil run SESSION --loopback --json --out OUT` prints (its exit code 2 and
-    one line on stderr for bad input, as there) but the summary's metrics; with ``analysis``, the campaign's
-    metrics of the log under ``metrics`` (or ``metrics_error``) and its :func:`log_health` (the session's own drive
-    limit) under ``health``."""
+    """One cell in this process, on its loopback lab with its log in ``out_dir``: the JSON record `hil run` prints
+    (its exit code 2 and one line on stderr for bad input, as there) but the summary's metrics; with ``analysis``,
+    the campaign's metrics of the log under ``metrics`` (or ``metrics_error``) and its :func:`log_health` (the
+    session's own drive limit) under ``health``."""
     try:
         record = run_session(session_file, loopback=True, out=out_dir).record(summary={})
     except ConfigError as exc:
@@ -223,6 +276,7 @@ def serve() -> None:
             return
         _, session_file, out_dir, stderr_path, analysis, settle_s = message
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        send(wfd, ("started",))  # from now on a SIGINT ends this cell (the campaign holds one sent before)
         with _output_to(stderr_path):
             record = run_cell_here(session_file, out_dir, analysis, settle_s)
         signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -111,3 +111,19 @@ def test_sigint_ends_a_warm_cell_the_way_it_ends_hil_run(tmp_path: Path) -> None
         assert again["status"] == "completed"
     finally:
         worker.close()
+
+
+def test_a_stop_sent_as_a_cell_starts_is_held_and_a_finished_cells_handle_signals_nothing(tmp_path: Path) -> None:
+    worker = WarmCell()
+    try:
+        handle = worker.begin()
+        handle.send_signal(signal.SIGINT)  # the campaign stops before the worker has even read its cell
+        record = worker.run(session_file(tmp_path, "long", duration_s=600.0), tmp_path / "a", tmp_path / "a.txt",
+                            300.0)
+        assert record["status"] == "interrupted" and record["exit_code"] == 130
+        worker.begin()
+        handle.send_signal(signal.SIGINT)  # a stop for the cell that ended must not reach the next one
+        again = worker.run(session_file(tmp_path), tmp_path / "b", tmp_path / "b.txt", 300.0)
+        assert again["status"] == "completed" and worker.alive()
+    finally:
+        worker.close()
