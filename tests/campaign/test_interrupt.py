@@ -24,10 +24,11 @@ WAIT_S = 600.0  # generous: the machine may be loaded; nothing here depends on h
 
 
 def small_campaign(tmp_path: Path) -> Path:
-    """The shipped 15 Hz lag campaign cut to 3 cells of 2 s (one controller, seeds 1-3), in a directory whose name
-    holds a space (the resume command quotes it)."""
+    """The shipped 15 Hz lag campaign cut to 3 cells of 20 s (one controller, seeds 1-3: a second or more each on
+    the sim clock, so a signal sent as a cell starts finds it running), in a directory whose name holds a space (the
+    resume command quotes it)."""
     data = yaml.safe_load((CAMPAIGNS / "filter-lag-15hz.yaml").read_text())
-    data.update(session=str((CAMPAIGNS / data["session"]).resolve()), duration_s=2.0, seeds=[1, 2, 3])
+    data.update(session=str((CAMPAIGNS / data["session"]).resolve()), duration_s=20.0, seeds=[1, 2, 3])
     for p in data["profiles"]:
         p["path"] = str((CAMPAIGNS / p["path"]).resolve())
     folder = tmp_path / "lag campaign"
