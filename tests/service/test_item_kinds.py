@@ -27,10 +27,19 @@ def test_ident_on_the_bench_fits_the_plant_and_brings_the_log_back(service: Serv
     run = hil("ident", str(short_session(tmp_path)), "--bench", service.url, "--axis", "el", "--sweep-s", "10",
               "--f-start-hz", "2", "--f-stop-hz", "40", "--amplitude-dps", "4", "--offset-dps", "5",
               "--out", str(tmp_path / "ident"), "--json")
-    assert run.returncode == 0, run.stderr
-    fit = json.loads(run.stdout)
-    assert fit["axis"] == "el" and 0.005 < fit["k_m_dps2_per_count"] < 0.1  # the emulated plant's k_m: 0.023
-    assert list((tmp_path / "ident").glob("*.h5"))  # the log came back
+    assert list((tmp_path / "ident").glob("*.h5")), run.stderr  # the log came back, whatever the fit made of it
+    if run.returncode == 0:
+        fit = json.loads(run.stdout)
+        assert fit["axis"] == "el" and 0.005 < fit["k_m_dps2_per_count"] < 0.1  # the emulated plant's k_m: 0.023
+        return
+    # The service's lab runs on the realtime clock: on a loaded machine the host's stalls can leave too little
+    # coherence to fit (seen beside two CPU hogs). The bench must then say so, exit 1, and the log it kept must
+    # show the stalls; a quiet loop that cannot be identified fails here.
+    record = json.loads(run.stdout)
+    summary = record["summary"]
+    assert run.returncode == 1 and record["status"] == "fault", run.stdout[-2000:]
+    assert "cannot identify" in record["message"] and ".h5" in record["message"], record["message"]
+    assert summary["host_stalls"] > 0 or summary["late_cycles"] > 0, summary
 
 
 def test_a_campaign_runs_as_one_item_and_links_its_report(service: Service, tmp_path: Path) -> None:
