@@ -32,6 +32,11 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
     study: Annotated[str | None, typer.Option(help="--targets: study name.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="--targets: continue the study.")] = False,
     seed: Annotated[int, typer.Option(min=0, max=2**32 - 1, help="--targets: the sampler's seed.")] = 0,
+    jobs: Annotated[int | None, typer.Option(min=1, max=64, help="--targets: trials run at once, each cell in a "
+                                             "warm worker process (default: one per CPU).")] = None,
+    prune: Annotated[bool, typer.Option("--prune/--no-prune", help="--targets: stop a trial once the targets "
+                                        "measured so far sum to more than the best trial's objective (they can "
+                                        "only add up: it could not have become the best).")] = True,
     plan: Annotated[Path | None, typer.Option(
         help="Print the recordings a fit needs on the lab of this session YAML (your own: its ports and limits): "
              "the commands, their durations and why; their session files are written beside the report.")] = None,
@@ -59,7 +64,8 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
     if targets is not None:
         if logs:
             raise fail("--targets: give either logs or a targets file, not both")
-        _fit_targets(targets, out, trials, storage, study, resume, seed, json_out, report_dir)
+        _fit_targets(targets, out, trials, storage, study, resume, seed, json_out, report_dir, jobs=jobs,
+                     prune=prune)
         return
     if not logs:
         raise fail("LOGS: give the session logs to fit (or --targets FILE)")
@@ -178,7 +184,7 @@ def _record(session: Path, sessions_dir: Path, *, loopback: bool, json_out: bool
 
 
 def _fit_targets(targets: Path, out: Path, trials: int, storage: str | None, study: str | None, resume: bool,  # noqa: PLR0917
-                 seed: int, json_out: bool, report_dir: Path | None) -> None:
+                 seed: int, json_out: bool, report_dir: Path | None, *, jobs: int | None, prune: bool) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     from hil.fit.targets import fit_targets  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
@@ -193,7 +199,7 @@ def _fit_targets(targets: Path, out: Path, trials: int, storage: str | None, stu
 
         try:
             result = fit_targets(targets, out_plant=out, trials=trials, storage=storage, study=study, seed=seed,
-                                 resume=resume, progress=progress, out_dir=report_dir)
+                                 resume=resume, progress=progress, out_dir=report_dir, jobs=jobs, prune=prune)
         except (OSError, ValueError) as exc:
             raise fail(str(exc)) from None
     if json_out:
@@ -201,8 +207,8 @@ def _fit_targets(targets: Path, out: Path, trials: int, storage: str | None, stu
         return
     from rich.table import Table  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    note(f"{result.complete} of {result.trials} trials complete ({result.failed} failed), best trial "
-         f"{result.best_trial}: objective {result.best_value}; {result.wall_s:.0f} s")
+    note(f"{result.complete} of {result.trials} trials complete ({result.failed} failed, {result.pruned} pruned), "
+         f"best trial {result.best_trial}: objective {result.best_value}; {result.wall_s:.0f} s")
     table = Table(title=f"{targets.name}: paper vs fitted twin", title_justify="left")
     for col in ("target", "paper", "twin", "ratio"):
         table.add_column(col, justify="left" if col == "target" else "right")

@@ -4,12 +4,15 @@ published figures (:func:`fit_targets`, docs/emulator.md, paper-000).
 A targets file (:class:`TargetsConfig`, e.g. ``profiles/targets/seed-000.yaml``) lists each published figure with
 the campaign cell that measures it (campaign file, profile label, controller label, metric). A trial of the search
 draws the plant parameters of :data:`hil.fit.ranges.PLAUSIBLE` (and the controller parameters the file names), runs
-every measuring cell in this process on the ``sim`` clock (the campaign's own session, overrides and metrics: its
-:func:`hil.campaign.runner.cell_session`, :func:`hil.session.run`, :func:`hil.campaign.metrics.compute_metrics`), and
+every measuring cell on the ``sim`` clock as its campaign would (the campaign's own session, overrides and metrics:
+:func:`hil.campaign.runner.cell_session` and :func:`hil.campaign.runner.run_cell`, in a warm worker process), and
 scores the weighted sum of squared log ratios ``sum w_i log(fitted_i / paper_i)^2``. A ratio is clipped to
 ``[1/10, 10]``: a missing metric (a session that faulted) or a non-positive one (a lead where the paper has a lag)
 counts as a factor 10 off, so the sampler still learns from it. Each trial also stores the paper's premises
 (:data:`PREMISES`) as user attributes, so the study itself shows how close to each premise the search came.
+Trials run ``jobs`` at a time. A trial stops early (pruned) once the targets measured so far already sum to more than
+the best complete trial's objective: every term is a square, so the rest can only add to it, and a pruned trial could
+never have been the best (docs/emulator.md, "Fitting to the paper's figures").
 
 The study is Optuna's (TPE, seeded, multivariate) in an RDB storage (SQLite by default), resumable; the
 storage, heartbeat and quiet-failure helpers are :mod:`hil.tune`'s. The best trial's plant is written with
@@ -20,29 +23,31 @@ those numbers make the residual table.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import math
+import os
 import shutil
 import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from hil.campaign.metrics import METRICS, compute_metrics
+from hil.campaign.metrics import METRICS
 from hil.campaign.model import ControllerEntry
-from hil.campaign.runner import cell_session, load_campaign
-from hil.config import ConfigError, SessionConfig, load_model, one_line, resolve_relative
-from hil.control.registry import controller_params, effective_params
+from hil.campaign.runner import cell_session, load_campaign, run_cell
+from hil.config import ConfigError, load_model, one_line, resolve_relative
+from hil.control.registry import controller_params
 from hil.fit import ranges
-from hil.session import emulator_for_plant, run
+from hil.session import emulator_for_plant
 from hil.tune import (
     check_study_name,
     check_trials,
     failed,
-    log_health,
     run_study,
     start_study,
     storage_url,
@@ -71,6 +76,7 @@ __all__ = [
 
 FIT_DIR = Path("runs") / "fit" / "targets"
 RATIO_CLIP = 10.0  # a target off by more than this factor (or missing) scores as this factor
+MAX_JOBS = 64  # trials (or verification cells) at once
 
 
 class _Strict(BaseModel):
@@ -272,8 +278,8 @@ def proposed_controllers(config: TargetsConfig, values: Mapping[str, float]) -> 
 
 def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str, Any], plant_path: Path,
               work: Path) -> tuple[dict[str, float], str]:
-    """One cell in this process on the sim clock: (its metrics, '' or why it is unstable)."""
-
+    """One cell on the sim clock, in a warm worker (:func:`hil.campaign.runner.run_cell`, as a campaign runs it):
+    (its metrics, '' or why it is unstable). :class:`CellInterrupted` if the cell was stopped by a signal."""
     camp = _campaign(cell.campaign)
     if duration is not None and camp.duration_s is not None:
         duration = min(duration, camp.duration_s)
@@ -282,42 +288,42 @@ def _run_cell(cell: Cell, seed: int, *, duration: float | None, params: dict[str
     entry = spec.controller
     spec = spec.model_copy(update={"controller": ControllerEntry(label=entry.label, name=entry.name,
                                                                  params={**entry.params, **params})})
-    cell_dir = work / "cells" / f"{spec.cell_id}-{abs(hash((str(cell.campaign), tuple(params.items())))):x}"
-    data = cell_session(camp, spec, cell_dir)
+    out = work / f"{spec.cell_id}-{abs(hash((str(cell.campaign), tuple(params.items())))):x}"
+    data = cell_session(camp, spec, out / "cells" / spec.cell_id)
     # without the wire's time: the paper's figures are of its whole loop, whose delay the plant's gyro lag and delay
     # stand for (docs/emulator.md, "The wire"; profiles/emulator/paper-000.yaml)
     emulator = emulator_for_plant(plant_path, work, base=data["emulator"]["config"], wire_time=False)
     data["emulator"] = {**data["emulator"], "config": str(emulator)}
     try:
-        result = run(SessionConfig.model_validate(data), clock="sim")
-    except Exception as exc:  # a session that cannot run on this plant: no metrics, reported as unstable
-        return {}, f"session error: {' '.join(str(exc).split())[:200]}"
-    try:
-        if result.log_path is None or not Path(result.log_path).exists():
-            return {}, f"session {result.status}: no log"
-        metrics = compute_metrics(result.log_path, camp.analysis, camp.settle_s)
-        u_max = float(effective_params({"name": spec.controller.name, "params": spec.controller.params})
-                      ["u_max_counts"])
-        sat, valid = log_health(Path(result.log_path), camp.settle_s, u_max)
-    except (ValueError, KeyError, OSError) as exc:
-        return {}, f"metrics: {' '.join(str(exc).split())[:200]}"
+        result = run_cell(camp, spec, out, session=data)
     finally:
-        shutil.rmtree(cell_dir, ignore_errors=True)
-    why = ""
+        shutil.rmtree(out, ignore_errors=True)
+    if result.status == "interrupted":
+        raise CellInterrupted(f"cell {spec.cell_id}: {result.message or 'interrupted'}")
+    if result.status == "error":  # a session that cannot run on this plant: no metrics, reported as unstable
+        return {}, f"session error: {' '.join(result.message.split())[:200]}"
+    if result.health is None:  # no log, or its metrics could not be worked out
+        return {}, "; ".join(result.failures)[:200] or f"session {result.status}: no log"
     if result.status != "completed":
-        why = f"session {result.status}: {result.message}".rstrip(": ")
-    else:
-        why = unstable_reason(sat, valid)
-    return {k: float(v) for k, v in metrics.items()}, why
+        return dict(result.metrics), f"session {result.status}: {result.message}".rstrip(": ")
+    return dict(result.metrics), unstable_reason(*result.health)
+
+
+class CellInterrupted(RuntimeError):
+    """A measuring cell was stopped (SIGINT, SIGTERM): the measurement is incomplete."""
 
 
 def measure(config: TargetsConfig, plant: Mapping[str, Any] | str | Path, controller_values: Mapping[str, float],
             *, seeds: Sequence[int] | None = None, full: bool = False, work_dir: str | Path | None = None,
-            ids: Sequence[str] | None = None) -> Measured:
-    """Run every cell the targets and measurements need (each once per seed, in this process, ``sim`` clock) on
-    ``plant`` (a plant dict or YAML file) with ``controller_values`` (search.controller_params name -> value;
-    missing ones keep their ``default``). ``full``: each campaign's own duration and ``verify.seeds``; else
-    ``trial.duration_s`` and ``trial.seeds``. ``ids``: only these targets / measurements."""
+            ids: Sequence[str] | None = None, jobs: int = 1,
+            on_cell: Callable[[Measured], None] | None = None) -> Measured:
+    """Run every cell the targets and measurements need (each once per seed, ``sim`` clock, each in a warm worker
+    process, ``jobs`` at a time) on ``plant`` (a plant dict or YAML file) with ``controller_values``
+    (search.controller_params name -> value; missing ones keep their ``default``). ``full``: each campaign's own
+    duration and ``verify.seeds``; else ``trial.duration_s`` and ``trial.seeds``. ``ids``: only these targets /
+    measurements. The cells run in the file's order, the targets' cells before the measurements'. ``on_cell``: called
+    after each cell (in this thread) with what is measured so far (an id whose cells are all done has its values);
+    an exception it raises stops the measurement (cells running finish, none starts) and propagates."""
 
     t0 = time.monotonic()
     values = {p.name: p.default for p in config.search.controller_params}
@@ -342,18 +348,45 @@ def measure(config: TargetsConfig, plant: Mapping[str, Any] | str | Path, contro
             key = (str(c.campaign), c.profile, c.controller, tuple(sorted(params.items())))
             cells.setdefault(key, (c, params))
             owners.setdefault(key, []).append(c)
-        per_seed: dict[str, list[float]] = {c.id: [] for c in wanted}
-        unstable: dict[str, str] = {}
-        for key, (cell, params) in cells.items():
-            for seed in seeds:
-                metrics, why = _run_cell(cell, seed, duration=duration, params=params, plant_path=plant_path,
-                                         work=work)
-                for owner in owners[key]:
-                    metric = owner.metric if isinstance(owner, Target) else "rate_err_el_std_dps"
-                    per_seed[owner.id].append(metrics.get(metric, math.nan))
-                    if why:
-                        unstable[owner.id] = f"seed {seed}: {why}"
-        return Measured(per_seed, unstable, time.monotonic() - t0)
+        runs = [(key, seed) for key in cells for seed in seeds]
+        got: dict[tuple[Any, ...], dict[int, tuple[dict[str, float], str]]] = {key: {} for key in cells}
+
+        def one(item: tuple[tuple[Any, ...], int]) -> tuple[tuple[Any, ...], int, tuple[dict[str, float], str]]:
+            key, seed = item
+            cell, params = cells[key]
+            return key, seed, _run_cell(cell, seed, duration=duration, params=params, plant_path=plant_path,
+                                        work=work)
+
+        def so_far() -> Measured:
+            per_seed: dict[str, list[float]] = {}
+            unstable: dict[str, str] = {}
+            for key, done in got.items():
+                if len(done) < len(seeds):
+                    continue
+                for seed in seeds:
+                    metrics, why = done[seed]
+                    for owner in owners[key]:
+                        metric = owner.metric if isinstance(owner, Target) else "rate_err_el_std_dps"
+                        per_seed.setdefault(owner.id, []).append(metrics.get(metric, math.nan))
+                        if why:
+                            unstable[owner.id] = f"seed {seed}: {why}"
+            return Measured(per_seed, unstable, time.monotonic() - t0)
+
+        todo = iter(runs)
+        with ThreadPoolExecutor(max_workers=max(1, jobs), thread_name_prefix="hil-measure") as pool:
+            # a cell starts only once ``on_cell`` has seen the one before it ended: a stop starts nothing more
+            running = {pool.submit(one, item) for item in itertools.islice(todo, max(1, jobs))}
+            while running:
+                done, running = wait(running, return_when=FIRST_COMPLETED)
+                for future in done:
+                    key, seed, outcome = future.result()
+                    got[key][seed] = outcome
+                    if on_cell is not None:
+                        on_cell(so_far())
+                    running |= {pool.submit(one, item) for item in itertools.islice(todo, 1)}
+        measured = so_far()
+        measured.per_seed = {c.id: measured.per_seed[c.id] for c in wanted}  # the file's order
+        return measured
     finally:
         if own:
             shutil.rmtree(work, ignore_errors=True)
@@ -377,6 +410,13 @@ def clipped_ratio(fitted: float, paper: float) -> float:
 def objective(config: TargetsConfig, values: Mapping[str, float]) -> float:
     """sum over the targets of ``weight * log(ratio)^2`` (:func:`clipped_ratio`); ``values``: id -> fitted."""
     return sum(t.weight * math.log(clipped_ratio(values.get(t.id, math.nan), t.paper)) ** 2 for t in config.targets)
+
+
+def partial_objective(config: TargetsConfig, values: Mapping[str, float]) -> float:
+    """:func:`objective` over the targets in ``values`` only (those measured so far): a lower bound of the whole
+    objective, whose terms are all squares."""
+    return sum(t.weight * math.log(clipped_ratio(values[t.id], t.paper)) ** 2 for t in config.targets
+               if t.id in values)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -501,6 +541,7 @@ class TargetsResult:
     failed: int
     trials_run: int
     wall_s: float
+    pruned: int = 0
     best_trial: int | None = None
     best_value: float | None = None
     plant_params: dict[str, float] = dataclasses.field(default_factory=dict)
@@ -518,6 +559,38 @@ class TargetsResult:
         d["plant_path"] = None if self.plant_path is None else str(self.plant_path)
         d["residuals_path"] = None if self.residuals_path is None else str(self.residuals_path)
         return json.loads(json.dumps(d, default=str, allow_nan=True))
+
+
+def default_jobs() -> int:
+    """Trials at once by default: one per CPU this process may use."""
+    return max(1, min(MAX_JOBS, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else
+                      os.cpu_count() or 1))
+
+
+def best_complete_value(study: Any) -> float | None:
+    """The lowest finite objective of the study's complete trials (None before the first)."""
+    from optuna.trial import TrialState  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
+
+    values = [t.value for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+              if t.value is not None and math.isfinite(t.value)]
+    return min(values) if values else None
+
+
+def _store_measured(trial: Any, m: Measured) -> None:
+    """The trial's measured values, unstable cells and the premises' values (those measured) as user attributes."""
+    vals = m.values
+    trial.set_user_attr("measured", {k: (v if math.isfinite(v) else None) for k, v in vals.items()})
+    trial.set_user_attr("unstable", m.unstable)
+    held = 0
+    for p in PREMISES:
+        x = premise_values(vals).get(p.id)
+        if x is None:
+            continue
+        ok = p.holds(x, m.unstable)
+        held += ok
+        trial.set_user_attr(f"premise_{p.id}", x if math.isfinite(x) else None)
+        trial.set_user_attr(f"premise_{p.id}_holds", ok)
+    trial.set_user_attr("premises_held", held)
 
 
 def _trial_values(config: TargetsConfig, trial: Any) -> tuple[dict[str, float], dict[str, float]]:
@@ -542,7 +615,8 @@ def _first_trial(config: TargetsConfig, base: Mapping[str, Any]) -> dict[str, fl
 def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int = 100, storage: str | None = None,
                 study: str | None = None, seed: int = 0, resume: bool = False,
                 progress: Callable[[str], None] | None = None, out_dir: str | Path | None = None,
-                timeout_s: float | None = None, verify: bool = True) -> TargetsResult:
+                timeout_s: float | None = None, verify: bool = True, jobs: int | None = None,
+                prune: bool = True) -> TargetsResult:
     """Fit a plant (and the searched controller parameters) to a paper's published figures.
 
     ``targets_path``: a :class:`TargetsConfig` YAML. An Optuna study (TPE, seeded with ``seed``) of ``trials`` trials
@@ -552,10 +626,16 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
     trial seeds and durations and minimises :func:`objective`; the premises' values are stored on it. The best
     trial's plant goes to ``out_plant`` (YAML with a header saying how it was made); with ``verify`` it is measured
     again on the verification seeds at full duration, and ``OUT/residuals.md`` holds the residual table and the
-    premises. ``progress`` gets one line per trial. ValueError (one line) for bad input (a missing or invalid
-    targets file, an unknown target kind or metric, an existing study without ``resume``)."""
+    premises. ``jobs`` trials run at once (default: one per CPU), each cell in a warm worker process; the
+    verification runs ``jobs`` cells at once. ``prune``: a trial stops once its targets so far sum to more than the
+    best complete trial's objective (:func:`partial_objective`). ``progress`` gets one line per trial. ValueError
+    (one line) for bad input (a missing or invalid targets file, an unknown target kind or metric, an existing study
+    without ``resume``)."""
     config = load_targets(targets_path)
     check_trials(trials)
+    jobs = default_jobs() if jobs is None else jobs
+    if not 1 <= jobs <= MAX_JOBS:
+        raise ConfigError(f"jobs={jobs}: need 1..{MAX_JOBS}")
     study_name = check_study_name(study or config.name)
     out_plant = Path(out_plant)
     if out_plant.is_dir():
@@ -572,6 +652,9 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
                       first_params=_first_trial(config, base))
     st, todo = run.study, run.todo
     trials_dir = out / "trials"
+    from optuna import TrialPruned  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
+
+    so_far_t0: dict[int, float] = {}  # trial number -> when it started
 
     def objective_fn(trial: optuna.Trial) -> float:
         values: dict[str, float] = {}
@@ -581,34 +664,36 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
         ctrl = {p.name: trial.suggest_float(p.name, p.low, p.high, log=p.log)
                 for p in config.search.controller_params}
         work = trials_dir / f"{trial.number:05d}"
-        t0 = time.monotonic()
+        t0 = so_far_t0[trial.number] = time.monotonic()
         try:
             plant = ranges.apply_params(base, values)
             try:
                 ranges.validate_plant(plant)
             except ValueError as exc:
                 raise ValueError(f"plant: {' '.join(str(exc).split())[:300]}") from None
-            m = measure(config, plant, ctrl, work_dir=work)
+            m = measure(config, plant, ctrl, work_dir=work, on_cell=lambda so_far: check_bound(trial, so_far))
+        except TrialPruned:
+            raise
         except Exception as exc:  # an invalid plant or a broken trial is a failed trial, never the study's end
             return failed(trial, exc)
         finally:
             shutil.rmtree(work, ignore_errors=True)
-        vals = m.values
-        value = objective(config, vals)
-        trial.set_user_attr("measured", {k: (v if math.isfinite(v) else None) for k, v in vals.items()})
-        trial.set_user_attr("unstable", m.unstable)
-        held = 0
-        for p in PREMISES:
-            x = premise_values(vals).get(p.id)
-            if x is None:
-                continue
-            ok = p.holds(x, m.unstable)
-            held += ok
-            trial.set_user_attr(f"premise_{p.id}", x if math.isfinite(x) else None)
-            trial.set_user_attr(f"premise_{p.id}_holds", ok)
-        trial.set_user_attr("premises_held", held)
+        _store_measured(trial, m)
         trial.set_user_attr("wall_s", time.monotonic() - t0)
-        return value
+        return objective(config, m.values)
+
+    def check_bound(trial: optuna.Trial, so_far: Measured) -> None:
+        """Prune ``trial`` once the targets measured so far sum to more than the best complete trial's objective."""
+        bound = partial_objective(config, so_far.values)
+        trial.report(bound, step=len(so_far.per_seed))
+        if not prune:
+            return
+        best = best_complete_value(st)
+        if best is not None and bound > best:
+            _store_measured(trial, so_far)
+            trial.set_user_attr("pruned", f"{bound:.4g} after {len(so_far.per_seed)} ids > best {best:.4g}")
+            trial.set_user_attr("wall_s", time.monotonic() - so_far_t0[trial.number])
+            raise TrialPruned(f"the targets so far sum to {bound:.4g}, more than the best trial's {best:.4g}")
 
     def callback(s: optuna.Study, t: optuna.trial.FrozenTrial) -> None:
         if progress is None:
@@ -620,15 +705,18 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
         if t.state.name == "COMPLETE":
             progress(f"trial {t.number}: objective {t.value:.4g}, premises held {t.user_attrs.get('premises_held')}"
                      f"/{len(PREMISES)}, {t.user_attrs.get('wall_s', 0):.1f} s; best {best}")
+        elif t.state.name == "PRUNED":
+            progress(f"trial {t.number}: pruned: {t.user_attrs.get('pruned', '')}; best {best}")
         else:
             progress(f"trial {t.number}: {t.state.name.lower()}: {t.user_attrs.get('failure', '')}; best {best}")
 
-    wall = run_study(run, objective_fn, timeout_s=timeout_s, callbacks=[callback])
+    wall = run_study(run, objective_fn, n_jobs=jobs, timeout_s=timeout_s, callbacks=[callback])
     all_trials = st.get_trials(deepcopy=False)
     complete = [t for t in all_trials if t.state.name == "COMPLETE" and t.value is not None and math.isfinite(t.value)]
     result = TargetsResult(targets=str(targets_path), study=study_name, storage=url, out_dir=out, plant_path=None,
                            residuals_path=None, trials=len(all_trials), complete=len(complete),
-                           failed=sum(t.state.name == "FAIL" for t in all_trials), trials_run=todo, wall_s=wall)
+                           failed=sum(t.state.name == "FAIL" for t in all_trials),
+                           pruned=sum(t.state.name == "PRUNED" for t in all_trials), trials_run=todo, wall_s=wall)
     if not complete:
         return result
     best = min(complete, key=lambda t: (t.value, t.number))
@@ -642,7 +730,7 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
     result.plant_path = ranges.dump_plant(plant, out_plant, header)
     search = _search_premises(all_trials)
     if verify:
-        m = measure(config, plant, ctrl_values, full=True)
+        m = measure(config, plant, ctrl_values, full=True, jobs=jobs)
         _fill_verification(config, result, m, search)
     else:  # the best trial's own numbers (trial seeds and durations)
         vals = {k: (math.nan if v is None else float(v)) for k, v in best.user_attrs.get("measured", {}).items()}

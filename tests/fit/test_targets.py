@@ -4,11 +4,22 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
+import optuna
 import pytest
 import yaml
 
-from hil.fit.targets import PREMISES, fit_targets, load_targets, objective, premise_values
+from hil.fit import targets as targets_module
+from hil.fit.targets import (
+    PREMISES,
+    fit_targets,
+    load_targets,
+    measure,
+    objective,
+    partial_objective,
+    premise_values,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 SEED_000 = ROOT / "profiles" / "targets" / "seed-000.yaml"
@@ -112,3 +123,79 @@ def test_tiny_study_runs_and_resumes(tmp_path: Path) -> None:
     text = (tmp_path / "plant.yaml").read_text()
     assert text.startswith("# ") and "Made by: hil.fit.fit_targets(" in text and "noise_std_dps" in text
     assert "| raw |" in (tmp_path / "fit" / "residuals.md").read_text()
+
+
+def test_partial_objective_is_a_lower_bound_of_the_objective(tmp_path: Path) -> None:
+    targets = [{"id": "a", "campaign": STATIC, "profile": "static", "controller": "ESO+KF",
+                "metric": "gyro_raw_peak_dps", "paper": 0.1, "weight": 1.0},
+               {"id": "b", "campaign": STATIC, "profile": "static", "controller": "ESO+KF",
+                "metric": "gyro_kf_peak_dps", "paper": 2.0, "weight": 2.0}]
+    config = load_targets(_tiny(tmp_path, targets=targets))
+    assert partial_objective(config, {}) == 0.0
+    assert partial_objective(config, {"a": 0.2}) == pytest.approx(math.log(2.0) ** 2, rel=1e-12)
+    assert partial_objective(config, {"a": 0.2}) <= objective(config, {"a": 0.2, "b": 2.0})
+    assert partial_objective(config, {"a": 0.2, "b": 1.0}) == objective(config, {"a": 0.2, "b": 1.0})
+
+
+def _two_cells(tmp_path: Path) -> Path:
+    """A gyro-noise target on the static cell, then a filter-lag target on the lag cell, whose paper values are
+    the base plant's own: the base plant scores 0, and any other noise level is off on the first cell already."""
+    lag = str(ROOT / "profiles" / "campaigns" / "filter-lag-15hz.yaml")
+    targets = [{"id": "raw", "campaign": STATIC, "profile": "static", "controller": "ESO+KF",
+                "metric": "gyro_raw_peak_dps", "paper": 1.0},
+               {"id": "lag", "campaign": lag, "profile": "static", "controller": "ESO+KF",
+                "metric": "lag_lpf_cycles", "paper": 1.0}]
+    path = _tiny(tmp_path, targets=targets)
+    config = load_targets(path)
+    seen: list[set[str]] = []
+    base = measure(config, config.plant, {}, on_cell=lambda so_far: seen.append(set(so_far.per_seed)))
+    assert seen == [{"raw"}, {"raw", "lag"}]  # cell by cell, in the file's order
+    assert base.values["raw"] > 0 and base.values["lag"] > 0, base.values
+    for t in targets:
+        t["paper"] = base.values[t["id"]]
+    return _tiny(tmp_path, targets=targets)
+
+
+def test_a_trial_that_cannot_beat_the_best_stops_after_its_first_cell(tmp_path: Path) -> None:
+    path = _two_cells(tmp_path)
+    kwargs = {"out_dir": tmp_path / "fit", "seed": 5, "verify": False, "jobs": 1}
+    lines: list[str] = []
+    result = fit_targets(path, trials=3, out_plant=tmp_path / "plant.yaml", study="pruned", progress=lines.append,
+                         **kwargs)
+    assert result.best_trial == 0 and result.best_value == pytest.approx(0.0, abs=1e-12)
+    assert (result.complete, result.pruned, result.failed) == (1, 2, 0)
+    study = optuna.load_study(study_name="pruned", storage=result.storage)
+    for trial in study.trials[1:]:
+        assert trial.state.name == "PRUNED" and "> best 0" in trial.user_attrs["pruned"]
+        assert set(trial.user_attrs["measured"]) == {"raw"}  # the lag cell never ran
+        assert trial.params["gyro.noise_std_dps"] != study.trials[0].params["gyro.noise_std_dps"]
+    assert sum("pruned" in line for line in lines) == 2
+    unpruned = fit_targets(path, trials=3, out_plant=tmp_path / "plant2.yaml", study="unpruned", prune=False,
+                           **{**kwargs, "jobs": 2})
+    assert (unpruned.complete, unpruned.pruned) == (3, 0)
+
+
+def test_a_stop_from_on_cell_starts_no_further_cell(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = _tiny(tmp_path, targets=[{"id": f"raw{i}", "campaign": STATIC, "profile": "static",
+                                     "controller": "ESO+KF", "metric": "gyro_raw_peak_dps", "paper": 0.1,
+                                     "weight": 1.0} for i in range(2)],
+                 search={"plant_params": ["gyro.noise_std_dps"], "controller_params": [
+                     {"name": "kf_q", "fields": ["q_dps2"], "controllers": ["eso_kf"], "low": 1e-6, "high": 1e-2,
+                      "log": True, "default": 5e-4}]})
+    config = load_targets(path)
+    calls: list[int] = []
+    started: list[str] = []
+    run_cell = targets_module.run_cell
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        started.append(args[1].cell_id)
+        return run_cell(*args, **kwargs)
+
+    def stop(so_far: object) -> None:
+        calls.append(1)
+        raise RuntimeError("enough")
+
+    monkeypatch.setattr(targets_module, "run_cell", counted)
+    with pytest.raises(RuntimeError, match="enough"):
+        measure(config, config.plant, {}, seeds=[1, 2, 3], on_cell=stop)
+    assert calls == [1] and len(started) == 1  # one cell ran; the other two seeds' never started
