@@ -35,13 +35,14 @@ from typing import Any
 from hil.campaign.metrics import compute_metrics, log_health
 from hil.config import ConfigError, load_session
 from hil.control.registry import effective_params
-from hil.log import prestart_writer
+from hil.log import prestart_writer, read_log
 from hil.log.ipc import helper_argv, recv, send, spawn_helper
 from hil.session import run as run_session
 
 __all__ = ["WARM", "CellHandle", "WarmCell", "WarmCells", "WorkerDied"]
 
 WORKER_ENTRY = "hil.campaign.warm:serve"
+INTERRUPTED = {"status": "interrupted", "exit_code": 130, "message": "SIGINT"}  # a cell's record
 STARTUP_TIMEOUT_S = 300.0  # the first answer of a new worker: its imports, on a machine that may be busy
 
 
@@ -241,18 +242,19 @@ def run_cell_here(session_file: str, out_dir: str, analysis: str | None = None,
         print(f"error: {exc}", file=sys.stderr)
         return {"status": "error", "exit_code": 2, "message": str(exc)}
     except KeyboardInterrupt:  # SIGINT outside the session's own handler (before it armed, after it ended)
-        return {"status": "interrupted", "exit_code": 130, "message": "SIGINT"}
+        return dict(INTERRUPTED)
     except Exception as exc:  # a bug must end the cell, not the worker
         traceback.print_exc()
         return {"status": "error", "exit_code": 1, "message": f"{type(exc).__name__}: {exc}"}
     log = record.get("log")
     if analysis is not None and log and Path(log).exists():
         try:
-            computed = compute_metrics(log, analysis, settle_s)
+            data = read_log(log)  # once, for the metrics and the health check
+            computed = compute_metrics(log, analysis, settle_s, data=data)
             record["metrics"] = {k: v for k, v in computed.items() if math.isfinite(v)}
             controller = load_session(session_file).controller
             u_max = float(effective_params({"name": controller.name, "params": controller.params})["u_max_counts"])
-            record["health"] = log_health(log, settle_s, u_max)
+            record["health"] = log_health(log, settle_s, u_max, data=data)
         except (ValueError, KeyError, OSError) as exc:
             record["metrics_error"] = f"metrics: {exc}"
         except KeyboardInterrupt:
@@ -260,26 +262,70 @@ def run_cell_here(session_file: str, out_dir: str, analysis: str | None = None,
     return record
 
 
+class _CellSigint:
+    """The worker's SIGINT handler: a KeyboardInterrupt while a cell runs (:meth:`arm` to :meth:`disarm`). One that
+    arrives after the cell was announced but before it is armed (the worker still setting up its output) is held
+    and raised as it arms; one between cells is dropped (:meth:`announce` forgets it)."""
+
+    def __init__(self) -> None:
+        self.armed = False
+        self.pending = False
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        if self.armed:
+            raise KeyboardInterrupt
+        self.pending = True
+
+    def announce(self) -> None:
+        self.pending = False
+        signal.signal(signal.SIGINT, self)
+
+    def arm(self) -> None:
+        self.armed = True
+        if self.pending:
+            self.pending = False
+            raise KeyboardInterrupt
+
+    def disarm(self) -> None:
+        self.armed = False
+        signal.signal(signal.SIGINT, self)  # the session's event loop leaves Python's default handler behind
+
+
+def _run_armed(sigint: _CellSigint, session_file: str, out_dir: str, analysis: str | None,
+               settle_s: float) -> dict[str, Any]:
+    try:
+        sigint.arm()
+        return run_cell_here(session_file, out_dir, analysis, settle_s)
+    except KeyboardInterrupt:
+        return dict(INTERRUPTED)
+    finally:
+        sigint.disarm()
+
+
 def serve() -> None:
-    """The worker's main loop: requests on stdin, replies on stdout, until EOF. SIGINT is ignored between cells
+    """The worker's main loop: requests on stdin, replies on stdout, until EOF. A SIGINT between cells is dropped
     (a Ctrl-C in the terminal reaches the whole process group; the campaign passes it on to the cells running)."""
     rfd, wfd = 0, os.dup(1)
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 1)  # a stray print never reaches the reply pipe
     os.close(devnull)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    sigint = _CellSigint()
+    signal.signal(signal.SIGINT, sigint)
     prestart_writer()
     while True:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
         message = recv(rfd)
         if message is None:
             return
         _, session_file, out_dir, stderr_path, analysis, settle_s = message
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        sigint.announce()
         send(wfd, ("started",))  # from now on a SIGINT ends this cell (the campaign holds one sent before)
-        with _output_to(stderr_path):
-            record = run_cell_here(session_file, out_dir, analysis, settle_s)
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            with _output_to(stderr_path):
+                record = _run_armed(sigint, session_file, out_dir, analysis, settle_s)
+        except KeyboardInterrupt:  # in the few instructions between the cell's end and its disarming
+            sigint.disarm()
+            record = dict(INTERRUPTED)
         send(wfd, ("done", record))
         gc.unfreeze()  # the session froze what its setup built; let what it left behind be collected
         gc.collect()
