@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.log import read_log
+from hil.log import LogData, read_log
 from hil.protocol import LINKS
 
 
@@ -83,8 +83,9 @@ def _relative(t_s: float | None, t0: float) -> float | None:
     return None if t_s is None else round(float(t_s) - float(t0), 3)
 
 
-def summarize_log(path: str | Path, settle_s: float = 1.0) -> dict[str, Any]:
-    data = read_log(path)
+def summarize_log(path: str | Path, settle_s: float = 1.0, *, data: LogData | None = None) -> dict[str, Any]:
+    """The session's summary from its log at ``path`` (``data``: that log already read with :func:`read_log`)."""
+    data = read_log(path) if data is None else data
     loop, image, timing, links = (data.groups.get(g, {}) for g in ("loop", "image", "timing", "links"))
     out: dict[str, Any] = {"log": str(path), "session": data.attrs.get("session_name", ""),
                            "controller": data.attrs.get("controller", ""), "settle_s": settle_s}

@@ -29,7 +29,7 @@ import numpy as np
 
 from hil.analysis import summarize_log
 from hil.control.filters import LowPass1
-from hil.log import read_log
+from hil.log import LogData, read_log
 from hil.log.truth import read_truth
 
 PAPER_LPF_HZ = 150.0  # seed 000 section 4.3: "a traditional low-pass filter bandwidth of 150 Hz"
@@ -176,10 +176,12 @@ def lag_cycles(reference: np.ndarray, filtered: np.ndarray, freq_hz: float, dt_s
     return float(-phase / (2 * math.pi * freq_hz * dt_s))
 
 
-def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float = 1.0) -> dict[str, float]:
-    """Every metric of ``analysis`` (plus the control ones) for the session log at ``path``."""
-
-    s = summarize_log(path, settle_s=settle_s)
+def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float = 1.0, *,
+                    data: LogData | None = None) -> dict[str, float]:
+    """Every metric of ``analysis`` (plus the control ones) for the session log at ``path`` (``data``: that log
+    already read with :func:`hil.log.read_log`)."""
+    data = read_log(path) if data is None else data
+    s = summarize_log(path, settle_s=settle_s, data=data)
     m: dict[str, float] = {}
     for axis in ("el", "az"):
         m[f"rate_err_{axis}_std_dps"] = s[f"rate_error_{axis}_dps"]["std"]
@@ -194,7 +196,6 @@ def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float
     m["latency_p99_us"] = s["latency_us"]["p99"]
     m["missed_cycles"] = float(s["missed_cycles"])
 
-    data = read_log(path)
     loop = data.groups["loop"]
     t = loop["t_s"] - (loop["t_s"][0] if loop["t_s"].size else 0.0)
     config = data.attrs.get("config") or {}
@@ -231,12 +232,10 @@ def compute_metrics(path: str | Path, analysis: str = "control", settle_s: float
     return m
 
 
-def log_health(path: Path, settle_s: float, u_max: float) -> tuple[float, float | None]:
+def log_health(path: Path, settle_s: float, u_max: float, *, data: LogData | None = None) -> tuple[float, float | None]:
     """(fraction of the samples with either drive at its limit, fraction of valid tracking frames or None when the
-    session did not track) after ``settle_s``."""
-
-
-    data = read_log(path)
+    session did not track) after ``settle_s`` (``data``: the log already read with :func:`hil.log.read_log`)."""
+    data = read_log(path) if data is None else data
     loop, image = data.groups["loop"], data.groups.get("image") or {}
     t = loop["t_s"]
     t0 = float(t[0]) if t.size else 0.0
