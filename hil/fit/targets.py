@@ -315,13 +315,14 @@ class CellInterrupted(RuntimeError):
 
 def measure(config: TargetsConfig, plant: Mapping[str, Any] | str | Path, controller_values: Mapping[str, float],
             *, seeds: Sequence[int] | None = None, full: bool = False, work_dir: str | Path | None = None,
-            ids: Sequence[str] | None = None, jobs: int = 1,
+            ids: Sequence[str] | None = None, jobs: int = 1, first: Mapping[str, float] | None = None,
             on_cell: Callable[[Measured], None] | None = None) -> Measured:
     """Run every cell the targets and measurements need (each once per seed, ``sim`` clock, each in a warm worker
     process, ``jobs`` at a time) on ``plant`` (a plant dict or YAML file) with ``controller_values``
     (search.controller_params name -> value; missing ones keep their ``default``). ``full``: each campaign's own
     duration and ``verify.seeds``; else ``trial.duration_s`` and ``trial.seeds``. ``ids``: only these targets /
-    measurements. The cells run in the file's order, the targets' cells before the measurements'. ``on_cell``: called
+    measurements. The cells run in the file's order, the targets' cells before the measurements' (``first``: id ->
+    weight; the cells whose ids weigh most run first, the rest in the file's order). ``on_cell``: called
     after each cell (in this thread) with what is measured so far (an id whose cells are all done has its values);
     an exception it raises stops the measurement (cells running finish, none starts) and propagates."""
 
@@ -348,7 +349,10 @@ def measure(config: TargetsConfig, plant: Mapping[str, Any] | str | Path, contro
             key = (str(c.campaign), c.profile, c.controller, tuple(sorted(params.items())))
             cells.setdefault(key, (c, params))
             owners.setdefault(key, []).append(c)
-        runs = [(key, seed) for key in cells for seed in seeds]
+        order = list(cells)
+        if first is not None:  # the cells whose targets weigh most first; stable: the file's order otherwise
+            order.sort(key=lambda key: -sum(first.get(owner.id, 0.0) for owner in owners[key]))
+        runs = [(key, seed) for key in order for seed in seeds]
         got: dict[tuple[Any, ...], dict[int, tuple[dict[str, float], str]]] = {key: {} for key in cells}
 
         def one(item: tuple[tuple[Any, ...], int]) -> tuple[tuple[Any, ...], int, tuple[dict[str, float], str]]:
@@ -415,8 +419,7 @@ def objective(config: TargetsConfig, values: Mapping[str, float]) -> float:
 def partial_objective(config: TargetsConfig, values: Mapping[str, float]) -> float:
     """:func:`objective` over the targets in ``values`` only (those measured so far): a lower bound of the whole
     objective, whose terms are all squares."""
-    return sum(t.weight * math.log(clipped_ratio(values[t.id], t.paper)) ** 2 for t in config.targets
-               if t.id in values)
+    return sum(target_terms(config, values).values())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -561,6 +564,26 @@ class TargetsResult:
         return json.loads(json.dumps(d, default=str, allow_nan=True))
 
 
+def target_terms(config: TargetsConfig, values: Mapping[str, float]) -> dict[str, float]:
+    """Each measured target's term of :func:`objective` (id -> ``weight * log(ratio)^2``)."""
+    return {t.id: t.weight * math.log(clipped_ratio(values[t.id], t.paper)) ** 2 for t in config.targets
+            if t.id in values}
+
+
+def mean_terms(config: TargetsConfig, study: Any) -> dict[str, float]:
+    """Each target's mean term over the study's finished trials that measured it: the cells whose targets are
+    usually furthest off run first, so a trial that cannot beat the best is found out after fewer cells."""
+    sums: dict[str, float] = {}
+    counts: dict[str, int] = {}
+    for trial in study.get_trials(deepcopy=False):
+        measured = trial.user_attrs.get("measured") or {}
+        values = {k: (math.nan if v is None else float(v)) for k, v in measured.items()}
+        for key, term in target_terms(config, values).items():
+            sums[key] = sums.get(key, 0.0) + term
+            counts[key] = counts.get(key, 0) + 1
+    return {key: sums[key] / counts[key] for key in sums}
+
+
 def default_jobs() -> int:
     """Trials at once by default: one per CPU this process may use."""
     return max(1, min(MAX_JOBS, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else
@@ -671,7 +694,8 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
                 ranges.validate_plant(plant)
             except ValueError as exc:
                 raise ValueError(f"plant: {' '.join(str(exc).split())[:300]}") from None
-            m = measure(config, plant, ctrl, work_dir=work, on_cell=lambda so_far: check_bound(trial, so_far))
+            m = measure(config, plant, ctrl, work_dir=work, first=mean_terms(config, st) if prune else None,
+                        on_cell=lambda so_far: check_bound(trial, so_far))
         except TrialPruned:
             raise
         except Exception as exc:  # an invalid plant or a broken trial is a failed trial, never the study's end

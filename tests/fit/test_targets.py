@@ -151,6 +151,10 @@ def _two_cells(tmp_path: Path) -> Path:
     base = measure(config, config.plant, {}, on_cell=lambda so_far: seen.append(set(so_far.per_seed)))
     assert seen == [{"raw"}, {"raw", "lag"}]  # cell by cell, in the file's order
     assert base.values["raw"] > 0 and base.values["lag"] > 0, base.values
+    seen.clear()
+    again = measure(config, config.plant, {}, first={"lag": 0.5, "raw": 0.1},
+                    on_cell=lambda so_far: seen.append(set(so_far.per_seed)))
+    assert seen == [{"lag"}, {"raw", "lag"}] and again.values == base.values  # the heavier target's cell first
     for t in targets:
         t["paper"] = base.values[t["id"]]
     return _tiny(tmp_path, targets=targets)
