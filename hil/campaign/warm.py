@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.campaign.metrics import compute_metrics, log_health
-from hil.config import ConfigError, load_session
+from hil.config import ConfigError
 from hil.control.registry import effective_params
 from hil.log import prestart_writer, read_log
 from hil.log.ipc import helper_argv, recv, send, spawn_helper
@@ -252,13 +252,17 @@ def run_cell_here(session_file: str, out_dir: str, analysis: str | None = None,
             data = read_log(log)  # once, for the metrics and the health check
             computed = compute_metrics(log, analysis, settle_s, data=data)
             record["metrics"] = {k: v for k, v in computed.items() if math.isfinite(v)}
-            controller = load_session(session_file).controller
-            u_max = float(effective_params({"name": controller.name, "params": controller.params})["u_max_counts"])
+            controller = (data.attrs.get("config") or {}).get("controller") or {}  # the session's, as it ran
+            u_max = float(effective_params({"name": controller.get("name"), "params": controller.get("params") or {}})
+                          ["u_max_counts"])
             record["health"] = log_health(log, settle_s, u_max, data=data)
         except (ValueError, KeyError, OSError) as exc:
             record["metrics_error"] = f"metrics: {exc}"
         except KeyboardInterrupt:
             record["metrics_error"] = "metrics: interrupted"
+        except Exception as exc:  # a bug must fail the cell, not the worker
+            traceback.print_exc()
+            record["metrics_error"] = f"metrics: {type(exc).__name__}: {exc}"
     return record
 
 

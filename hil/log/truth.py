@@ -50,6 +50,8 @@ def read_truth(log_path: str | Path, ticks: np.ndarray) -> tuple[np.ndarray, np.
     order = np.argsort(t, kind="stable")
     t, y, z = t[order], y[order], z[order]
     ticks = np.asarray(ticks, dtype=np.int64)
+    if ticks.size == 0:  # a log without loop rows (a session stopped before its first sample)
+        return y[:0], z[:0]
     at = np.clip(np.searchsorted(t, ticks), 0, max(t.size - 1, 0))
     if t.size == 0 or np.any(t[at] != ticks):
         missing = ticks[(t.size == 0) | (t[at] != ticks)] if t.size else ticks

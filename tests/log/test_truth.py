@@ -27,3 +27,14 @@ def test_no_file_is_none_and_a_missing_row_is_named(tmp_path: Path) -> None:
         read_truth(log, np.array([1, 2, 3, 4]))
     with pytest.raises(ValueError, match=r"no truth row for loop tick 5 "):
         read_truth(log, np.array([5]))
+
+
+def test_a_log_without_loop_rows_has_no_truth_rows_to_match(tmp_path: Path) -> None:
+    """A session stopped before its first sample (a pruned trial's cell): empty, not an error."""
+    log = tmp_path / "run-3.h5"
+    write_truth(log, [], [], [])
+    y, z = read_truth(log, np.array([], dtype=np.int64))
+    assert y.size == z.size == 0
+    write_truth(log, [1, 2], [0.5, 0.6], [0.0, 0.0])
+    y, _ = read_truth(log, np.array([], dtype=np.int64))
+    assert y.size == 0
