@@ -12,7 +12,7 @@ counts as a factor 10 off, so the sampler still learns from it. Each trial also 
 (:data:`PREMISES`) as user attributes, so the study itself shows how close to each premise the search came.
 Trials run ``jobs`` at a time. A trial stops early (pruned) once the targets measured so far already sum to more than
 the best complete trial's objective: every term is a square, so the rest can only add to it, and a pruned trial could
-never have been the best (docs/emulator.md, "Fitting to the paper's figures").
+never have been the best (docs/emulator.md, "The paper's platform as a fitted preset", Method).
 
 The study is Optuna's (TPE, seeded, multivariate) in an RDB storage (SQLite by default), resumable; the
 storage, heartbeat and quiet-failure helpers are :mod:`hil.tune`'s. The best trial's plant is written with
@@ -413,7 +413,7 @@ def clipped_ratio(fitted: float, paper: float) -> float:
 
 def objective(config: TargetsConfig, values: Mapping[str, float]) -> float:
     """sum over the targets of ``weight * log(ratio)^2`` (:func:`clipped_ratio`); ``values``: id -> fitted."""
-    return sum(t.weight * math.log(clipped_ratio(values.get(t.id, math.nan), t.paper)) ** 2 for t in config.targets)
+    return sum(target_terms(config, {t.id: values.get(t.id, math.nan) for t in config.targets}).values())
 
 
 def partial_objective(config: TargetsConfig, values: Mapping[str, float]) -> float:
