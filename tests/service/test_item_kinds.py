@@ -35,11 +35,10 @@ def test_ident_on_the_bench_fits_the_plant_and_brings_the_log_back(service: Serv
     # The service's lab runs on the realtime clock: on a loaded machine the host's stalls can leave too little
     # coherence to fit (seen beside two CPU hogs). The bench must then say so, exit 1, and the log it kept must
     # show the stalls; a quiet loop that cannot be identified fails here.
-    record = json.loads(run.stdout)
-    summary = record["summary"]
+    record = json.loads(run.stdout)  # hil run's JSON record: the log's summary at its top level
     assert run.returncode == 1 and record["status"] == "fault", run.stdout[-2000:]
     assert "cannot identify" in record["message"] and ".h5" in record["message"], record["message"]
-    assert summary["host_stalls"] > 0 or summary["late_cycles"] > 0, summary
+    assert record["host_stalls"] > 0 or record["late_cycles"] > 0, run.stdout[-3000:]
 
 
 def test_a_campaign_runs_as_one_item_and_links_its_report(service: Service, tmp_path: Path) -> None:
