@@ -73,9 +73,9 @@ def test_a_disk_that_fills_mid_session_ends_it_as_a_fault_with_the_rows_kept(tmp
         assert result.log_error is not None and "No space left on device" in result.log_error
         assert result.stats.recoveries == 0
         cycles = result.stats.cycles
-        # ended early, the rows after the disk filled lost (how many made it first depends on the flushes and
-        # the chunks HDF5 had already allocated, not on the bench)
-        assert 0 < result.log_rows < cycles < 4000 and cycles > FILL_AT_CYCLES, (result.log_rows, cycles)
+        # the rows after the disk filled lost (how many made it first depends on the flushes and the chunks HDF5 had
+        # already allocated, not on the bench: beside two CPU hogs none had been flushed when the disk filled)
+        assert 0 <= result.log_rows < cycles and cycles > FILL_AT_CYCLES, (result.log_rows, cycles)
         assert result.log_path is not None and result.log_path.is_file()
         assert len(read_log(result.log_path).groups["loop"]["tick"]) == result.log_rows  # every row it kept
     assert lab_emulator_state(run.emulator) == (0, False)  # the normal safe wind-down: driver off, stream idle
@@ -96,7 +96,8 @@ def test_the_log_directory_deleted_mid_session_ends_it_as_a_fault_naming_no_file
     assert result.status == "fault" and result.exit_code == 1, result
     assert "its directory was removed while the session ran" in result.message, result.message
     assert result.log_path is None and result.log_error is not None
-    assert result.stats.cycles < 4000
+    # how soon the loss is seen depends on the writer's next flush: on an idle machine well before the 4000th cycle,
+    # beside two CPU hogs once after it (4291); either way the session ends as a fault, never completed
     assert lab_emulator_state(run.emulator) == (0, False)
     # what `hil run --json` prints of it: no file named, and the reason instead of "killed or crashed"
     print_result(api.RunResult(result.status, result.exit_code, result.message, result.log_path, "lockstep",
