@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from hil.log import LogData, read_log
+from hil.log.schema import LATE_US
 from hil.protocol import LINKS
 
 
@@ -123,7 +124,7 @@ def summarize_log(path: str | Path, settle_s: float = 1.0, *, data: LogData | No
         out["miss_radial_px_rms"] = float(np.sqrt(np.mean(radial**2))) if radial.size else float("nan")
     lat = loop.get("latency_us", np.zeros(0))
     out["latency_us"] = {"p50": _pct(lat, 50), "p99": _pct(lat, 99), "max": float(np.max(lat)) if lat.size else 0.0}
-    out["late_cycles"] = int(np.sum(lat > 1000.0))
+    out["late_cycles"] = int(np.sum(lat > LATE_US))
     out["missed_cycles"] = missed_cycles(loop)
     out["board_latency_us"] = board_latency(timing.get("board_latency_us", np.zeros(0)), data.attrs.get("clock"))
     errors = {}

@@ -21,6 +21,7 @@ LOG_FORMAT_VERSION = 1
 
 KIND_LEN = 32  # events/kind: fixed-length ASCII, NUL-padded
 DETAIL_LEN = 480  # events/detail: fixed-length ASCII (JSON text), NUL-padded, truncated with "..." if longer
+LATE_US = 1000.0  # loop/latency_us above this: a late cycle (its command went out after the next sample was due)
 
 
 

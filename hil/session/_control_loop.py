@@ -19,11 +19,11 @@ from hil.control.loops import TrackingLoop
 from hil.control.oracle import TruthSource, bind_truth
 from hil.control.registry import build_controller
 from hil.log import SessionLog
-from hil.log.schema import LINK_COUNTERS
+from hil.log.schema import LATE_US, LINK_COUNTERS
 from hil.protocol import LINKS, NO_LATENCY_US, GyroSample, LoopTiming, MissDistance
 from hil.telemetry import Telemetry
 
-LATE_NS = 1_000_000  # a cycle whose command went out more than 1 ms after its sample arrived is late
+LATE_NS = round(LATE_US * 1000)  # a cycle whose command went out more than 1 ms after its sample arrived is late
 
 
 @dataclass
