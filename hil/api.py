@@ -294,11 +294,17 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
                              "controller (controller: profiles/controllers/pi_lpf.yaml in the session) or one whose "
                              "b0_dps2_per_count is nearer the plant's")
         seen = ("no third octave reached coherence 0.8" if best.band_hz is None else
-                f"coherent only {best.band_hz[0]:.3g}-{best.band_hz[1]:.3g} Hz, not below 10 Hz where k_m shows")
-        raise ValueError(f"{best.run.log_path}: cannot identify: {seen} in {len(sweeps.passes)} passes "
-                         f"({sweeps.why}; the drive sat at its limit on {clipped:.0%} of the sweep); check that the "
-                         "axis turns freely (friction, a harness, the current limit) and the drive is enabled, or "
-                         "start from a lower offset_dps= and amplitude_dps=")
+                f"coherent only {best.band_hz[0]:.3g}-{best.band_hz[1]:.3g} Hz, not below 10 Hz where k_m shows"
+                if not best.reaches_k_m else
+                f"coherent only {best.band_hz[0]:.3g}-{best.band_hz[1]:.3g} Hz, less than an octave")
+        what = (f"{best.run.log_path}: cannot identify: {seen} in {len(sweeps.passes)} passes ({sweeps.why}; the "
+                f"drive sat at its limit on {clipped:.0%} of the sweep)")
+        if best.spoiled:
+            raise ValueError(f"{what}; the bench's host ran the loop late: identify on an idle host (host.rt_priority "
+                             "and host.loop_cpu in the session), or on the emulator with clock='lockstep', the same "
+                             "lab without this host's timing")
+        raise ValueError(f"{what}; check that the axis turns freely (friction, a harness, the current limit) and the "
+                         "drive is enabled, or start from a lower offset_dps= and amplitude_dps=")
     png = bode_plot(best.frf, fit, out_dir / f"bode-{axis}.png", title=config.name)
     error_pct = 100.0 * (fit.k_m_dps2_per_count - K_M_DEFAULT) / K_M_DEFAULT
     js = out_dir / f"ident-{axis}.json"

@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
 
+from hil.log.schema import LATE_US
+
 if TYPE_CHECKING:
     from hil.log.reader import LogData
 
@@ -51,6 +53,7 @@ __all__ = [
     "estimate_sweep_frf",
     "fit_caption",
     "fit_plant",
+    "host_disturbed",
     "identify_log",
     "level_frequencies",
     "log_frf",
@@ -643,6 +646,38 @@ def axis_columns(data: LogData, axis: Literal["el", "az"]) -> tuple[np.ndarray, 
     return r, u, y, dt
 
 
+HOST_SETTLE_S = 0.05  # after a late cycle or a missed sample the loop is taken as disturbed this long (its settling)
+UNPACED_CLOCKS = ("lockstep", "sim")  # the emulated world waits for the bench: a late cycle disturbs nothing
+
+
+def host_disturbed(data: LogData) -> np.ndarray:
+    """Per tick of the log's gap-free grid (:func:`axis_columns`'), True where the host disturbed the loop: a late
+    cycle (``latency_us`` over ``LATE_US``: its command reached the board after the next sample was due, so the
+    board held the old one) or a missed sample, and the ``HOST_SETTLE_S`` after it while the loop settles. There the
+    logged drive is not the one the board applied, and the coherence fails whatever the excitation's level. All
+    False on a log of the ``lockstep`` or ``sim`` clock, whose world waits for the bench."""
+    loop = data.groups["loop"]
+    rows = np.asarray(loop["t_s"]).size
+    tick = np.asarray(loop["tick"], dtype=np.int64) if "tick" in loop else np.arange(rows, dtype=np.int64)
+    n = int(tick[-1] - tick[0]) + 1 if rows else 0
+    out = np.zeros(n, dtype=bool)
+    if rows < 2 or data.attrs.get("clock") in UNPACED_CLOCKS:
+        return out
+    late = np.asarray(loop["latency_us"], dtype=float) > LATE_US if "latency_us" in loop else np.zeros(rows, bool)
+    gap = np.asarray(loop["tick_gap"], dtype=np.int64) if "tick_gap" in loop else np.zeros(rows, np.int64)
+    bad = late | (gap > 0)
+    if not bad.any():
+        return out
+    settle = max(1, round(HOST_SETTLE_S / float(np.median(np.diff(np.asarray(loop["t_s"], dtype=float))))))
+    at = tick[bad] - tick[0]
+    start = np.maximum(at - gap[bad], 0)  # a missed sample's span starts at the first tick missed
+    edges = np.zeros(n + 1, dtype=np.int64)
+    np.add.at(edges, start, 1)
+    np.add.at(edges, np.minimum(at + settle + 1, n), -1)
+    out[:] = np.cumsum(edges[:n]) > 0
+    return out
+
+
 def sweep_start(r: np.ndarray, sweep: SweptSine, dt_s: float) -> int:
     """Index where the excitation starts: the peak of the cross-correlation of the command with the sweep."""
     tpl = np.array([sweep.rate_dps(k * dt_s) for k in range(round(sweep.total_s / dt_s))])
@@ -716,6 +751,8 @@ def log_frf(data: LogData, sweep: SweptSine | None = None, *, axis: Literal["el"
 
 LEVELS_PER_OCTAVE = 3  # the level table's spacing: third octaves
 CLIPPED_SHARE = 0.01  # a third octave whose drive sat at its limit on more than this share of its ticks saturated
+DISTURBED_SHARE = 0.02  # a third octave whose ticks the host disturbed (host_disturbed) more than this: its
+# failed coherence is the host's, not the level's
 DRIVE_TARGET = 0.8  # a raise stops where the drive's peak would reach this fraction of the limit
 OFFSET_MIN_DPS = 0.3  # a levelling lowers the offset no further
 REVERSAL_SMOOTH_S = 0.005  # the axis' rate is averaged over this before its sign is read (gyro noise is not motion)
@@ -733,9 +770,18 @@ class LevelCheck:
     drive_mean_counts: np.ndarray  # mean drive there (friction, imbalance, harness at the offset's rate)
     reversed: np.ndarray  # the axis' rate (5 ms mean) went against the offset there: friction switched sides
     rate_swing_dps: np.ndarray  # largest departure of the axis' rate (5 ms mean) from its mean there
+    disturbed: np.ndarray | None = None  # share of the ticks the host disturbed (host_disturbed) in the FRF's segments
+    # that carry the third octave; None: unknown
 
     def coherent(self, coherence_min: float) -> np.ndarray:
         return self.coherence >= coherence_min
+
+    def spoiled(self, coherence_min: float) -> np.ndarray:
+        """Where the coherence failed with the host disturbing more than ``DISTURBED_SHARE`` of the ticks: the
+        host's stalls may be the cause, and the same sweep run again may pass there."""
+        if self.disturbed is None:
+            return np.zeros(self.freq_hz.size, dtype=bool)
+        return ~self.coherent(coherence_min) & (self.disturbed > DISTURBED_SHARE)
 
     def unasked_clipping(self, max_drive_counts: float) -> float:
         """Median share of ticks at the drive's limit over the third octaves below 10 Hz whose mean drive is under
@@ -767,9 +813,12 @@ def _octave_share(freq_hz: np.ndarray, centre_hz: float) -> np.ndarray:
 def check_levels(data: LogData, sweep: SweptSine, frf: Frf, max_drive_counts: float) -> LevelCheck:
     """Per third octave of ``sweep`` on the log ``data`` (the sweep located as :func:`identify_log` does), the
     coherence of ``frf`` (the log's FRF), the drive's peak, mean and share of ticks at ``max_drive_counts`` while
-    the chirp was there, and whether the axis
-    reversed against the offset (the time-to-frequency map of the chirp, ``SweptSine.frequency_hz``)."""
+    the chirp was there, whether the axis reversed against the offset (the time-to-frequency map of the chirp,
+    ``SweptSine.frequency_hz``) and the share of the ticks the host disturbed (:func:`host_disturbed`) over the span
+    of the Welch segments that carry the third octave's bins (:func:`estimate_sweep_frf`'s). The drive's and the
+    rate's figures leave the disturbed ticks out where any others remain: a stall's transient is not the level's."""
     r, u, y, dt = axis_columns(data, sweep.axis)
+    host = host_disturbed(data)
     k0 = sweep_start(r, sweep, dt)
     t0, t1 = sweep.window_s
     a, b = max(k0 + round(t0 / dt), 0), min(k0 + round(t1 / dt), r.size)
@@ -781,19 +830,28 @@ def check_levels(data: LogData, sweep: SweptSine, frf: Frf, max_drive_counts: fl
     y_s = np.convolve(y, np.ones(width) / width, mode="same")[a:b]
     sign = 1.0 if sweep.offset_dps >= 0 else -1.0
     centres = level_frequencies(sweep)
-    coh, peak, clip, mean, rev, swing = (np.zeros(centres.size) for _ in range(6))
+    host_w = host[a:b] if host.size == r.size else np.zeros(b - a, dtype=bool)
+    lo_hz = min(sweep.f_start_hz, sweep.f_stop_hz)
+    n_frf = round((t1 - t0 + sweep.settle_s) / dt)  # log_frf's window: the sweep and half its settling each side
+    low_seg, split_hz = default_nperseg(n_frf, dt, lo_hz), max(20.0, 8.0 / (HI_NPERSEG * dt))
+    coh, peak, clip, mean, rev, swing, dist = (np.zeros(centres.size) for _ in range(7))
     for i, fc in enumerate(centres):
         bins = _octave_share(frf.freq_hz, fc)
         coh[i] = float(np.median(frf.coherence[bins])) if np.any(bins) else 0.0
         there = _octave_share(f_t, fc)
         if np.any(there):
-            peak[i] = float(np.percentile(np.abs(u_w[there]), 99.0))
-            clip[i] = float(np.mean(np.abs(u_w[there]) >= max_drive_counts - 0.5))
-            mean[i] = float(np.mean(u_w[there]))
-            rev[i] = float(np.min(sign * y_s[there]) < 0.0)
-            swing[i] = float(np.max(np.abs(y_s[there] - np.mean(y_s[there]))))
+            at = np.flatnonzero(there)
+            half = (HI_NPERSEG if fc >= split_hz else low_seg) // 2
+            dist[i] = float(np.mean(host_w[max(at[0] - half, 0): at[-1] + half + 1]))
+            calm = there & ~host_w
+            use = calm if np.any(calm) else there
+            peak[i] = float(np.percentile(np.abs(u_w[use]), 99.0))
+            clip[i] = float(np.mean(np.abs(u_w[use]) >= max_drive_counts - 0.5))
+            mean[i] = float(np.mean(u_w[use]))
+            rev[i] = float(np.min(sign * y_s[use]) < 0.0)
+            swing[i] = float(np.max(np.abs(y_s[use] - np.mean(y_s[use]))))
     amp = np.array([sweep.amplitude_at_dps(float(fc)) for fc in centres])
-    return LevelCheck(centres, amp, coh, peak, clip, mean, rev.astype(bool), swing)
+    return LevelCheck(centres, amp, coh, peak, clip, mean, rev.astype(bool), swing, dist)
 
 
 def next_level(sweep: SweptSine, check: LevelCheck, *, max_drive_counts: float, coherence_min: float = 0.8,
@@ -806,8 +864,9 @@ def next_level(sweep: SweptSine, check: LevelCheck, *, max_drive_counts: float, 
     half the limit, the mean took the headroom (friction at the offset's rate, a harness wound up by the travel,
     the imbalance): amplitudes and offset all fall x0.6, the travel with them. Otherwise, per third octave: where
     the drive saturated the amplitude halves; where the coherence is under ``coherence_min`` it rises, at most x2
-    and only as far as the drive's headroom allows (its 99th percentile to 80 % of the limit, the mean counted);
-    elsewhere it stays. Then the offset rises (x1.5 at most, up to ``offset_max_dps``, the travel's limit) until it
+    and only as far as the drive's headroom allows (its 99th percentile to 80 % of the limit, the mean counted;
+    where the host disturbed the loop too: its stalls' transients are noise the level rises above); elsewhere it
+    stays. Then the offset rises (x1.5 at most, up to ``offset_max_dps``, the travel's limit) until it
     is 1.5 times the axis' largest rate swing at the new amplitudes (the swing measured, so the loop's resonance
     counts, and never expected to fall with the amplitude: the loop's noise swings the rate too), and amplitudes
     whose swing the offset cannot carry fall until it can: the axis never reverses, so friction stays on one side.

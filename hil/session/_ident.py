@@ -37,6 +37,7 @@ POLE_MIN_GAIN = 0.3  # the gyro's pole is reported only if it lowers the fit's c
 RIGID_HZ = 50.0  # the rigid model is fitted up to here first; a resonance above it ends the fit at half its frequency
 MAX_TRAVEL_DEG = 60.0  # a levelling raises the offset of either axis at most until a sweep turns it this far
 LEVEL_PASSES = 6  # at most this many sweeps: the first, and up to five levelled ones
+MIN_BAND_OCTAVES = 1.0  # a coherent band narrower than this gives no fit (a lone coherent third octave is chance)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +67,11 @@ class IdentPass:
     def octaves(self) -> float:
         """Width of the coherent band in octaves (0 without one)."""
         return 0.0 if self.band_hz is None else math.log2(self.band_hz[1] / self.band_hz[0])
+
+    @property
+    def spoiled(self) -> int:
+        """Third octaves whose coherence failed where the host disturbed the loop (``LevelCheck.spoiled``)."""
+        return 0 if self.check is None else int(np.count_nonzero(self.check.spoiled(COHERENCE_MIN)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,9 +114,13 @@ def ident_sweeps(config: SessionConfig, sweep: SweptSine, *, level: bool = True,
     ``offset_max_dps``, default the sweep's or what turns the axis ``MAX_TRAVEL_DEG``, the larger). ``on_pass(i,
     sweep)`` announces each pass (1-based). The pass kept is the one whose coherent band reaches below
     ``K_M_BELOW_HZ``, without a reversal inside it, widest, earliest (in that order); the fit is made on its band
-    only (the gyro's pole reported only inside it): the rigid model up to ``RIGID_HZ`` first, and if the band shows
-    a resonance above that model (``hil.analysis.resonance_hz``), the fit stops at half its frequency, below which
-    the mode bends the response by less than 2.5 dB."""
+    only, if it spans ``MIN_BAND_OCTAVES`` or more (the gyro's pole reported only inside it): the rigid model up to
+    ``RIGID_HZ`` first, and if the band shows a resonance above that model (``hil.analysis.resonance_hz``), the fit
+    stops at half its frequency, below which the mode bends the response by less than 2.5 dB.
+
+    A third octave whose coherence failed where the host ran the loop late (``hil.analysis.host_disturbed``) is not
+    raised: if nothing else would change, the same sweep runs again, and ``why`` says how many such third octaves
+    the kept pass has."""
     if offset_max_dps is None:
         offset_max_dps = max(MAX_TRAVEL_DEG / sweep.total_s, abs(sweep.offset_dps))
     done: list[IdentPass] = []
@@ -137,19 +147,24 @@ def ident_sweeps(config: SessionConfig, sweep: SweptSine, *, level: bool = True,
         ceiling = saturated if ceiling is None else np.minimum(ceiling, saturated)
         nxt = next_level(current, p.check, max_drive_counts=limit, coherence_min=COHERENCE_MIN,
                          offset_max_dps=offset_max_dps, saturated_dps=ceiling)
-        if nxt is None:
+        why = f"{passes} passes made"
+        if nxt is None and bool(p.check.spoiled(COHERENCE_MIN)[fitted].any()):
+            nxt = current  # the host, not the level, failed the coherence somewhere: the same sweep again
+        elif nxt is None:
             why = f"pass {i}: the drive's headroom and the travel allow no higher level where the coherence fails"
             break
-        why = f"{passes} passes made"
         current = SweptSine.model_validate({**nxt.model_dump(), "offset_dps": -nxt.offset_dps})  # back the way
         # the last pass came: a levelling ends near where it started
     best = max(done, key=lambda p: (p.reaches_k_m, p.steady, p.octaves, -done.index(p)))
+    if best.spoiled:
+        why += (f"; in {best.spoiled} third octaves of the kept pass the coherence failed where the bench ran late "
+                "(late cycles or missed samples: this host's stalls)")
     fit, resonance, top = None, None, None
     if best.check is not None and best.check.oscillating(limit):
         why = (f"the drive clipped on {best.check.unasked_clipping(limit):.0%} of the ticks below 10 Hz, where the "
                "sweep asks little of it: the loop itself oscillates on this plant (a controller gain too high for "
                "it: b0_dps2_per_count far from the plant's k_m?)")
-    elif best.frf is not None and best.band_hz is not None and best.reaches_k_m:
+    elif best.frf is not None and best.band_hz is not None and best.reaches_k_m and best.octaves >= MIN_BAND_OCTAVES:
         lo, top = max(best.band_hz[0], fit_from_hz(best.sweep)), best.band_hz[1]
         try:  # the rigid model below RIGID_HZ, then the band up to half the first resonance above it
             low = fit_plant(best.frf, coherence_min=COHERENCE_MIN, f_min_hz=lo, f_max_hz=min(top, RIGID_HZ),

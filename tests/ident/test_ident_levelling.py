@@ -23,16 +23,19 @@ from hil.analysis import (
     check_levels,
     coherent_band,
     fit_plant,
+    host_disturbed,
     identify_log,
     level_frequencies,
     next_level,
     plant_response,
     resonance_hz,
 )
-from hil.config import session_yaml
+from hil.config import SessionConfig, session_yaml
 from hil.fit.ranges import draw_plant, dump_plant, load_plant_dict
 from hil.fit.record import session_on_plant
-from tests.ident.test_ident import as_log, run_plant
+from hil.log import LogData
+from hil.session import _ident as session_ident  # the module whose session runs the test replaces
+from tests.ident.test_ident import LOOP_CHANNELS, as_log, run_plant
 
 LIMIT = 30000.0
 
@@ -195,3 +198,91 @@ def test_hil_ident_says_when_the_loop_oscillates_by_itself(tmp_path: Path) -> No
     done = api.ident(session_on_plant(plant, tmp_path, name="pi", swing=None, controller="pi_lpf"), axis="az",
                      clock="sim", out=tmp_path / "pi")
     assert done.fit.k_m_dps2_per_count == pytest.approx(values["motor_az.k_m_dps2_per_count"], rel=0.05)
+
+
+# --- a host that runs the loop late ----------------------------------------------------------------------------------
+
+
+def stalled_log(clock: str | None) -> LogData:
+    """1000 ticks of a paced loop: one cycle 3 ms late at tick 200, and the samples of ticks 500-504 missed."""
+    ticks = np.array([k for k in range(1000) if not 500 <= k < 505])
+    cols = {c: np.zeros(ticks.size) for c in LOOP_CHANNELS}
+    cols["tick"], cols["t_s"] = ticks.astype(float), ticks * 1e-3
+    cols["latency_us"][ticks == 200] = 3000.0
+    cols["tick_gap"][ticks == 505] = 5
+    return LogData(path=Path("mem.h5"), attrs={} if clock is None else {"clock": clock}, groups={"loop": cols},
+                   units={})
+
+
+@pytest.mark.parametrize("clock", ["realtime", "hardware", None])
+def test_a_late_cycle_and_missed_samples_disturb_the_loop_until_it_settles(clock: str | None) -> None:
+    mask = host_disturbed(stalled_log(clock))
+    assert mask.size == 1000  # the gap-free grid axis_columns uses
+    expected = np.zeros(1000, dtype=bool)
+    expected[200:251] = True  # the late cycle and the 50 ms after it
+    expected[500:556] = True  # the missed samples from the first, and 50 ms after the one that came back
+    assert np.array_equal(mask, expected)
+
+
+@pytest.mark.parametrize("clock", ["lockstep", "sim"])
+def test_on_a_clock_whose_world_waits_for_the_bench_nothing_is_disturbed(clock: str) -> None:
+    assert not host_disturbed(stalled_log(clock)).any()
+
+
+def test_a_stalls_transient_is_not_taken_for_the_levels_saturation() -> None:
+    """A 100 ms stall whose transient drives the axis to the limit for 30 ms inside a third octave: on a paced clock the
+    check leaves those ticks out (no saturation, the third octave marked disturbed) and the next sweep does not shrink;
+    a log without the late cycle counts the clip as the level's."""
+    sweep = SweptSine(f_start_hz=1.0, f_stop_hz=300.0, duration_s=10.0, amplitude_dps=2.0, offset_dps=10.0)
+    cols = run_plant(sweep)
+    frf, _ = identify_log(as_log(cols), sweep)
+    base = check_levels(as_log(cols), sweep, frf, LIMIT)  # the loop clips by itself above ~20 Hz, not below
+    at = round((0.3 + sweep.window_s[0] + 4.0) / 1e-3)  # 4 s into the chirp: near 7 Hz
+    cols["drive_el_counts"][at:at + 30] = LIMIT
+    plain = check_levels(as_log(cols), sweep, frf, LIMIT)
+    hit = int(np.argmax(plain.drive_clipped - base.drive_clipped))
+    assert base.drive_clipped[hit] == 0.0 and 4.0 < plain.freq_hz[hit] < 10.0
+    assert plain.drive_clipped[hit] > 0.01 and plain.disturbed is not None and not plain.disturbed.any()
+    cols["latency_us"][at - 60:at + 40] = 5000.0  # the bench 100 ms late: a stall, the clip its transient
+    late = check_levels(LogData(path=Path("mem.h5"), attrs={"clock": "realtime"}, groups={"loop": cols}, units={}),
+                        sweep, frf, LIMIT)
+    assert late.drive_clipped[hit] == 0.0 and late.drive_peak_counts[hit] < LIMIT
+    assert late.disturbed is not None and late.disturbed[hit] > 0.02
+    assert late.disturbed[0] == 0.0 and late.disturbed[-1] == 0.0  # far from the stall, seconds away
+    assert np.array_equal(late.saturated(), base.saturated())
+
+
+def test_a_pass_spoiled_by_the_host_is_run_again_and_a_lone_coherent_third_octave_gives_no_fit(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Each pass comes back coherent in one third octave only, with the drive out of headroom everywhere (no level
+    can rise) and the host late all over the sweep: the levelling repeats the sweep (turning back each time) instead
+    of stopping, keeps no fit from the lone third octave, and says the host's stalls are why."""
+    sweep = SweptSine(f_start_hz=1.0, f_stop_hz=16.0, duration_s=4.0, amplitude_dps=1.0, offset_dps=3.0)
+    n = level_frequencies(sweep).size
+    coh = [0.3] * n
+    coh[6] = 0.9  # 4 Hz alone
+    check = check_of(coh, peak=0.95 * LIMIT, mean=1000.0)
+    spoiled = LevelCheck(*(getattr(check, f) for f in ("freq_hz", "amplitude_dps", "coherence", "drive_peak_counts",
+                                                       "drive_clipped", "drive_mean_counts", "reversed",
+                                                       "rate_swing_dps")), disturbed=np.full(n, 0.3))
+    assert next_level(sweep, spoiled, max_drive_counts=LIMIT, offset_max_dps=10.0) is None
+    ran: list[SweptSine] = []
+
+    def fake_run(cfg: SessionConfig, **_: object) -> SweptSine:
+        ran.append(cfg.excitation)
+        return cfg.excitation
+
+    def fake_examine(sw: SweptSine, result: object, limit: float) -> session_ident.IdentPass:
+        run = session_ident.RunResult("completed", 0, "", tmp_path / "x.h5", "realtime", session=None)  # type: ignore[arg-type]
+        return session_ident.IdentPass(sw, run, None, spoiled, coherent_band(spoiled, sw))
+
+    monkeypatch.setattr(session_ident, "run", fake_run)
+    monkeypatch.setattr(session_ident, "_examine", fake_examine)
+    config = session_on_plant(DEFAULT_PLANT_CONFIG, tmp_path, name="stalled", swing=None)
+    result = session_ident.ident_sweeps(config, sweep)
+    assert len(ran) == session_ident.LEVEL_PASSES
+    assert [s.offset_dps for s in ran] == [3.0, -3.0] * (session_ident.LEVEL_PASSES // 2)
+    assert all(s.levels == ran[1].levels for s in ran[1:])  # the same sweep again, only the direction changes
+    assert result.best.band_hz is not None and result.best.octaves < session_ident.MIN_BAND_OCTAVES
+    assert result.fit is None
+    assert f"in {n - 1} third octaves of the kept pass the coherence failed where the bench ran late" in result.why
