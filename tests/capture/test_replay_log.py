@@ -20,14 +20,16 @@ from tests.capture.conftest import CapturedRun
 from tests.session.helpers import session_config
 
 
-def assert_reproduces_the_log(log: Path, rebuilt_apart: int = 0) -> None:
-    """``rebuilt_apart``: commands the replay may fail to rebuild per axis (and take from the log instead)."""
+def assert_reproduces_the_log(log: Path, *, one_per_frame: bool = False) -> None:
+    """``one_per_frame``: the replay may fail to rebuild (and take from the log) one command per camera frame used
+    per axis; otherwise every command is rebuilt."""
     result = replay_log(log, settle_s=0.5)
     loop = read_log(log).groups["loop"]
     n = result.ticks
     assert n > 1000 and result.replayed == result.logged
-    assert result.inputs.get("command_mismatches_az", 0) <= rebuilt_apart
-    assert result.inputs.get("command_mismatches_el", 0) <= rebuilt_apart
+    apart = result.inputs["frames_used"] if one_per_frame else 0
+    assert result.inputs.get("command_mismatches_az", 0) <= apart, result.inputs
+    assert result.inputs.get("command_mismatches_el", 0) <= apart, result.inputs
     assert result.inputs["gyro_inexact"] == 0
     for axis in ("az", "el"):
         np.testing.assert_array_equal(result.series[f"{axis}_drive_replayed"], loop[f"drive_{axis}_counts"][:n])
@@ -48,9 +50,11 @@ def test_the_logged_controller_replayed_on_its_lockstep_log_gives_its_drive_back
 
 def test_the_same_holds_on_a_realtime_log_written_by_the_loop_thread(realtime_run: CapturedRun) -> None:
     # eso_kf: the Kalman rate fed back. The loop thread reads a camera frame's queue while the event loop fills it,
-    # so in a rare microsecond window a frame is used one tick from where the log places it: that tick's command is
-    # then taken from the log, and the drive must still come back exactly
-    assert_reproduces_the_log(realtime_run.log, rebuilt_apart=4)
+    # so in a microsecond window a frame is used one tick from where the log places it: that tick's command is then
+    # taken from the log, and the drive must still come back exactly. How often the window is hit depends on the
+    # machine (0-4 ticks of 1500 idle, 26 beside two CPU hogs); the tracking loop's state after a frame does not
+    # depend on the tick that used it, so each frame can cost one tick at most
+    assert_reproduces_the_log(realtime_run.log, one_per_frame=True)
 
 
 def test_and_with_the_imbalance_feed_forward_rebuilt_from_the_logged_poses(tmp_path: Path) -> None:
