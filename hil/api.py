@@ -37,6 +37,7 @@ from hil.log import LogError
 from hil.log.reader import NotASessionLog
 from hil.session import (
     CLOCKS,
+    MIN_BAND_OCTAVES,
     Clock,
     Progress,
     RunResult,
@@ -293,10 +294,11 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
             raise ValueError(f"{best.run.log_path}: cannot identify: {sweeps.why}; identify it with a gentler "
                              "controller (controller: profiles/controllers/pi_lpf.yaml in the session) or one whose "
                              "b0_dps2_per_count is nearer the plant's")
+        band = "" if best.band_hz is None else f"{best.band_hz[0]:.3g}-{best.band_hz[1]:.3g} Hz"
         seen = ("no third octave reached coherence 0.8" if best.band_hz is None else
-                f"coherent only {best.band_hz[0]:.3g}-{best.band_hz[1]:.3g} Hz, not below 10 Hz where k_m shows"
-                if not best.reaches_k_m else
-                f"coherent only {best.band_hz[0]:.3g}-{best.band_hz[1]:.3g} Hz, less than an octave")
+                f"coherent only {band}, not below 10 Hz where k_m shows" if not best.reaches_k_m else
+                f"coherent only {band}, less than an octave" if best.octaves < MIN_BAND_OCTAVES else
+                f"the fit found no model on the coherent band {band}")
         what = (f"{best.run.log_path}: cannot identify: {seen} in {len(sweeps.passes)} passes ({sweeps.why}; the "
                 f"drive sat at its limit on {clipped:.0%} of the sweep)")
         if best.spoiled:

@@ -654,8 +654,8 @@ def host_disturbed(data: LogData) -> np.ndarray:
     """Per tick of the log's gap-free grid (:func:`axis_columns`'), True where the host disturbed the loop: a late
     cycle (``latency_us`` over ``LATE_US``: its command reached the board after the next sample was due, so the
     board held the old one) or a missed sample, and the ``HOST_SETTLE_S`` after it while the loop settles. There the
-    logged drive is not the one the board applied, and the coherence fails whatever the excitation's level. All
-    False on a log of the ``lockstep`` or ``sim`` clock, whose world waits for the bench."""
+    logged drive is not the one the board applied, and the loop's transient is noise the excitation did not make.
+    All False on a log of the ``lockstep`` or ``sim`` clock, whose world waits for the bench."""
     loop = data.groups["loop"]
     rows = np.asarray(loop["t_s"]).size
     tick = np.asarray(loop["tick"], dtype=np.int64) if "tick" in loop else np.arange(rows, dtype=np.int64)
@@ -752,7 +752,7 @@ def log_frf(data: LogData, sweep: SweptSine | None = None, *, axis: Literal["el"
 LEVELS_PER_OCTAVE = 3  # the level table's spacing: third octaves
 CLIPPED_SHARE = 0.01  # a third octave whose drive sat at its limit on more than this share of its ticks saturated
 DISTURBED_SHARE = 0.02  # a third octave whose ticks the host disturbed (host_disturbed) more than this: its
-# failed coherence is the host's, not the level's
+# failed coherence may be the host's
 DRIVE_TARGET = 0.8  # a raise stops where the drive's peak would reach this fraction of the limit
 OFFSET_MIN_DPS = 0.3  # a levelling lowers the offset no further
 REVERSAL_SMOOTH_S = 0.005  # the axis' rate is averaged over this before its sign is read (gyro noise is not motion)

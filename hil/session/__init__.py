@@ -16,7 +16,7 @@ Import from here; the underscored modules are this package's own.
 """
 
 from hil.session._control_loop import LATE_NS, ControlLoop, LoopStats
-from hil.session._ident import IdentPass, IdentSweeps, ident_sweeps
+from hil.session._ident import MIN_BAND_OCTAVES, IdentPass, IdentSweeps, ident_sweeps
 from hil.session._lab import BenchLab, current_lab, serve_lab
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._loopback import DEFAULT_EMULATOR, EmulatorProcess, emulator_for_plant
@@ -44,6 +44,7 @@ __all__ = [
     "HOST_ALIVE_S",
     "LATE_NS",
     "LINKS",
+    "MIN_BAND_OCTAVES",
     "BenchLab",
     "Clock",
     "ControlLoop",

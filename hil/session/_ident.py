@@ -118,9 +118,10 @@ def ident_sweeps(config: SessionConfig, sweep: SweptSine, *, level: bool = True,
     ``RIGID_HZ`` first, and if the band shows a resonance above that model (``hil.analysis.resonance_hz``), the fit
     stops at half its frequency, below which the mode bends the response by less than 2.5 dB.
 
-    A third octave whose coherence failed where the host ran the loop late (``hil.analysis.host_disturbed``) is not
-    raised: if nothing else would change, the same sweep runs again, and ``why`` says how many such third octaves
-    the kept pass has."""
+    A third octave whose coherence failed where the host ran the loop late (``hil.analysis.host_disturbed``) is
+    levelled as any other (the stalls' transients are noise a higher level rises above); if nothing else would
+    change, the same sweep runs again (another draw of the host's stalls), and ``why`` says how many such third
+    octaves the kept pass has."""
     if offset_max_dps is None:
         offset_max_dps = max(MAX_TRAVEL_DEG / sweep.total_s, abs(sweep.offset_dps))
     done: list[IdentPass] = []
@@ -149,7 +150,7 @@ def ident_sweeps(config: SessionConfig, sweep: SweptSine, *, level: bool = True,
                          offset_max_dps=offset_max_dps, saturated_dps=ceiling)
         why = f"{passes} passes made"
         if nxt is None and bool(p.check.spoiled(COHERENCE_MIN)[fitted].any()):
-            nxt = current  # the host, not the level, failed the coherence somewhere: the same sweep again
+            nxt = current  # the host's stalls may have failed the coherence there: the same sweep again
         elif nxt is None:
             why = f"pass {i}: the drive's headroom and the travel allow no higher level where the coherence fails"
             break
