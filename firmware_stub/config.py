@@ -6,6 +6,8 @@ profiles/emulator/default.yaml documents every field; the plant's physics live i
 
 from __future__ import annotations
 
+import copy
+import functools
 import os
 import stat
 from collections.abc import Mapping
@@ -225,6 +227,18 @@ class _PlainLoader(yaml.SafeLoader):
             self._depth -= 1
 
 
+@functools.lru_cache(maxsize=32)
+def _parse_plain(text: str) -> Any:
+    """The document of ``text`` (:class:`_PlainLoader`), its last 32 remembered by text: a process that runs cell
+    after cell (a campaign's warm worker) reads the same plant and emulator files each time, and the pure-Python
+    parser takes milliseconds a file."""
+    loader = _PlainLoader(text)
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
+
+
 def read_yaml_mapping(path: str | Path) -> dict[str, Any]:
     """The top-level mapping of a YAML file; :class:`ConfigError` (one line naming the file) if it is not a regular
     file (a FIFO, device or directory is refused unopened), is larger than ``MAX_CONFIG_BYTES``, is not UTF-8 or
@@ -248,13 +262,10 @@ def read_yaml_mapping(path: str | Path) -> dict[str, Any]:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not UTF-8 text (byte {data[exc.start]:#04x} at offset {exc.start})") from None
-    loader = _PlainLoader(text)
     try:
-        doc = loader.get_single_data()
+        doc = copy.deepcopy(_parse_plain(text))  # a copy: the caller may change what it gets
     except (yaml.YAMLError, ValueError, RecursionError) as exc:
         raise ConfigError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
-    finally:
-        loader.dispose()
     if doc is None:
         return {}
     if not isinstance(doc, dict):

@@ -5,6 +5,8 @@ the file that names them. Imports no other part of the bench, so any layer may u
 
 from __future__ import annotations
 
+import copy
+import functools
 import os
 import stat
 from pathlib import Path
@@ -134,7 +136,14 @@ def _check_expansion(root: yaml.Node) -> None:
 
 
 def parse_yaml(text: str) -> Any:
-    """Safe YAML with bounded size once expanded; ``yaml.YAMLError`` (or ValueError) if not."""
+    """Safe YAML with bounded size once expanded; ``yaml.YAMLError`` (or ValueError) if not. The last 32 documents
+    are remembered by their text (a campaign's warm worker loads the same session files cell after cell, and the
+    pure-Python parser takes milliseconds a file); each call returns a copy of its own."""
+    return copy.deepcopy(_parse_bounded(text))
+
+
+@functools.lru_cache(maxsize=32)
+def _parse_bounded(text: str) -> Any:
     loader = _BoundedLoader(text)
     try:
         node = loader.get_single_node()

@@ -17,6 +17,7 @@ p' = A (r' sin + r w cos), p'' = A (2 r' w cos - r w^2 sin), w = 2 pi f.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Sequence
 from typing import NamedTuple
@@ -183,7 +184,15 @@ def check_envelope(segments: Sequence[Segment], envelope: Envelope, step_s: floa
                    ) -> EnvelopeViolation | None:
     """The worst violation of the envelope over the whole profile (position first, then rate, then
     acceleration), or None. The profile is sampled every ``step_s`` and at every segment boundary
-    and ramp corner, where the ramp's rate and acceleration terms peak."""
+    and ramp corner, where the ramp's rate and acceleration terms peak.
+
+    A pure function of its arguments, so its last 64 answers are remembered: the bench checks a session's profile
+    when it loads the session file, and the hexapod checks it again when it is uploaded, for every campaign cell."""
+    return _check_envelope(tuple(Segment(*seg) for seg in segments), Envelope(*envelope), float(step_s))
+
+
+@functools.lru_cache(maxsize=64)
+def _check_envelope(segments: tuple[Segment, ...], envelope: Envelope, step_s: float) -> EnvelopeViolation | None:
     if not segments:
         return None
     end = profile_end_s(segments)
