@@ -480,7 +480,9 @@ class H5Sink:
 
 
 def _child_main() -> None:
-    """The writer process: messages in on stdin, replies out on the original stdout."""
+    """The writer process: messages in on stdin, replies out on the original stdout. It writes one log after
+    another (``open`` ... ``close`` each), so a process that runs session after session (a campaign's warm worker, a
+    notebook) starts one writer, not one per log; it ends at EOF on stdin, or after a log that failed."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the bench closes us
     signal.signal(signal.SIGTERM, signal.SIG_IGN)  # we exit at EOF on stdin, after closing the file
     with contextlib.suppress(OSError):
@@ -496,15 +498,23 @@ def _child_main() -> None:
         with contextlib.suppress(OSError):  # the bench is gone: carry on to EOF and close the file
             send(out_fd, obj)
 
-    msg = recv(in_fd)
-    if msg is None or msg[0] != "open":
-        return
+    while True:
+        msg = recv(in_fd)
+        if msg is None or msg[0] != "open":
+            os._exit(0)  # no file is open: no interpreter teardown (~0.1 s) for anyone to wait on
+        if not _write_one_log(msg, in_fd, reply):
+            os._exit(0)  # a log that failed: no HDF5 close, no atexit flush
+
+
+def _write_one_log(msg: tuple[Any, ...], in_fd: int, reply: Callable[[Any], None]) -> bool:
+    """One log, from its ``open`` message to its ``close`` (or EOF): True if it closed cleanly and this writer can
+    take the next one."""
     _, path, attrs, json_attrs, schema_text, fsync, overwrite = msg
     try:
         sink = H5Sink(path, attrs, json_attrs, schema_from_json(schema_text), fsync=fsync, overwrite=overwrite)
     except Exception as exc:
         reply(("fail", describe_error(exc)))
-        return
+        return False
     reply(("ready", os.getpid()))
     failed: str | None = None
     while True:
@@ -531,14 +541,14 @@ def _child_main() -> None:
             reply(("ack", sink.rows, stats))
     if failed:
         reply(("closed", sink.rows, failed))
-        os._exit(0)  # no HDF5 close, no atexit flush
+        return False
     close_error = None
     try:
         sink.close()
     except Exception as exc:
         close_error = describe_error(exc)
     reply(("closed", sink.rows, close_error))
-    os._exit(0)  # the file is closed: no interpreter teardown (~0.1 s) for the session's close to wait on
+    return close_error is None and msg is not None
 
 
 def _writer_argv() -> list[str]:
@@ -546,27 +556,73 @@ def _writer_argv() -> list[str]:
     return helper_argv("hil.log.writer:_child_main")
 
 
-_SPARE: list[subprocess.Popen[bytes]] = []  # a writer started ahead, for this process's next SessionLog
+class _Spare:
+    """This process's idle writer: one started ahead (:func:`prestart_writer`), or the writer of the last log that
+    closed cleanly, waiting for its next ``open``. At most one is kept, and only for the command it was started
+    with (tests start writers through a wrapper)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._idle: tuple[list[str], subprocess.Popen[bytes]] | None = None
+
+    def waiting(self, argv: list[str]) -> bool:
+        with self._lock:
+            return self._idle is not None and self._idle[0] == argv and self._idle[1].poll() is None
+
+    def take(self, argv: list[str]) -> subprocess.Popen[bytes] | None:
+        """The idle writer if it runs ``argv`` and is alive (another is ended), else None."""
+        with self._lock:
+            idle, self._idle = self._idle, None
+        if idle is None:
+            return None
+        if idle[0] == argv and idle[1].poll() is None:
+            return idle[1]
+        _end_writer(idle[1], kill=False)
+        return None
+
+    def keep(self, argv: list[str], proc: subprocess.Popen[bytes]) -> None:
+        """Keep ``proc`` (idle, started with ``argv``) unless a live writer already waits; else end it."""
+        with self._lock:
+            if self._idle is None or self._idle[1].poll() is not None:
+                self._idle = (argv, proc)
+                return
+        _end_writer(proc, kill=False)
+
+
+_SPARE = _Spare()
 
 
 def prestart_writer() -> None:
     """Start a writer process now, for the next :class:`SessionLog` of this process to take: its start (an
     interpreter, numpy and h5py: ~0.3-0.6 s) is then off the next session's path. A campaign's warm worker calls it
-    between cells. The spare waits for its ``open`` like any writer, and ends at EOF when this process does."""
-    if _SPARE and _SPARE[0].poll() is None:
+    between cells (a no-op while the writer of the last log waits as the spare). The spare waits for its ``open``
+    like any writer, and ends at EOF when this process does."""
+    argv = _writer_argv()
+    if _SPARE.waiting(argv):
         return
-    _SPARE.clear()
     with contextlib.suppress(OSError):  # no spare: the next log starts its own writer, as usual
-        _SPARE.append(spawn_helper(_writer_argv()))
+        _SPARE.keep(argv, spawn_helper(argv))
 
 
-def _writer_process() -> subprocess.Popen[bytes]:
-    """The spare writer if one is waiting and alive, else a new one (OSError if it cannot start)."""
-    while _SPARE:
-        proc = _SPARE.pop()
-        if proc.poll() is None:
-            return proc
-    return spawn_helper(_writer_argv())
+def _writer_process() -> tuple[list[str], subprocess.Popen[bytes]]:
+    """The spare writer if one is waiting and alive, else a new one (OSError if it cannot start); and its command."""
+    argv = _writer_argv()
+    proc = _SPARE.take(argv)
+    return argv, proc if proc is not None else spawn_helper(argv)
+
+
+def _end_writer(proc: subprocess.Popen[bytes], *, kill: bool) -> None:
+    """EOF on the writer's stdin (it closes its file, if one is open, and exits), then reap it."""
+    for pipe in (proc.stdin, proc.stdout):
+        if pipe is not None:
+            pipe.close()
+    if kill:
+        proc.kill()
+    try:
+        proc.wait(timeout=_CLOSE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 # --- the bench side -------------------------------------------------------------------------
@@ -634,7 +690,7 @@ class SessionLog:
         if self.path.exists() and not overwrite:
             raise LogError(f"{where}: the file already exists")
         try:
-            self._proc = _writer_process()
+            self._argv, self._proc = _writer_process()
         except OSError as exc:
             raise LogError(f"{where}: cannot start the writer process: {describe_error(exc)}") from None
         assert self._proc.stdin is not None and self._proc.stdout is not None
@@ -843,24 +899,17 @@ class SessionLog:
                     self.rows = dict(zip(self._names, rows, strict=True))
                     if close_error:
                         self._fail(close_error)
-            self._reap(kill=False)
+            if self.error is None and self._proc is not None:  # closed cleanly: the writer can take the next log
+                proc, self._proc = self._proc, None
+                _SPARE.keep(self._argv, proc)
+            else:
+                self._reap(kill=False)
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join()
 
     def _reap(self, *, kill: bool) -> None:
-        proc = self._proc
-        if proc is None:
-            return
-        for pipe in (proc.stdin, proc.stdout):
-            if pipe is not None:
-                pipe.close()
-        if kill:
-            proc.kill()
-        try:
-            proc.wait(timeout=_CLOSE_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        if self._proc is not None:
+            _end_writer(self._proc, kill=kill)
 
     @property
     def closed(self) -> bool:

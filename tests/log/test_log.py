@@ -529,6 +529,41 @@ def test_writer_killed_mid_session_sets_error_and_file_recovers(tmp_path):
     assert_pattern(read_log(p), "loop", 400)
 
 
+def test_one_writer_process_writes_log_after_log_and_one_that_failed_is_not_reused(tmp_path, monkeypatch):
+    """A process that runs session after session starts one writer: it writes each log whole and closes it, then
+    takes the next. A writer whose log failed ends with it; the next log gets a new one."""
+    pids = []
+    for i in range(3):
+        p = tmp_path / f"s{i}.h5"
+        with make_log(p) as log:
+            fill(log, 300 + 100 * i)
+            pids.append(log.writer_pid)
+        assert log.error is None
+        data = read_log(p)
+        for name, n in rows_for(300 + 100 * i).items():
+            assert_pattern(data, name, n)
+        with h5py.File(p, "r") as f:  # closed: opens without SWMR
+            assert int(f.attrs["writer_pid"]) == pids[-1]
+    assert pids[0] == pids[1] == pids[2]
+    os.kill(pids[0], 0)  # still there, idle, waiting for the next log
+
+    limit = 1_000_000  # a writer that cannot write past 1 MB: its log fails
+    script = Path(__file__).with_name("limited_writer.py")
+    monkeypatch.setattr(writer_mod, "_writer_argv", lambda: [sys.executable, str(script), str(limit)])
+    with make_log(tmp_path / "full.h5") as log:
+        limited = log.writer_pid
+        assert limited != pids[0]  # the spare runs another command: not taken
+        fill(log, 60_000)
+        log.flush()
+        assert log.error is not None
+    _wait_gone(limited)  # ended with its failed log
+    monkeypatch.undo()
+    with make_log(tmp_path / "after.h5") as log:
+        fill(log, 100)
+        assert log.writer_pid != limited
+    assert log.error is None
+    assert_pattern(read_log(tmp_path / "after.h5"), "loop", rows_for(100)["loop"])
+
 def test_crash_writer_pattern_is_exact_in_every_dtype():
     """The crash tests compare exactly: every pattern value must survive the cast to its dtype."""
     for g in SCHEMA:
