@@ -576,6 +576,8 @@ class _Spare:
         if idle is None:
             return None
         if idle[0] == argv and idle[1].poll() is None:
+            with contextlib.suppress(OSError):  # the CPUs a new writer would inherit: a past session may have pinned it
+                os.sched_setaffinity(idle[1].pid, os.sched_getaffinity(0))
             return idle[1]
         _end_writer(idle[1], kill=False)
         return None

@@ -546,6 +546,10 @@ def test_one_writer_process_writes_log_after_log_and_one_that_failed_is_not_reus
             assert int(f.attrs["writer_pid"]) == pids[-1]
     assert pids[0] == pids[1] == pids[2]
     os.kill(pids[0], 0)  # still there, idle, waiting for the next log
+    os.sched_setaffinity(pids[0], {min(os.sched_getaffinity(0))})  # as a session's host.loop_cpu leaves it
+    with make_log(tmp_path / "s3.h5") as log:
+        assert log.writer_pid == pids[0]
+        assert os.sched_getaffinity(log.writer_pid) == os.sched_getaffinity(0)  # what a new writer would inherit
 
     limit = 1_000_000  # a writer that cannot write past 1 MB: its log fails
     script = Path(__file__).with_name("limited_writer.py")
