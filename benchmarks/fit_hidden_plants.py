@@ -66,7 +66,7 @@ def main() -> None:
 
 
 def markdown(summary: list[dict]) -> str:
-    """The docs/fit.md table: per parameter and plant, the error of the fitted value (or its status), then the
+    """The docs/fit.md table: per parameter and plant, the error of the fitted or weak value (or its status), then the
     campaign's worst metric."""
     seeds = [s["seed"] for s in summary]
     names = [p["name"] for p in summary[0]["params"]]
@@ -76,12 +76,12 @@ def markdown(summary: list[dict]) -> str:
         cells = []
         for s in summary:
             p = next(q for q in s["params"] if q["name"] == name)
-            if p["status"] != "fitted":
+            if p["status"] not in ("fitted", "weak"):
                 cells.append(p["status"])
             elif p["error"] is None or not math.isfinite(p["error"]):
                 cells.append("-")
             else:
-                cells.append(f"{p['error'] * 100:+.1f} %")
+                cells.append(f"{p['error'] * 100:+.1f} %" + (" (weak)" if p["status"] == "weak" else ""))
         lines.append(f"| `{name}` | " + " | ".join(cells) + " |")
     lines.append("| **total loop delay (gyro lag + delay; the wire's is the same in both)** | "
                  + " | ".join(_total_delay_error(s) for s in summary) + " |")

@@ -99,7 +99,8 @@ def _bandpass_shape(f_hz: np.ndarray, centre_hz: float, bandwidth_hz: float, fs_
 
 def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float = 150.0, settle_s: float = 1.0,
               modes_hz: Mapping[str, float] | None = None,
-              driven: Mapping[str, Mapping[str, Any]] | None = None) -> tuple[list[Estimate], dict[str, Any]]:
+              driven: Mapping[str, Mapping[str, Any]] | None = None,
+              drive_delay_s: float = 0.0) -> tuple[list[Estimate], dict[str, Any]]:
     """Gyro white noise std per axis and one band-limited component (``gyro.noise_psd``) from static logs.
 
     Welch PSD (1024-sample Hann segments) of each gyro axis above ``f_min_hz`` (above the rate loop's bandwidth, so
@@ -108,7 +109,8 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
     prior's (not separable from its std at this resolution). On y and z the loop's own drive moves the gimbal (the
     noise fed back, ringing the structure): with ``driven`` (gyro axis -> a plant whose drive -> gyro response the
     ident fit has set), the spectrum is that of ``gyro - P drive``, ``S_yy - 2 Re(P* S_uy) + |P|^2 S_uu``
-    (:func:`linear_plant_frf`); and bins within 20 % of ``modes_hz`` (gyro axis -> structural mode) are left out.
+    (:func:`linear_plant_frf`, the lab's wire and host ``drive_delay_s`` on the drive); and bins within 20 % of
+    ``modes_hz`` (gyro axis -> structural mode) are left out.
     Bias: x from its mean (no loop on it), y and z from the encoders' drift (the loop holds the measured rate at
     zero, so the gimbal turns at minus the bias)."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
@@ -145,7 +147,7 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
             _, s_uu = welch(u, fs=fs, nperseg=1024)
             _, s_uy = csd(u, x, fs=fs, nperseg=1024)
             resp = np.zeros(f.size, dtype=complex)
-            resp[1:] = linear_plant_frf(driven[ax], motor, f[1:])
+            resp[1:] = linear_plant_frf(driven[ax], motor, f[1:], drive_delay_s=drive_delay_s)
             pxx = np.maximum(pxx - 2.0 * np.real(np.conj(resp) * s_uy) + np.abs(resp) ** 2 * s_uu, 1e-3 * pxx)
         if (mode := (modes_hz or {}).get(ax)):  # the mode's damping is the least certain part of P
             sel &= np.abs(f - mode) > 0.2 * mode
@@ -225,6 +227,7 @@ class FrfFit:
     log: str = ""
     bandwidth_identified: bool = True  # False: the coherent band ends below the pole; the prior's bandwidth is used
     kernel_plant: dict[str, Any] | None = None  # the plant the kernel fit finished on (None: analytic model only)
+    drive_delay_s: float = 0.0  # the lab's wire and host on the drive in the kernel fit; delay_s includes it
 
     def response(self, f_hz: np.ndarray) -> np.ndarray:
         """The fitted response: the kernel's own (:func:`linear_plant_frf`) where the fit finished on it."""
@@ -233,7 +236,8 @@ class FrfFit:
         if self.kernel_plant is not None:
             resp = np.ones(s.size, dtype=complex)
             nz = s != 0
-            resp[nz] = linear_plant_frf(self.kernel_plant, self.axis, np.asarray(f_hz, dtype=float)[nz])
+            resp[nz] = linear_plant_frf(self.kernel_plant, self.axis, np.asarray(f_hz, dtype=float)[nz],
+                                        drive_delay_s=self.drive_delay_s)
             return resp * _spring_factor(s, self.spring_q)
         p = plant_response(f_hz, self.k_m, bandwidth_hz=self.bandwidth_hz, delay_s=self.delay_s, dt_s=1e-3)
         return p * _mode_factor(s, self.mode_hz, self.damping) * _spring_factor(s, self.spring_q)
@@ -257,11 +261,15 @@ def _spring_factor(s: np.ndarray, q: float | None) -> np.ndarray:
     return s * s / (s * s + q)
 
 
-def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n_ticks: int = 2048) -> np.ndarray:
+def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n_ticks: int = 2048,
+                     drive_delay_s: float = 0.0) -> np.ndarray:
     """The emulated plant's own drive -> gyro response of ``axis`` (deg/s per count) at ``f_hz``, as the 1 kHz loop
-    sees it (drive k held over the tick after sample k): the plant kernel run on a doublet with friction, cable,
-    imbalance, current limit and noise off, then the DFT ratio. Exact for whatever the kernel does (zero-order hold,
-    the two-mass mode, the gyro's lag and delay discretised as the emulator does them)."""
+    sees it (drive k held over the tick after sample k, from ``drive_delay_s`` after that tick's start: the lab's
+    wire and host, whole ticks of it as a delay line, as the emulator applies them): the plant kernel run on a
+    doublet with friction, cable, imbalance, current limit and noise off, then the DFT ratio. Exact for whatever the
+    kernel does (zero-order hold, the two-mass mode, the gyro's lag and delay discretised as the emulator does them;
+    a delay on the drive is not the same as as much more of the gyro's: the gyro's fraction of a tick is
+    interpolated between tick ends)."""
 
     c = copy.deepcopy(dict(plant))
     for ax in AXES:
@@ -277,26 +285,30 @@ def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n
     u = np.zeros(n_ticks)
     u[8], u[9] = 1000.0, -1000.0  # a doublet: the rate returns to rest, so the response decays within the record
     zero = np.zeros(n_ticks)
-    out = plant_obj.run(u if axis == "az" else zero, u if axis == "el" else zero, np.zeros((n_ticks, 18)))
+    whole_ticks = int(drive_delay_s / Plant.TICK_S + 1e-9)
+    out = plant_obj.run(u if axis == "az" else zero, u if axis == "el" else zero, np.zeros((n_ticks, 18)),
+                        drive_delay_s=max(0.0, drive_delay_s - whole_ticks * Plant.TICK_S))
     y = out["gyro_z_dps" if axis == "az" else "gyro_y_dps"]
-    w = 2.0 * math.pi * np.asarray(f_hz, dtype=float) * 1e-3
+    w = 2.0 * math.pi * np.asarray(f_hz, dtype=float) * Plant.TICK_S
     k = np.arange(n_ticks)
     basis = np.exp(-1j * np.outer(w, k))
     # the loop logs drive k beside sample k and the board applies it from the next tick on: one tick later than the
     # kernel's own indexing (checked against hil.analysis.plant_response, whose delay matches the plant's T_d)
-    return (basis @ y) / (basis @ u) * np.exp(-1j * w)
+    return (basis @ y) / (basis @ u) * np.exp(-1j * w * (1 + whole_ticks))
 
 
 def _exact_refine(plant: Mapping[str, Any], axis: str, fs: np.ndarray, p: np.ndarray, wt: np.ndarray,  # noqa: PLR0917
-                  x0: np.ndarray, with_mode: bool, bw_fixed: float | None, spring_fixed: bool = False) -> Any:
-    """Least squares of the kernel's own response (:func:`linear_plant_frf`) from the analytic fit's ``x0``."""
+                  x0: np.ndarray, with_mode: bool, bw_fixed: float | None, spring_fixed: bool = False,
+                  drive_delay_s: float = 0.0) -> Any:
+    """Least squares of the kernel's own response (:func:`linear_plant_frf`, the lab's ``drive_delay_s`` on the
+    drive) from the analytic fit's ``x0``; ``x0``'s and the result's delay are the gyro's own."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     s = 2j * math.pi * fs
 
     def model(x: np.ndarray) -> np.ndarray:
-        return linear_plant_frf(_kernel_plant(plant, axis, x, with_mode, bw_fixed), axis, fs) * _spring_factor(
-            s, float(x[5]))
+        return linear_plant_frf(_kernel_plant(plant, axis, x, with_mode, bw_fixed), axis, fs,
+                                drive_delay_s=drive_delay_s) * _spring_factor(s, float(x[5]))
 
     def resid(x: np.ndarray) -> np.ndarray:
         e = np.log(p / model(x))
@@ -342,11 +354,13 @@ def _kernel_plant(plant: Mapping[str, Any], axis: str, x: np.ndarray, with_mode:
 
 
 def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
-                           spring_q: float | None = None) -> FrfFit:
+                           spring_q: float | None = None, drive_delay_s: float = 0.0) -> FrfFit:
     """The ident log's FRF (``hil.analysis.estimate_sweep_frf``, indirect, at two resolutions) and the joint least-
     squares fit on its coherent bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as
     ``hil.analysis.fit_plant``. The rigid fit of ``hil.analysis`` starts it; the mode's frequency starts from a grid
-    over the band."""
+    over the band. ``drive_delay_s``: the lab's wire and host (:func:`lab_wire_delay_s`); the kernel's fit puts it
+    on the drive, where the lab has it, and fits the gyro's own delay. The result's ``delay_s`` is the whole
+    transport delay, both together."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
 
@@ -424,30 +438,42 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
 
     prior_bandwidth_hz = float(prior["gyro"]["bandwidth_hz"]) if prior is not None else 200.0
     _, with_mode, res, mode_hz = search(None)
-    # the gyro's pole is told from a delay only where the coherent band reaches it (and pins it to 10 %); else the
-    # prior's bandwidth, and the delay absorbs what lag there is
+    # the gyro's pole is told from a delay only where the coherent band reaches it and pins it (POLE_PINNED_REL;
+    # a value pinned more loosely than its 10 % target is graded weak); else the prior's bandwidth, and the delay
+    # absorbs what lag there is
     bandwidth_identified = (float(np.exp(res.x[1])) <= 1.25 * f_top
-                            and _sigmas(res, with_mode, fs.size)[1] < 0.1)
+                            and _sigmas(res, with_mode, fs.size)[1] < POLE_PINNED_REL)
     if not bandwidth_identified:
         _, with_mode, res, mode_hz = search(prior_bandwidth_hz)
     kernel_plant = None
     if prior is not None:  # the analytic model approximates the kernel's sampling; finish on the kernel itself
-        ex = _exact_refine(prior, ax, fs, p, wt, res.x, with_mode, None if bandwidth_identified else prior_bandwidth_hz,
-                           spring_fixed=spring_q is not None)
-        cov = np.linalg.pinv(ex.jac.T @ ex.jac) * (2.0 * ex.cost / max(1, 2 * fs.size - len(ex.free)))
-        sd = np.zeros(6)
-        sd[ex.free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        if bandwidth_identified and sd[1] >= 0.1:
+
+        def refine(x: np.ndarray, bw_fixed: float | None) -> tuple[Any, np.ndarray]:
+            x0 = x.copy()
+            x0[2] = max(0.0, float(x0[2]) - drive_delay_s)  # the kernel's delay is the gyro's own
+            ex = _exact_refine(prior, ax, fs, p, wt, x0, with_mode, bw_fixed, spring_fixed=spring_q is not None,
+                               drive_delay_s=drive_delay_s)
+            cov = (np.linalg.pinv(ex.jac.T @ ex.jac) * (2.0 * ex.cost / max(1, 2 * fs.size - len(ex.free)))
+                   * correlation_inflation(ex.fun))
+            sd = np.zeros(6)
+            sd[ex.free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+            return ex, sd
+
+        ex, sd = refine(res.x, None if bandwidth_identified else prior_bandwidth_hz)
+        if bandwidth_identified and sd[1] >= POLE_PINNED_REL:
             bandwidth_identified = False
+            _, with_mode, res, mode_hz = search(prior_bandwidth_hz)
+            ex, sd = refine(res.x, prior_bandwidth_hz)
         res.x = ex.x_full
+        res.x[2] += drive_delay_s
         kernel_plant = ex.kernel_plant
         if mode_hz is not None:
             mode_hz = float(np.exp(res.x[3]))
     else:
         sd = _sigmas(res, with_mode, fs.size)
     q = float(res.x[5])
-    fitted = (linear_plant_frf(kernel_plant, ax, fs) * _spring_factor(s, q) if kernel_plant is not None
-              else model(res.x, with_mode))
+    fitted = (linear_plant_frf(kernel_plant, ax, fs, drive_delay_s=drive_delay_s) * _spring_factor(s, q)
+              if kernel_plant is not None else model(res.x, with_mode))
     e = np.log(p / fitted)
     return FrfFit(
         axis=ax, k_m=float(np.exp(res.x[0])), bandwidth_hz=float(np.exp(res.x[1])), delay_s=float(res.x[2]),
@@ -460,15 +486,37 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
         rms_db=float(np.sqrt(np.mean((e.real * 20 / math.log(10)) ** 2))),
         rms_deg=float(np.degrees(np.sqrt(np.mean(np.angle(np.exp(1j * e.imag)) ** 2)))),
         f_range_hz=(float(fs.min()), f_top), frf=frf, log=log.name, bandwidth_identified=bandwidth_identified,
-        kernel_plant=kernel_plant,
+        kernel_plant=kernel_plant, drive_delay_s=drive_delay_s if kernel_plant is not None else 0.0,
     )
 
 
 def _sigmas(res: Any, with_mode: bool, n_bins: int) -> np.ndarray:
-    """1-sigma of a least-squares fit's parameters from its Jacobian and residual (log-scale ones are relative)."""
+    """1-sigma of a least-squares fit's parameters from its Jacobian and residual (log-scale ones are relative),
+    widened for residuals correlated from bin to bin (:func:`correlation_inflation`)."""
     dof = max(1, 2 * n_bins - (6 if with_mode else 4))
-    cov = np.linalg.pinv(res.jac.T @ res.jac) * (2.0 * res.cost / dof)
+    cov = np.linalg.pinv(res.jac.T @ res.jac) * (2.0 * res.cost / dof) * correlation_inflation(res.fun)
     return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
+POLE_PINNED_REL = 0.25  # the gyro's bandwidth counts as measured (fitted, or weak beyond 10 %) within this 1-sigma
+RHO_MAX = 0.98  # the widest correlation counted: at most (1 + 0.98) / (1 - 0.98) = 99 bins to one
+
+
+def correlation_inflation(resid: np.ndarray) -> float:
+    """How much wider an FRF fit's parameter variance is than independent bins would make it: ``(1 + rho) / (1 -
+    rho)``, ``rho`` the residuals' correlation from one bin to the next (the mean over the log-magnitude and the
+    phase halves, each in frequency order; clipped to [0, RHO_MAX]). A Welch FRF's neighbouring bins share their
+    segments and a chirp crosses each high bin in milliseconds, so the residuals run in long correlated stretches;
+    with AR(1) residuals the least-squares variance grows by this factor (the effective number of bins shrinks
+    by it)."""
+    r = np.asarray(resid, dtype=float)
+    n = r.size // 2
+    rhos = []
+    for half in (r[:n], r[n:]):
+        if half.size >= 3 and np.std(half[:-1]) > 0 and np.std(half[1:]) > 0:
+            rhos.append(float(np.corrcoef(half[:-1], half[1:])[0, 1]))
+    rho = min(max(float(np.mean(rhos)) if rhos else 0.0, 0.0), RHO_MAX)
+    return (1.0 + rho) / (1.0 - rho)
 
 
 # --- torque balance (logs with motion) ----------------------------------------------------------------------------
@@ -802,7 +850,7 @@ def fit_logs(paths: list[str | Path], *, prior: str | Path | Mapping[str, Any] |
                      f"(1 / 2 pi bandwidth) + its delay {td * 1e3:.3f} ms + the wire and the host "
                      f"{wire_s * 1e3:.3f} ms" + ("; weak: the gyro's pole is beyond the coherent band" if weak else ""))
     say("gyro noise (static logs)")
-    plant, noise_est, noise_extra = _noise_pass(logs, plant, frfs)
+    plant, noise_est, noise_extra = _noise_pass(logs, plant, frfs, wire_s)
     est = grade(lin_est + noise_est + mech_est)
     validate_plant(plant)
     return TwinFit(prior=base, plant=plant, estimates=est, logs=logs, frf=frfs, mechanics=mech,
@@ -815,7 +863,7 @@ def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, A
     """k_m, the structural modes, the gyro's bandwidth and delay from the ident logs, set in ``plant``. The FRF's
     delay is the whole transport delay from the drive command to the gyro: the gyro's is what is left after the
     lab's ``wire_s`` (:func:`lab_wire_delay_s`), never below 0."""
-    frfs = [fit_frequency_response(lg, prior=plant, spring_q=(springs or {}).get(lg.axis or ""))
+    frfs = [fit_frequency_response(lg, prior=plant, spring_q=(springs or {}).get(lg.axis or ""), drive_delay_s=wire_s)
             for lg in logs if lg.kind == "ident"]
     est: list[Estimate] = []
     shared: dict[str, list[tuple[float, float]]] = {"gyro.bandwidth_hz": [], "gyro.delay_s": []}
@@ -886,13 +934,14 @@ def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, A
     return plant, est, frfs
 
 
-def _noise_pass(logs: list[FitLog], plant: dict[str, Any],
-                frfs: list[FrfFit]) -> tuple[dict[str, Any], list[Estimate], dict[str, Any]]:
+def _noise_pass(logs: list[FitLog], plant: dict[str, Any], frfs: list[FrfFit],
+                wire_s: float = 0.0) -> tuple[dict[str, Any], list[Estimate], dict[str, Any]]:
     """The gyro's noise and bias from the static logs, set in ``plant``."""
     modes = {g: get_param(plant, f"structure.{ax}.mode_hz") for g, ax in (("y", "el"), ("z", "az"))}
     fitted_axes = {f.axis for f in frfs}
     driven = {g: plant for g, ax in (("y", "el"), ("z", "az")) if ax in fitted_axes}
-    noise_est, noise_extra = fit_noise(logs, plant, modes_hz={g: m for g, m in modes.items() if m}, driven=driven)
+    noise_est, noise_extra = fit_noise(logs, plant, modes_hz={g: m for g, m in modes.items() if m}, driven=driven,
+                                       drive_delay_s=wire_s)
     est = list(noise_est)
     for e in noise_est:
         if e.status == "fitted" and e.value is not None:

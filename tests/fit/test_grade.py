@@ -3,8 +3,11 @@ is `weak`, and a weak value or a prior kept names the recording that would resol
 
 from __future__ import annotations
 
+import numpy as np
+import pytest
+
 from hil.fit.ranges import param_range
-from hil.fit.twin import Estimate, grade
+from hil.fit.twin import Estimate, correlation_inflation, grade
 
 
 def est(name: str, value: float, sigma: float | None, status: str = "fitted") -> Estimate:
@@ -29,3 +32,24 @@ def test_a_prior_kept_names_the_recording_and_a_value_without_a_target_stays_fit
     assert got[1].status == "fitted"  # no target: its sigma is reported, not judged
     assert param_range("friction.az.viscous_n_m_s_per_rad") is not None
     assert param_range("friction.az.viscous_n_m_s_per_rad").tolerance(0.01) is None
+
+
+def test_residuals_correlated_from_bin_to_bin_widen_the_sigma_as_ar1_predicts() -> None:
+    """An FRF fit's sigmas count independent bins only after ``(1 + rho) / (1 - rho)`` (hil.fit.twin): white
+    residuals leave them as they are, AR(1) ones with rho = 0.8 widen the variance about 9 times."""
+    rng = np.random.default_rng(7)
+    n = 4000
+    white = rng.standard_normal(2 * n)
+    assert correlation_inflation(white) == pytest.approx(1.0, abs=0.1)
+    halves = []
+    for _ in range(2):
+        e = rng.standard_normal(n)
+        x = np.empty(n)
+        x[0] = e[0]
+        for k in range(1, n):
+            x[k] = 0.8 * x[k - 1] + e[k]
+        halves.append(x)
+    assert correlation_inflation(np.concatenate(halves)) == pytest.approx(9.0, rel=0.15)
+    # anti-correlated residuals never narrow it, and a constant half is left out
+    assert correlation_inflation(np.tile([1.0, -1.0], n)) == 1.0
+    assert correlation_inflation(np.concatenate([np.ones(n), white[:n]])) == pytest.approx(1.0, abs=0.15)
