@@ -4,7 +4,7 @@ axis, 1 and 3 deg swings; ``hil.fit.record``), the fit, then per parameter the e
 the acceptance campaign (ESO, ESO+KF, high-gain ESO+KF at 1 and 3 deg) on the hidden plant and on the twin.
 
     .venv/bin/python benchmarks/fit_hidden_plants.py --seeds 11 12 13 [--out runs/fit-hidden] [--campaign-s 10]
-        [--levelled]   (the ident sweeps levelled, as a plain `hil ident` records them)
+        [--no-level]   (the ident sweeps run once as planned, not levelled as `hil ident` and `hil fit --record` do)
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("runs/fit-hidden"))
     ap.add_argument("--campaign-s", type=float, default=10.0)
     ap.add_argument("--campaign-seeds", type=int, nargs="+", default=[1])
-    ap.add_argument("--levelled", action="store_true", help="record the ident sweeps levelled (`hil ident`'s default)")
+    ap.add_argument("--no-level", action="store_true", help="record each ident sweep once, as planned (not levelled)")
     args = ap.parse_args()
     base = load_plant_dict(DEFAULT_PLANT_CONFIG)
     summary = []
@@ -36,7 +36,7 @@ def main() -> None:
         work = args.out / f"plant-{seed}"
         hidden, _ = draw_plant(seed, base)
         hidden_path = dump_plant(hidden, work / f"hidden-{seed}.yaml", f"hidden plant, draw_plant({seed})")
-        logs = record_platform_logs(hidden_path, work / "logs", level=args.levelled)
+        logs = record_platform_logs(hidden_path, work / "logs", level=not args.no_level)
         fit = fit_logs(logs)
         twin_path = fit.write(work / f"twin-{seed}.yaml")
         print(f"\n== plant {seed}: {len(logs)} logs, fit in {time.perf_counter() - t0:.0f} s")

@@ -125,8 +125,7 @@ def _command(rec: Any, session_file: str) -> str:
         return f"hil run {session_file}"
     s = rec.sweep
     return (f"hil ident {session_file} --axis {s.axis} --f-start-hz {s.f_start_hz:g} --f-stop-hz {s.f_stop_hz:g} "
-            f"--sweep-s {s.duration_s:g} --amplitude-dps {s.amplitude_dps:g} --offset-dps {s.offset_dps:g} "
-            "--no-level")
+            f"--sweep-s {s.duration_s:g} --amplitude-dps {s.amplitude_dps:g} --offset-dps {s.offset_dps:g}")
 
 
 def _plan_of(session: Path) -> list[Any]:

@@ -72,7 +72,7 @@ def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: floa
     a static session, an ident sweep per axis, swing sessions. The sweep is where ``hil ident`` starts by default
     (docs/ident.md, ``hil.analysis.IDENT_SWEEP``): around a rate offset (no friction reversal), kept short
     (``offset_dps * (sweep_s + 1 s)`` = 27 deg) because a cable harness restrains the travel; `hil ident` levels it
-    from there, the fit's recording does not (:func:`record`)."""
+    from there, and so does the fit's recording (:func:`record`)."""
 
     def session(name: str, swing: str | None, controller: str, seconds: float, tracking: bool) -> SessionConfig:
         data = base.model_dump(mode="json", exclude_none=True)
@@ -90,7 +90,8 @@ def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: floa
         cfg = session(f"fit-ident-{axis}", None, "eso", sweep.total_s + 0.5, False)
         plan.append(Recording(f"fit-ident-{axis}", "ident", cfg.duration_s,
                               f"k_m of {axis}, the gyro's bandwidth and delay (the whole loop delay, the wire's "
-                              f"included), the {axis} structural mode: a sweep to {f_stop_hz:g} Hz",
+                              f"included), the {axis} structural mode: a sweep to {f_stop_hz:g} Hz, levelled (up "
+                              "to 6 sweeps, the amplitude raised where the coherence fails)",
                               cfg.model_copy(update={"excitation": sweep}), sweep))
     for swing, controller in swings:
         name = f"fit-{swing}-{controller.replace('_', '-')}"
@@ -101,11 +102,11 @@ def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: floa
 
 
 def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None = None,
-           progress: Callable[[str], Any] | None = None, level: bool = False) -> list[Path]:
+           progress: Callable[[str], Any] | None = None, level: bool = True) -> list[Path]:
     """Run a recording plan: on the emulated lab (``loopback``: the sim clock) or on the lab's boards; an ident
-    recording as `hil ident` runs it with level=False (its sweep as planned: the twin's fit is measured on it,
-    docs/fit.md "Hidden plants"), or levelled as `hil ident` runs it by default with ``level``. The logs' paths, in
-    the plan's order; RuntimeError naming the recording when one does not complete."""
+    recording as `hil ident` runs it by default, levelled (``level``; False: its sweep once, as planned; docs/fit.md
+    "Hidden plants, recorded with the defaults"). The logs' paths, in the plan's order; RuntimeError naming the
+    recording when one does not complete."""
     logs: list[Path] = []
     clock = "sim" if loopback else None
     for i, rec in enumerate(plan, 1):
@@ -124,7 +125,7 @@ def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None 
 
 
 def record_platform_logs(plant: str | Path, out_dir: str | Path, *, seed: int = 1, progress: Callable[[str], Any]
-                         | None = None, level: bool = False, **plan: Any) -> list[Path]:
+                         | None = None, level: bool = True, **plan: Any) -> list[Path]:
     """Record a fit's logs on ``plant`` (sim clock, ``seed``): :func:`recording_plan` on the shipped swing session
     with the emulator pointed at ``plant``, the sweeps as planned (levelled with ``level``). Their paths."""
     base = session_on_plant(plant, out_dir, name="fit", swing=None, seed=seed)
