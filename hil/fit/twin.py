@@ -376,6 +376,19 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     f_lo, f_hi = sorted((sweep.f_start_hz, sweep.f_stop_hz))
     f_hi = min(f_hi, 0.45 / dt)
     frf = estimate_sweep_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi)
+    max_drive = float((log.config.get("safety") or {}).get("max_drive_counts") or 0.0)
+    nonlinear = nonlinear_bins(frf.freq_hz, sweep, r, u, y, dt, k0, max_drive)
+    if np.any(nonlinear):  # the clipped or reversed stretches are not the plant's linear response: left out
+        linear_low = (frf.freq_hz >= 2 * f_lo) & (frf.freq_hz < LINEAR_LOW_HZ) & (frf.coherence >= coherence_min)
+        if not np.any(linear_low & ~nonlinear):
+            n_clip = float(np.mean(np.abs(u[a:b]) >= max_drive - 0.5)) if max_drive > 0 else 0.0
+            raise UnusableSweep(
+                f"{log.name}: the {ax} loop was not linear below {LINEAR_LOW_HZ:g} Hz, where k_m shows (the drive at "
+                f"its {max_drive:g}-count limit on {n_clip:.0%} of the sweep's ticks, or the axis turning against "
+                f"the offset): a loop at its limit or oscillating by itself; record `hil ident SESSION --axis {ax}` "
+                "again with a controller whose b0 is nearer this axis (PI + LPF: docs/ident.md) or a smaller "
+                "amplitude")
+        frf = replace(frf, coherence=np.where(nonlinear, 0.0, frf.coherence))
     try:
         rigid = fit_plant(frf, coherence_min=coherence_min, f_min_hz=2.0 * f_lo, lag=True)
     except ValueError as exc:
@@ -488,6 +501,46 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
         f_range_hz=(float(fs.min()), f_top), frf=frf, log=log.name, bandwidth_identified=bandwidth_identified,
         kernel_plant=kernel_plant, drive_delay_s=drive_delay_s if kernel_plant is not None else 0.0,
     )
+
+
+class UnusableSweep(FitInputError):
+    """An ident log whose loop did not pass linearly through the band that gives k_m: the fit keeps the axis' prior
+    and says why, rather than read the clipper's response as the plant's."""
+
+
+LINEAR_LOW_HZ = 50.0  # an ident log needs linear, coherent bins below this (the rigid band: k_m, the spring)
+CLIP_SHARE_MAX = 0.01  # a third octave whose drive sat at its limit on more ticks than this is left out of the fit
+REVERSAL_SMOOTH_TICKS = 5  # the axis' rate is averaged over this many ticks before its sign is read (5 ms)
+
+
+def nonlinear_bins(freq_hz: np.ndarray, sweep: SweptSine, r: np.ndarray, u: np.ndarray, y: np.ndarray,  # noqa: PLR0917
+                   dt: float, k0: int, max_drive_counts: float) -> np.ndarray:
+    """The FRF bins (``freq_hz``) of an ident log whose third octave the loop did not pass through linearly: while
+    the chirp was there (its time-to-frequency map, ``SweptSine.frequency_hz``), the drive sat at
+    ``max_drive_counts`` on more than ``CLIP_SHARE_MAX`` of the ticks, or the axis' rate (5 ms mean) went against
+    the sweep's offset (friction switched sides). A loop at its limit, or one oscillating by itself, gives such
+    stretches; their bins are the clipper's and the friction's, not the plant's linear response."""
+    t0, t1 = sweep.window_s
+    a, b = max(k0 + round(t0 / dt), 0), min(k0 + round(t1 / dt), r.size)
+    out = np.zeros(np.asarray(freq_hz).size, dtype=bool)
+    if b - a < 2:
+        return out
+    f_t = np.array([sweep.frequency_hz((k - k0) * dt) for k in range(a, b)])
+    clipped = (np.abs(u[a:b]) >= max_drive_counts - 0.5) if max_drive_counts > 0 else np.zeros(b - a, dtype=bool)
+    y_s = np.convolve(y, np.ones(REVERSAL_SMOOTH_TICKS) / REVERSAL_SMOOTH_TICKS, mode="same")[a:b]
+    against = (np.sign(sweep.offset_dps) * y_s < 0.0) if sweep.offset_dps else np.zeros(b - a, dtype=bool)
+    half = 2.0 ** (1.0 / 6.0)  # a third octave around each bin
+    order = np.argsort(f_t)
+    f_sorted = f_t[order]
+    clip_cum = np.concatenate([[0], np.cumsum(clipped[order])])
+    rev_cum = np.concatenate([[0], np.cumsum(against[order])])
+    for i, f in enumerate(np.asarray(freq_hz, dtype=float)):
+        lo, hi = np.searchsorted(f_sorted, f / half), np.searchsorted(f_sorted, f * half)
+        n = hi - lo
+        if n == 0:
+            continue
+        out[i] = (clip_cum[hi] - clip_cum[lo]) / n > CLIP_SHARE_MAX or rev_cum[hi] - rev_cum[lo] > 0
+    return out
 
 
 def _sigmas(res: Any, with_mode: bool, n_bins: int) -> np.ndarray:
@@ -795,7 +848,7 @@ def _graded(e: Estimate) -> Estimate:
         if tol is not None and e.sigma > tol:
             return replace(e, status="weak", note=f"1 sigma {e.sigma:.3g} is wider than the target {tol:.3g} "
                            f"{e.unit}; record {rng.resolved_by or 'more of the logs above'}")
-    elif rng is not None and e.status == "prior" and rng.resolved_by:
+    elif rng is not None and e.status == "prior" and rng.resolved_by and "record" not in e.note:
         return replace(e, note="; ".join(x for x in (e.note, f"record {rng.resolved_by}") if x))
     return e
 
@@ -863,16 +916,26 @@ def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, A
     """k_m, the structural modes, the gyro's bandwidth and delay from the ident logs, set in ``plant``. The FRF's
     delay is the whole transport delay from the drive command to the gyro: the gyro's is what is left after the
     lab's ``wire_s`` (:func:`lab_wire_delay_s`), never below 0."""
-    frfs = [fit_frequency_response(lg, prior=plant, spring_q=(springs or {}).get(lg.axis or ""), drive_delay_s=wire_s)
-            for lg in logs if lg.kind == "ident"]
+    frfs: list[FrfFit] = []
+    unusable: dict[str, str] = {}  # axis -> why its ident log was left out
+    for lg in logs:
+        if lg.kind != "ident":
+            continue
+        try:
+            frfs.append(fit_frequency_response(lg, prior=plant, spring_q=(springs or {}).get(lg.axis or ""),
+                                               drive_delay_s=wire_s))
+        except UnusableSweep as exc:
+            unusable[lg.axis or "el"] = str(exc)
     est: list[Estimate] = []
     shared: dict[str, list[tuple[float, float]]] = {"gyro.bandwidth_hz": [], "gyro.delay_s": []}
     for axis in AXES:
         mine = [f for f in frfs if f.axis == axis]
         name = f"motor_{axis}.k_m_dps2_per_count"
         if not mine:
-            est.append(Estimate(name, k_m_of(base, axis), None, _unit(name), "prior", f"no ident log on {axis}",
-                                prior=k_m_of(base, axis)))
+            why = unusable.get(axis)
+            est.append(Estimate(name, k_m_of(base, axis), None, _unit(name), "prior",
+                                "ident log left out: not linear" if why else f"no ident log on {axis}",
+                                prior=k_m_of(base, axis), note=why or ""))
             continue
         km, km_s = _mean_sigma([(f.k_m, f.sigma["k_m"]) for f in mine])
         est.append(Estimate(name, km, km_s, _unit(name), "fitted", "ident: FRF " + ", ".join(f.log for f in mine),
@@ -894,6 +957,7 @@ def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, A
         if not mine:
             for pname in (f"structure.{axis}.mode_hz", f"structure.{axis}.damping_ratio"):
                 est.append(Estimate(pname, get_param(base, pname), None, _unit(pname), "prior",
+                                    "ident log left out: not linear" if axis in unusable else
                                     f"no ident log on {axis}", prior=get_param(base, pname)))
             continue
         modes = [f for f in mine if f.mode_hz is not None]
