@@ -17,7 +17,9 @@ from typing import Any
 
 from hil.analysis import IDENT_SWEEP, SweptSine
 from hil.campaign import load_campaign, run_campaign
-from hil.config import PROFILES, SessionConfig, load_session, session_yaml
+from hil.config import PROFILES, ControllerConfig, SessionConfig, load_session, session_yaml
+from hil.fit.logs import load_fit_log
+from hil.fit.twin import UnusableSweep, linear_frf
 from hil.session import emulator_for_plant, ident_sweeps, run
 
 SWING_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
@@ -91,7 +93,8 @@ def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: floa
         plan.append(Recording(f"fit-ident-{axis}", "ident", cfg.duration_s,
                               f"k_m of {axis}, the gyro's bandwidth and delay (the whole loop delay, the wire's "
                               f"included), the {axis} structural mode: a sweep to {f_stop_hz:g} Hz, levelled (up "
-                              "to 6 sweeps, the amplitude raised where the coherence fails)",
+                              "to 6 sweeps, the amplitude raised where the coherence fails; again with pi_lpf if "
+                              "the ESO loop clips through the band where k_m shows)",
                               cfg.model_copy(update={"excitation": sweep}), sweep))
     for swing, controller in swings:
         name = f"fit-{swing}-{controller.replace('_', '-')}"
@@ -106,7 +109,11 @@ def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None 
     """Run a recording plan: on the emulated lab (``loopback``: the sim clock) or on the lab's boards; an ident
     recording as `hil ident` runs it by default, levelled (``level``; False: its sweep once, as planned; docs/fit.md
     "Hidden plants, recorded with the defaults"). The logs' paths, in the plan's order; RuntimeError naming the
-    recording when one does not complete."""
+    recording when one does not complete.
+
+    An ident sweep whose loop was not linear where k_m shows (the drive at its limit through the band, or the axis
+    turning back: ``hil.fit.twin.linear_frf``) is recorded again with PI + LPF (``FALLBACK_CONTROLLER``), whose
+    gain does not depend on a b0 guessed for the axis; the log that passes is kept."""
     logs: list[Path] = []
     clock = "sim" if loopback else None
     for i, rec in enumerate(plan, 1):
@@ -116,12 +123,34 @@ def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None 
         if rec.sweep is not None:
             result = ident_sweeps(rec.config, rec.sweep, level=level, loopback=loopback, clock=clock,
                                   out=out_dir).run
+            why = _not_linear(result.log_path) if result.status == "completed" else None
+            if why is not None and rec.config.controller.name != FALLBACK_CONTROLLER:
+                if progress is not None:
+                    progress(f"{i}/{len(plan)} {rec.name}: the loop was not linear where k_m shows; again with "
+                             f"{FALLBACK_CONTROLLER}")
+                config = rec.config.model_copy(update={"controller": ControllerConfig(name=FALLBACK_CONTROLLER)})
+                result = ident_sweeps(config, rec.sweep, level=level, loopback=loopback, clock=clock,
+                                      out=out_dir).run
         else:
             result = run(rec.config, loopback=loopback, clock=clock, out=out_dir)
         if result.status != "completed" or result.log_path is None:
             raise RuntimeError(f"{rec.name}: {result.status}: {result.message}")
         logs.append(result.log_path)
     return logs
+
+
+FALLBACK_CONTROLLER = "pi_lpf"  # an ident sweep the plan's ESO could not pass linearly is recorded again with it
+
+
+def _not_linear(log: Path | None) -> str | None:
+    """Why an ident log gives no k_m (its loop not linear below ``LINEAR_LOW_HZ``), or None if it does."""
+    if log is None:
+        return None
+    try:
+        linear_frf(load_fit_log(log))
+    except UnusableSweep as exc:
+        return str(exc)
+    return None
 
 
 def record_platform_logs(plant: str | Path, out_dir: str | Path, *, seed: int = 1, progress: Callable[[str], Any]

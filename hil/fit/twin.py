@@ -353,17 +353,10 @@ def _kernel_plant(plant: Mapping[str, Any], axis: str, x: np.ndarray, with_mode:
     return c
 
 
-def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
-                           spring_q: float | None = None, drive_delay_s: float = 0.0) -> FrfFit:
-    """The ident log's FRF (``hil.analysis.estimate_sweep_frf``, indirect, at two resolutions) and the joint least-
-    squares fit on its coherent bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as
-    ``hil.analysis.fit_plant``. The rigid fit of ``hil.analysis`` starts it; the mode's frequency starts from a grid
-    over the band. ``drive_delay_s``: the lab's wire and host (:func:`lab_wire_delay_s`); the kernel's fit puts it
-    on the drive, where the lab has it, and fits the gyro's own delay. The result's ``delay_s`` is the whole
-    transport delay, both together."""
-    from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
-
-
+def linear_frf(log: FitLog, *, coherence_min: float = 0.8) -> tuple[Any, float, float]:
+    """The ident log's FRF (``hil.analysis.estimate_sweep_frf``) with the bins the loop did not pass linearly
+    (:func:`nonlinear_bins`) at coherence 0; its sweep's lower frequency and the log's tick. :class:`UnusableSweep`
+    if no linear, coherent bin is left below ``LINEAR_LOW_HZ``."""
     ax = log.axis or "el"
     sweep = SweptSine(**log.excitation) if log.excitation else None
     r, u, y = log.loop[f"rate_cmd_{ax}_dps"], log.loop[f"drive_{ax}_counts"], log.gyro(ax)
@@ -389,6 +382,22 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
                 "again with a controller whose b0 is nearer this axis (PI + LPF: docs/ident.md) or a smaller "
                 "amplitude")
         frf = replace(frf, coherence=np.where(nonlinear, 0.0, frf.coherence))
+    return frf, f_lo, dt
+
+
+def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
+                           spring_q: float | None = None, drive_delay_s: float = 0.0) -> FrfFit:
+    """The ident log's FRF (``hil.analysis.estimate_sweep_frf``, indirect, at two resolutions) and the joint least-
+    squares fit on its coherent bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as
+    ``hil.analysis.fit_plant``. The rigid fit of ``hil.analysis`` starts it; the mode's frequency starts from a grid
+    over the band. ``drive_delay_s``: the lab's wire and host (:func:`lab_wire_delay_s`); the kernel's fit puts it
+    on the drive, where the lab has it, and fits the gyro's own delay. The result's ``delay_s`` is the whole
+    transport delay, both together."""
+    from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
+
+
+    ax = log.axis or "el"
+    frf, f_lo, dt = linear_frf(log, coherence_min=coherence_min)
     try:
         rigid = fit_plant(frf, coherence_min=coherence_min, f_min_hz=2.0 * f_lo, lag=True)
     except ValueError as exc:

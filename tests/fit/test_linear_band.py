@@ -12,8 +12,10 @@ import pytest
 
 from firmware_stub.plant import DEFAULT_PLANT_CONFIG
 from hil.analysis import SweptSine
+from hil.fit.logs import load_fit_log
+from hil.fit.ranges import draw_plant, dump_plant, get_param, load_plant_dict
 from hil.fit.record import record, recording_plan, session_on_plant
-from hil.fit.twin import LINEAR_LOW_HZ, fit_logs, nonlinear_bins
+from hil.fit.twin import LINEAR_LOW_HZ, fit_frequency_response, fit_logs, lab_wire_delay_s, nonlinear_bins
 
 DT_S = 1e-3
 SWEEP = SweptSine(f_start_hz=1.0, f_stop_hz=450.0, duration_s=8.0, amplitude_dps=1.5, axis="el", offset_dps=3.0)
@@ -66,3 +68,19 @@ def test_an_ident_log_without_a_linear_low_band_keeps_the_prior_and_says_what_to
     assert f"not linear below {LINEAR_LOW_HZ:g} Hz" in e.note and "PI + LPF" in e.note and "--axis el" in e.note
     mode = fit.estimate("structure.el.mode_hz")
     assert mode is not None and mode.status == "prior" and "not linear" in mode.source
+
+
+def test_an_ident_sweep_the_eso_cannot_pass_linearly_is_recorded_again_with_pi_lpf(tmp_path: Path) -> None:
+    """Hidden plant 15's azimuth (k_m 0.045, twice the ESO's b0): its ESO loop clips the drive through the sweep,
+    so `hil fit --record` records that sweep again with PI + LPF, and the log it keeps gives k_m within 5 %."""
+    plant, _ = draw_plant(15, load_plant_dict(DEFAULT_PLANT_CONFIG))
+    path = dump_plant(plant, tmp_path / "hidden-15.yaml", "hidden plant 15")
+    base = session_on_plant(path, tmp_path, name="p15", swing=None)
+    said: list[str] = []
+    log = record([r for r in recording_plan(base) if r.name == "fit-ident-az"], loopback=True, level=False,
+                 progress=said.append)[0]
+    assert any("not linear where k_m shows; again with pi_lpf" in s for s in said), said
+    fit_log = load_fit_log(log)
+    assert fit_log.config["controller"]["name"] == "pi_lpf"
+    got = fit_frequency_response(fit_log, prior=plant, drive_delay_s=lab_wire_delay_s([fit_log]))
+    assert got.k_m == pytest.approx(get_param(plant, "motor_az.k_m_dps2_per_count"), rel=0.05)
