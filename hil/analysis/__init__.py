@@ -6,6 +6,7 @@ every session ends with (rate error, miss distance, drive ripple, board latency;
 from hil.analysis._ident import (
     GYRO_CHANNEL,
     IDENT_SWEEP,
+    REVERSAL_SMOOTH_S,
     Frf,
     LevelCheck,
     PlantFit,
@@ -36,6 +37,7 @@ __all__ = [
     "GYRO_CHANNEL",
     "IDENT_SWEEP",
     "NO_BOARD_LATENCY",
+    "REVERSAL_SMOOTH_S",
     "Frf",
     "LevelCheck",
     "PlantFit",

@@ -32,7 +32,15 @@ import numpy as np
 
 from firmware_stub.config import load_emulator_config
 from firmware_stub.plant import DEFAULT_PLANT_CONFIG, Plant, PlantConfig
-from hil.analysis import SweepShapes, SweptSine, estimate_sweep_frf, fit_plant, plant_response, sweep_start
+from hil.analysis import (
+    REVERSAL_SMOOTH_S,
+    SweepShapes,
+    SweptSine,
+    estimate_sweep_frf,
+    fit_plant,
+    plant_response,
+    sweep_start,
+)
 from hil.fit.logs import AXES, FitInputError, FitLog, load_fit_logs
 from hil.fit.ranges import (
     BY_NAME,
@@ -395,7 +403,6 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     transport delay, both together."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
-
     ax = log.axis or "el"
     frf, f_lo, dt = linear_frf(log, coherence_min=coherence_min)
     try:
@@ -519,7 +526,6 @@ class UnusableSweep(FitInputError):
 
 LINEAR_LOW_HZ = 50.0  # an ident log needs linear, coherent bins below this (the rigid band: k_m, the spring)
 CLIP_SHARE_MAX = 0.01  # a third octave whose drive sat at its limit on more ticks than this is left out of the fit
-REVERSAL_SMOOTH_TICKS = 5  # the axis' rate is averaged over this many ticks before its sign is read (5 ms)
 
 
 def nonlinear_bins(freq_hz: np.ndarray, sweep: SweptSine, r: np.ndarray, u: np.ndarray, y: np.ndarray,  # noqa: PLR0917
@@ -536,7 +542,8 @@ def nonlinear_bins(freq_hz: np.ndarray, sweep: SweptSine, r: np.ndarray, u: np.n
         return out
     f_t = np.array([sweep.frequency_hz((k - k0) * dt) for k in range(a, b)])
     clipped = (np.abs(u[a:b]) >= max_drive_counts - 0.5) if max_drive_counts > 0 else np.zeros(b - a, dtype=bool)
-    y_s = np.convolve(y, np.ones(REVERSAL_SMOOTH_TICKS) / REVERSAL_SMOOTH_TICKS, mode="same")[a:b]
+    width = max(1, round(REVERSAL_SMOOTH_S / dt))  # the levelling's own reading of a reversal
+    y_s = np.convolve(y, np.ones(width) / width, mode="same")[a:b]
     against = (np.sign(sweep.offset_dps) * y_s < 0.0) if sweep.offset_dps else np.zeros(b - a, dtype=bool)
     half = 2.0 ** (1.0 / 6.0)  # a third octave around each bin
     order = np.argsort(f_t)
