@@ -386,9 +386,9 @@ def linear_frf(log: FitLog, *, coherence_min: float = 0.8) -> tuple[Any, float, 
             raise UnusableSweep(
                 f"{log.name}: the {ax} loop was not linear below {LINEAR_LOW_HZ:g} Hz, where k_m shows (the drive at "
                 f"its {max_drive:g}-count limit on {n_clip:.0%} of the sweep's ticks, or the axis turning against "
-                f"the offset): a loop at its limit or oscillating by itself; record `hil ident SESSION --axis {ax}` "
-                "again with a controller whose b0 is nearer this axis (PI + LPF: docs/ident.md) or a smaller "
-                "amplitude")
+                f"the offset): a loop at its limit or oscillating by itself; record `hil ident SESSION` with "
+                f"axis={ax} again, with a controller whose b0 is nearer this axis (PI + LPF: docs/ident.md) or a "
+                "smaller amplitude")
         frf = replace(frf, coherence=np.where(nonlinear, 0.0, frf.coherence))
     return frf, f_lo, dt
 

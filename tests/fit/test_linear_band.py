@@ -65,7 +65,7 @@ def test_an_ident_log_without_a_linear_low_band_keeps_the_prior_and_says_what_to
     fit = fit_logs([log])
     e = fit.estimate("motor_el.k_m_dps2_per_count")
     assert e is not None and e.status == "prior" and e.value == pytest.approx(good.prior)
-    assert f"not linear below {LINEAR_LOW_HZ:g} Hz" in e.note and "PI + LPF" in e.note and "--axis el" in e.note
+    assert f"not linear below {LINEAR_LOW_HZ:g} Hz" in e.note and "PI + LPF" in e.note and "axis=el" in e.note
     mode = fit.estimate("structure.el.mode_hz")
     assert mode is not None and mode.status == "prior" and "not linear" in mode.source
 
