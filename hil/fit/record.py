@@ -123,8 +123,8 @@ def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None 
         if rec.sweep is not None:
             result = ident_sweeps(rec.config, rec.sweep, level=level, loopback=loopback, clock=clock,
                                   out=out_dir).run
-            why = _not_linear(result.log_path) if result.status == "completed" else None
-            if why is not None and rec.config.controller.name != FALLBACK_CONTROLLER:
+            if (result.status == "completed" and not _passes_linearly(result.log_path)
+                    and rec.config.controller.name != FALLBACK_CONTROLLER):
                 if progress is not None:
                     progress(f"{i}/{len(plan)} {rec.name}: the loop was not linear where k_m shows; again with "
                              f"{FALLBACK_CONTROLLER}")
@@ -142,15 +142,15 @@ def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None 
 FALLBACK_CONTROLLER = "pi_lpf"  # an ident sweep the plan's ESO could not pass linearly is recorded again with it
 
 
-def _not_linear(log: Path | None) -> str | None:
-    """Why an ident log gives no k_m (its loop not linear below ``LINEAR_LOW_HZ``), or None if it does."""
+def _passes_linearly(log: Path | None) -> bool:
+    """Whether an ident log gives k_m: its loop linear somewhere below ``hil.fit.twin.LINEAR_LOW_HZ``."""
     if log is None:
-        return None
+        return True
     try:
         linear_frf(load_fit_log(log))
-    except UnusableSweep as exc:
-        return str(exc)
-    return None
+    except UnusableSweep:
+        return False
+    return True
 
 
 def record_platform_logs(plant: str | Path, out_dir: str | Path, *, seed: int = 1, progress: Callable[[str], Any]

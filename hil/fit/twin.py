@@ -378,7 +378,7 @@ def linear_frf(log: FitLog, *, coherence_min: float = 0.8) -> tuple[Any, float, 
     f_hi = min(f_hi, 0.45 / dt)
     frf = estimate_sweep_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi)
     max_drive = float((log.config.get("safety") or {}).get("max_drive_counts") or 0.0)
-    nonlinear = nonlinear_bins(frf.freq_hz, sweep, r, u, y, dt, k0, max_drive)
+    nonlinear = nonlinear_bins(frf.freq_hz, sweep, u, y, dt, k0, max_drive)
     if np.any(nonlinear):  # the clipped or reversed stretches are not the plant's linear response: left out
         linear_low = (frf.freq_hz >= 2 * f_lo) & (frf.freq_hz < LINEAR_LOW_HZ) & (frf.coherence >= coherence_min)
         if not np.any(linear_low & ~nonlinear):
@@ -528,7 +528,7 @@ LINEAR_LOW_HZ = 50.0  # an ident log needs linear, coherent bins below this (the
 CLIP_SHARE_MAX = 0.01  # a third octave whose drive sat at its limit on more ticks than this is left out of the fit
 
 
-def nonlinear_bins(freq_hz: np.ndarray, sweep: SweptSine, r: np.ndarray, u: np.ndarray, y: np.ndarray,  # noqa: PLR0917
+def nonlinear_bins(freq_hz: np.ndarray, sweep: SweptSine, u: np.ndarray, y: np.ndarray,  # noqa: PLR0917
                    dt: float, k0: int, max_drive_counts: float) -> np.ndarray:
     """The FRF bins (``freq_hz``) of an ident log whose third octave the loop did not pass through linearly: while
     the chirp was there (its time-to-frequency map, ``SweptSine.frequency_hz``), the drive sat at
@@ -536,7 +536,7 @@ def nonlinear_bins(freq_hz: np.ndarray, sweep: SweptSine, r: np.ndarray, u: np.n
     the sweep's offset (friction switched sides). A loop at its limit, or one oscillating by itself, gives such
     stretches; their bins are the clipper's and the friction's, not the plant's linear response."""
     t0, t1 = sweep.window_s
-    a, b = max(k0 + round(t0 / dt), 0), min(k0 + round(t1 / dt), r.size)
+    a, b = max(k0 + round(t0 / dt), 0), min(k0 + round(t1 / dt), u.size)
     out = np.zeros(np.asarray(freq_hz).size, dtype=bool)
     if b - a < 2:
         return out
