@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from hil.config import SessionConfig
 from hil.fit.logs import FitLog
+from hil.fit.rerun import UNITS, rerun_log, session_metrics
 from hil.fit.twin import TwinFit
 from hil.log import read_log
 from hil.reporting import (
@@ -32,10 +32,6 @@ from hil.reporting import (
     render_markdown,
     save_figure,
 )
-from hil.session import emulator_for_plant
-from hil.session import run as run_session
-
-SETTLE_S = 1.0
 
 
 @dataclass
@@ -53,27 +49,6 @@ class TwinCheck:
         return self.twin / self.logged if self.logged else math.nan
 
 
-def _metrics(loop: dict[str, np.ndarray], image: dict[str, np.ndarray], dt_s: float) -> dict[str, float]:
-    k0 = int(SETTLE_S / dt_s)
-    out = {
-        "rate_err_el_std_dps": float(np.std(loop["rate_err_el_dps"][k0:])),
-        "rate_err_az_std_dps": float(np.std(loop["rate_err_az_dps"][k0:])),
-        "drive_el_std_counts": float(np.std(loop["drive_el_counts"][k0:])),
-        "drive_az_std_counts": float(np.std(loop["drive_az_counts"][k0:])),
-    }
-    valid = np.asarray(image.get("track_valid", []), dtype=bool)
-    if valid.size and valid.sum() > 50:
-        t = np.asarray(image["t_exposure_s"])
-        sel = valid & (t >= t[0] + SETTLE_S)
-        mx, my = np.asarray(image["miss_x_px"])[sel], np.asarray(image["miss_y_px"])[sel]
-        out["miss_std_px"] = float(np.sqrt(np.var(mx) + np.var(my)))
-    return out
-
-
-UNITS = {"rate_err_el_std_dps": "deg/s", "rate_err_az_std_dps": "deg/s", "drive_el_std_counts": "counts",
-         "drive_az_std_counts": "counts", "miss_std_px": "px"}
-
-
 def rerun_on_twin(fit: TwinFit, plant_path: Path, work_dir: Path) -> tuple[list[TwinCheck], dict[str, Any]]:
     """Each static and swing log's session, re-run on the twin (``sim`` clock, the log's own config and seed; the
     emulator's plant replaced): its metrics beside the log's. Ident logs are checked by their FRF instead."""
@@ -83,24 +58,17 @@ def rerun_on_twin(fit: TwinFit, plant_path: Path, work_dir: Path) -> tuple[list[
     for lg in fit.logs:
         if lg.kind == "ident":
             continue
-        data = dict(lg.config)
-        emu = dict(data.get("emulator") or {})
-        emulator = emulator_for_plant(plant_path, work_dir, seed=int(data.get("seed", 0)))
-        emu.update(config=str(emulator), clock="sim")
-        data.update(emulator=emu, logging={**(data.get("logging") or {}), "dir": str(work_dir / "runs")})
-        data.pop("ports", None)
         try:
-            cfg = SessionConfig.model_validate(data)
-            run = run_session(cfg, clock="sim")
+            log_path = rerun_log(lg, plant_path, work_dir)
         except Exception as exc:  # a session that cannot be re-run is reported, not fatal to the fit
             fit.notes.append(f"{lg.name}: not re-run on the twin: {exc}")
             continue
-        if run.log_path is None:
+        if log_path is None:
             continue
-        sim = read_log(run.log_path)
+        sim = read_log(log_path)
         orig = read_log(lg.path)
-        got = _metrics(sim.groups["loop"], sim.groups.get("image") or {}, lg.dt_s)
-        want = _metrics(orig.groups["loop"], orig.groups.get("image") or {}, lg.dt_s)
+        got = session_metrics(sim.groups["loop"], sim.groups.get("image") or {}, lg.dt_s)
+        want = session_metrics(orig.groups["loop"], orig.groups.get("image") or {}, lg.dt_s)
         for key in want:
             if key in got:
                 checks.append(TwinCheck(lg.name, key, UNITS[key], want[key], got[key]))
