@@ -52,8 +52,10 @@ from hil.fit.ranges import (
     param_range,
     validate_plant,
 )
+from hil.fit.rerun import match_breakaway
 
 D2R = math.pi / 180.0
+BREAKAWAY_UNRESOLVED = "the breakaway is not resolved (a Stribeck rate inside the stick band)"
 G0 = 9.80665
 Status = Literal["fitted", "weak", "prior", "bound"]  # weak: fitted, not to its target (wider sigma, or leaning on a
 # prior it cannot tell itself from)
@@ -920,6 +922,7 @@ def fit_logs(paths: list[str | Path], *, prior: str | Path | Mapping[str, Any] |
                      f"{wire_s * 1e3:.3f} ms" + ("; weak: the gyro's pole is beyond the coherent band" if weak else ""))
     say("gyro noise (static logs)")
     plant, noise_est, noise_extra = _noise_pass(logs, plant, frfs, wire_s)
+    plant, mech_est = _breakaway_pass(logs, plant, mech_est, say)
     est = grade(lin_est + noise_est + mech_est)
     validate_plant(plant)
     return TwinFit(prior=base, plant=plant, estimates=est, logs=logs, frf=frfs, mechanics=mech,
@@ -1085,7 +1088,7 @@ def _mechanics_estimates(mf: MechanicsFit, base: Mapping[str, Any], plant: Mappi
     plausible = BY_NAME[f"friction.{axis}.stiction_ratio"]
     add(f"friction.{axis}.stiction_ratio", ratio, ratio_sigma,
         has_swing and ratio is not None and 1.0 <= ratio <= 1.2 * plausible.hi and ratio_sigma < 0.1,
-        reversals if not has_swing else "the breakaway is not resolved (a Stribeck rate inside the stick band)")
+        reversals if not has_swing else BREAKAWAY_UNRESOLVED)
     add(f"friction.{axis}.stribeck_rate_dps", mf.stribeck_rate_dps, None,
         has_swing and ratio is not None and ratio > 1.02, "stiction not above Coulomb: no Stribeck rate")
     # the balance sees bearing and harness damping together (both act on v): the harness keeps the prior's
@@ -1112,6 +1115,42 @@ def _mechanics_estimates(mf: MechanicsFit, base: Mapping[str, Any], plant: Mappi
             out.append(Estimate(pname, val, mf.sigma[f"m_rho_{key}_kg_mm"], "kg mm", "fitted", src,
                                 prior=get_param(base, pname)))
     return out
+
+
+def _breakaway_pass(logs: list[FitLog], plant: dict[str, Any], est: list[Estimate],
+                    say: Any) -> tuple[dict[str, Any], list[Estimate]]:
+    """Where the torque balance left an axis' breakaway unresolved (its Stribeck rate inside the stick band), the
+    swing logs re-run on the twin choose it (``hil.fit.rerun.match_breakaway``: the rate error std at the reversals).
+    Only the breakaway's impulse ``(T_s / T_c - 1) v_s`` is determined: the parameter the match moved is fitted, the
+    other keeps its value with a note saying so."""
+    by_name = {e.name: e for e in est}
+    axes = [ax for ax in AXES if (e := by_name.get(f"friction.{ax}.stiction_ratio")) is not None
+            and e.status == "prior" and e.source == BREAKAWAY_UNRESOLVED]
+    if not axes:
+        return plant, est
+    matched = match_breakaway(logs, plant, axes, progress=say)
+    for ax, b in matched.items():
+        names = {"stiction_ratio": f"friction.{ax}.stiction_ratio",
+                 "stribeck_rate_dps": f"friction.{ax}.stribeck_rate_dps"}
+        logs_text = ", ".join(b.logs)
+        if not b.resolved:
+            for name in names.values():
+                by_name[name] = replace(by_name[name], note=(
+                    f"the swing logs' {ax} rate error does not move with the breakaway ({logs_text}): record a swing "
+                    "with more reversals (the 1 deg / 1 Hz swing) to resolve it"))
+            continue
+        held = names["stiction_ratio" if b.moved == "stribeck_rate_dps" else "stribeck_rate_dps"]
+        moved = names[b.moved]
+        value = b.stribeck_rate_dps if b.moved == "stribeck_rate_dps" else b.stiction_ratio
+        by_name[moved] = replace(by_name[moved], value=value, sigma=None, status="fitted", source=(
+            f"swing logs re-run on the twin: {ax} rate error std within {b.rms_log_ratio * 100:.1f} % rms "
+            f"({logs_text})"), note="")
+        by_name[held] = replace(by_name[held], value=b.stiction_ratio if held == names["stiction_ratio"]
+                                else b.stribeck_rate_dps, note=(
+            "held: the swing logs determine the breakaway's impulse (T_s / T_c - 1) v_s, not each factor"))
+        plant = apply_params(plant, {names["stiction_ratio"]: max(1.0, b.stiction_ratio),
+                                     names["stribeck_rate_dps"]: b.stribeck_rate_dps})
+    return plant, [by_name[e.name] for e in est]
 
 
 def _apply_mechanics(plant: dict[str, Any], axis: str, est: list[Estimate]) -> dict[str, Any]:
