@@ -109,7 +109,7 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
                        "bound": "[yellow]bound[/]"}.get(e.status, "prior"))
     console.print(table)
     for e in result.estimates:
-        if e.status in ("weak", "prior") and e.note:
+        if e.status in ("weak", "prior", "bound") and e.note:
             note(as_flags(f"  {e.name}: {e.status}: {e.source}; {e.note}"))
     for c in checks:
         note(f"  twin check {c.log}: {c.metric} logged {c.logged:.4g}, twin {c.twin:.4g} {c.unit} "

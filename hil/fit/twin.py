@@ -1145,9 +1145,11 @@ def _breakaway_pass(logs: list[FitLog], plant: dict[str, Any], est: list[Estimat
         by_name[moved] = replace(by_name[moved], value=value, sigma=None, status="fitted", source=(
             f"swing logs re-run on the twin: {ax} rate error std within {b.rms_log_ratio * 100:.1f} % rms "
             f"({logs_text})"), note="")
-        by_name[held] = replace(by_name[held], value=b.stiction_ratio if held == names["stiction_ratio"]
-                                else b.stribeck_rate_dps, note=(
-            "held: the swing logs determine the breakaway's impulse (T_s / T_c - 1) v_s, not each factor"))
+        held_value = b.stiction_ratio if held == names["stiction_ratio"] else b.stribeck_rate_dps
+        at_bound = not math.isclose(held_value, by_name[held].value or 0.0, rel_tol=1e-9)
+        by_name[held] = replace(by_name[held], value=held_value, status="bound" if at_bound else "prior", note=(
+            ("at its plausible bound" if at_bound else "held")
+            + ": the swing logs determine the breakaway's impulse (T_s / T_c - 1) v_s, not each factor"))
         plant = apply_params(plant, {names["stiction_ratio"]: max(1.0, b.stiction_ratio),
                                      names["stribeck_rate_dps"]: b.stribeck_rate_dps})
     return plant, [by_name[e.name] for e in est]
