@@ -127,7 +127,10 @@ def match_breakaway(logs: list[FitLog], plant: Mapping[str, Any], axes: list[str
             out = {ax: np.full(len(swings), np.nan) for ax in points}
             for i in use:
                 lg = swings[i]
-                new = rerun_log(lg, path, work)
+                try:
+                    new = rerun_log(lg, path, work)
+                except Exception:  # a log that cannot be re-run tells nothing: NaN, left out
+                    continue
                 if new is None:
                     continue
                 loop = read_log(new).groups["loop"]
@@ -144,7 +147,8 @@ def match_breakaway(logs: list[FitLog], plant: Mapping[str, Any], axes: list[str
             dev[k] = rerun({ax: point(ax, k) for ax in axes}, use)
 
         def cost(d: np.ndarray) -> float:
-            return float(np.sum(d[use] ** 2))
+            c = float(np.sum(d[use] ** 2))
+            return c if math.isfinite(c) else math.inf  # a point whose re-run failed is never chosen
 
         best = {ax: min(range(len(paths[ax])), key=lambda k, ax=ax: cost(dev[k][ax])) for ax in axes}
         mids = {}
@@ -162,6 +166,7 @@ def match_breakaway(logs: list[FitLog], plant: Mapping[str, Any], axes: list[str
         resolved = any(abs(ends[n - 1][ax][i] - ends[0][ax][i]) > MATCH_FLAT for i in everything)
         held = paths[ax][3][0]  # the ratio the path holds while the rate moves
         moved = "stribeck_rate_dps" if abs(r - held) < 1e-9 else "stiction_ratio"
+        resolved = resolved and math.isfinite(c_best)
         out[ax] = Breakaway(ax, r, v, moved, resolved, math.sqrt(c_best / len(use)), [swings[i].name for i in use])
     return out
 

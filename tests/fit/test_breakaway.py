@@ -4,6 +4,7 @@ shows it."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -76,4 +77,13 @@ def test_a_breakaway_the_rate_error_does_not_show_is_not_resolved(swing: dict) -
     prior, log = swing["prior"], swing["log"]
     bare = apply_params(prior, {"friction.az.coulomb_n_m": 1e-4})
     got = match_breakaway([log], bare, ["az"])["az"]
+    assert not got.resolved, got
+
+
+def test_a_swing_log_that_cannot_be_re_run_is_left_out(swing: dict, tmp_path: Path) -> None:
+    """A log whose session no longer loads (here: its controller file is gone) tells nothing about the breakaway:
+    the match leaves it out and calls the axis unresolved instead of failing the fit."""
+    prior, log = swing["prior"], swing["log"]
+    broken = dataclasses.replace(log, config={**log.config, "controller": str(tmp_path / "gone.yaml")})
+    got = match_breakaway([broken], prior, ["el"])["el"]
     assert not got.resolved, got
