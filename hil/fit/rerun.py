@@ -100,8 +100,8 @@ def match_breakaway(logs: list[FitLog], plant: Mapping[str, Any], axes: list[str
     swings = [lg for lg in logs if lg.kind == "swing"]
     if not swings or not axes:
         return {}
-    logged = {ax: np.array([_rate_err_std(read_log(lg.path).groups["loop"], ax, lg.dt_s) for lg in swings])
-              for ax in axes}
+    logged_metrics = [session_metrics(read_log(lg.path).groups["loop"], {}, lg.dt_s) for lg in swings]
+    logged = {ax: np.array([m[f"rate_err_{ax}_std_dps"] for m in logged_metrics]) for ax in axes}
     paths = {ax: breakaway_path(float(get_param(plant, f"friction.{ax}.stiction_ratio") or 1.0),
                                 float(get_param(plant, f"friction.{ax}.stribeck_rate_dps") or 0.5), ax) for ax in axes}
     n = max(len(p) for p in paths.values())
@@ -133,9 +133,9 @@ def match_breakaway(logs: list[FitLog], plant: Mapping[str, Any], axes: list[str
                     continue
                 if new is None:
                     continue
-                loop = read_log(new).groups["loop"]
+                got = session_metrics(read_log(new).groups["loop"], {}, lg.dt_s)
                 for ax in points:
-                    out[ax][i] = math.log(_rate_err_std(loop, ax, lg.dt_s) / logged[ax][i])
+                    out[ax][i] = math.log(got[f"rate_err_{ax}_std_dps"] / logged[ax][i])
             return out
 
         everything = list(range(len(swings)))
@@ -169,10 +169,6 @@ def match_breakaway(logs: list[FitLog], plant: Mapping[str, Any], axes: list[str
         resolved = resolved and math.isfinite(c_best)
         out[ax] = Breakaway(ax, r, v, moved, resolved, math.sqrt(c_best / len(use)), [swings[i].name for i in use])
     return out
-
-
-def _rate_err_std(loop: Mapping[str, np.ndarray], axis: str, dt_s: float) -> float:
-    return float(np.std(np.asarray(loop[f"rate_err_{axis}_dps"])[int(SETTLE_S / dt_s):]))
 
 
 __all__ = ["MATCH_FLAT", "SETTLE_S", "UNITS", "Breakaway", "breakaway_path", "match_breakaway", "rerun_log",

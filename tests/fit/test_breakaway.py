@@ -7,14 +7,13 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from firmware_stub.plant import DEFAULT_PLANT_CONFIG
 from hil.fit.logs import load_fit_log
 from hil.fit.ranges import apply_params, dump_plant, load_plant_dict
 from hil.fit.record import session_on_plant
-from hil.fit.rerun import breakaway_path, match_breakaway, rerun_log
+from hil.fit.rerun import breakaway_path, match_breakaway, rerun_log, session_metrics
 from hil.log import read_log
 from hil.session import run
 
@@ -25,8 +24,8 @@ def _impulse(ratio: float, stribeck_dps: float) -> float:
     return (ratio - 1.0) * stribeck_dps
 
 
-def _rate_err_std(path: Path) -> float:
-    return float(np.std(read_log(path).groups["loop"]["rate_err_el_dps"][1000:]))
+def _rate_err_std(path: Path, dt_s: float) -> float:
+    return session_metrics(read_log(path).groups["loop"], {}, dt_s)["rate_err_el_std_dps"]
 
 
 @pytest.fixture(scope="module")
@@ -54,9 +53,9 @@ def test_the_matched_breakaway_gives_back_the_logged_rate_error(swing: dict) -> 
     """The prior's breakaway (1.28, 0.5 deg/s) puts the twin's rate error more than 5 % off the log's; the matched
     one brings it within 3 %, with the breakaway's impulse within 40 % of the hidden one's."""
     work, prior, log = swing["work"], swing["prior"], swing["log"]
-    logged = _rate_err_std(log.path)
+    logged = _rate_err_std(log.path, log.dt_s)
     prior_path = dump_plant(prior, work / "twin-prior.yaml", "the prior's breakaway")
-    off = _rate_err_std(rerun_log(log, prior_path, work / "prior-run")) / logged - 1.0  # type: ignore[arg-type]
+    off = _rate_err_std(rerun_log(log, prior_path, work / "prior-run"), log.dt_s) / logged - 1.0  # type: ignore[arg-type]
     assert abs(off) > 0.05, off
 
     got = match_breakaway([log], prior, ["el"])["el"]
@@ -67,7 +66,7 @@ def test_the_matched_breakaway_gives_back_the_logged_rate_error(swing: dict) -> 
     matched = apply_params(prior, {"friction.el.stiction_ratio": got.stiction_ratio,
                                    "friction.el.stribeck_rate_dps": got.stribeck_rate_dps})
     again = _rate_err_std(rerun_log(log, dump_plant(matched, work / "twin.yaml", "matched"),  # type: ignore[arg-type]
-                                    work / "matched-run")) / logged - 1.0
+                                    work / "matched-run"), log.dt_s) / logged - 1.0
     assert abs(again) < 0.03, again
 
 
