@@ -99,7 +99,9 @@ def recording_plan(base: SessionConfig, *, static_s: float = 10.0, swing_s: floa
     for swing, controller in swings:
         name = f"fit-{swing}-{controller.replace('_', '-')}"
         plan.append(Recording(name, "swing", swing_s, "friction, the cable's spring, the imbalance and the current "
-                              f"limit from the torque balance ({controller} drives the axes through the swing)",
+                              f"limit from the torque balance ({controller} drives the axes through the swing); the "
+                              "breakaway, where the balance cannot see it, from the rate error with the swing "
+                              "re-run on the twin",
                               session(name, swing, controller, swing_s, True)))
     return plan
 
