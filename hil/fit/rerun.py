@@ -74,7 +74,7 @@ class Breakaway:
     logs: list[str]
 
 
-def breakaway_path(ratio: float, stribeck_dps: float, axis: str) -> list[tuple[float, float]]:
+def breakaway_path(ratio: float, axis: str) -> list[tuple[float, float]]:
     """The (stiction ratio, Stribeck rate) points :func:`match_breakaway` tries, ordered by the breakaway's excess
     torque impulse ``(T_s / T_c - 1) v_s``: the ratio held and the Stribeck rate over its plausible range, then below
     it the ratio lowered to 1 at the lowest rate, above it the ratio raised to its plausible top at the highest."""
@@ -102,8 +102,7 @@ def match_breakaway(logs: list[FitLog], plant: Mapping[str, Any], axes: list[str
         return {}
     logged_metrics = [session_metrics(read_log(lg.path).groups["loop"], {}, lg.dt_s) for lg in swings]
     logged = {ax: np.array([m[f"rate_err_{ax}_std_dps"] for m in logged_metrics]) for ax in axes}
-    paths = {ax: breakaway_path(float(get_param(plant, f"friction.{ax}.stiction_ratio") or 1.0),
-                                float(get_param(plant, f"friction.{ax}.stribeck_rate_dps") or 0.5), ax) for ax in axes}
+    paths = {ax: breakaway_path(float(get_param(plant, f"friction.{ax}.stiction_ratio") or 1.0), ax) for ax in axes}
     n = max(len(p) for p in paths.values())
     done = 0
 

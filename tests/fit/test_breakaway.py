@@ -42,7 +42,7 @@ def swing(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 
 def test_the_path_is_ordered_by_the_breakaway_impulse_and_stays_plausible() -> None:
-    path = breakaway_path(1.28, 0.5, "el")
+    path = breakaway_path(1.28, "el")
     impulses = [_impulse(r, v) for r, v in path]
     assert impulses == sorted(impulses) and impulses[0] == 0.0
     assert all(1.0 <= r <= 1.5 and 0.1 <= v <= 1.0 for r, v in path)
