@@ -100,9 +100,19 @@ def severe(driver: webdriver.Chrome) -> list[dict[str, Any]]:
     return [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
 
 
-def history_row(driver: webdriver.Chrome, uid: str) -> Any:
-    return WebDriverWait(driver, 60, poll_frequency=0.2).until(
-        lambda d: d.find_elements(By.CSS_SELECTOR, f'#history tr[data-uid="{uid}"]'))[0]
+HISTORY_ROW = """
+const tr = document.querySelector(`#history tr[data-uid="${arguments[0]}"]`);
+if (!tr) return null;
+const link = (text) => { const a = [...tr.querySelectorAll('a')].find((x) => x.textContent === text);
+                         return a ? a.href : null; };
+return {status: tr.dataset.status, record: link('record'), log: link('log')};
+"""
+
+
+def history_row(driver: webdriver.Chrome, uid: str) -> dict[str, Any]:
+    """The history row of ``uid``, read in one script call (the table is redrawn every 15 s and on changes)."""
+    return WebDriverWait(driver, 60, poll_frequency=0.2).until(  # type: ignore[no-any-return]
+        lambda d: d.execute_script(HISTORY_ROW, uid))
 
 
 BOARD_ROWS = """
@@ -171,8 +181,8 @@ def test_the_running_items_points_are_plotted_as_they_come(service: Service, bro
         assert all(s["finite"] > 0 for s in charts[name]["series"]), (name, charts[name])
     record = wait_for(lambda: (v := bench.item(uid))["state"] == "done" and v, END_S, 0.5)
     row = history_row(browser, uid)
-    assert row.get_attribute("data-status") == record["status"]
-    assert row.find_element(By.LINK_TEXT, "record").get_attribute("href").endswith(f"/api/history/{uid}")
+    assert row["status"] == record["status"]
+    assert row["record"].endswith(f"/api/history/{uid}"), row
     assert state(browser)["errors"] == []
     assert severe(browser) == []
 
@@ -197,7 +207,7 @@ def test_stop_on_the_page_ends_the_session_the_normal_way(service: Service, brow
     assert record["links"]["log"] == f"/api/history/{uid}/log"
     assert "by local: from the live page" in record["message"]
     row = history_row(browser, uid)
-    assert row.get_attribute("data-status") == "stopped"
-    assert row.find_element(By.CSS_SELECTOR, "a.log").get_attribute("href").endswith(f"/api/history/{uid}/log")
+    assert row["status"] == "stopped"
+    assert row["log"].endswith(f"/api/history/{uid}/log"), row
     assert state(browser)["errors"] == []
     assert severe(browser) == []
