@@ -57,16 +57,14 @@ def other_host() -> Iterator[tuple[str, str]]:
 # run on the other host: a client's view, and a browser's, of the run the local client started
 REMOTE = textwrap.dedent('''
     import json, sys, time
+    from pathlib import Path
     from hil.service import Bench
-    url, token, uid, chromium, chromedriver, profile = sys.argv[1:7]
+    url, token, uid, chromium, chromedriver, profile, ready = sys.argv[1:8]
     bench = Bench(url, token=token, user="elsewhere")
     out = {"you": bench.status()["you"]}
     deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and (bench.status()["running"] or {}).get("uid") != uid:
-        time.sleep(0.1)
-    out["running"] = (bench.status()["running"] or {}).get("uid")
-    out["queue"] = [i["uid"] for i in bench.queue()["items"]]
-    if chromium:
+    driver = None
+    if chromium:  # the page is open, and has its first status, before the run starts
         from selenium import webdriver
         from selenium.webdriver.chrome.service import Service
         options = webdriver.ChromeOptions()
@@ -75,8 +73,17 @@ REMOTE = textwrap.dedent('''
                      "--disable-background-networking", "--no-first-run", "--user-data-dir=" + profile):
             options.add_argument(flag)
         driver = webdriver.Chrome(service=Service(executable_path=chromedriver), options=options)
-        try:
-            driver.get(url + "/?token=" + token)
+        driver.get(url + "/?token=" + token)
+        while time.monotonic() < deadline and not driver.execute_script(
+                "return !!(window.hilPage && window.hilPage.status)"):
+            time.sleep(0.2)
+    Path(ready).touch()
+    try:
+        while time.monotonic() < deadline and (bench.status()["running"] or {}).get("uid") != uid:
+            time.sleep(0.1)
+        out["running"] = (bench.status()["running"] or {}).get("uid")
+        out["queue"] = [i["uid"] for i in bench.queue()["items"]]
+        if driver is not None:
             page = None
             while time.monotonic() < deadline:
                 page = driver.execute_script(
@@ -86,7 +93,8 @@ REMOTE = textwrap.dedent('''
                     break
                 time.sleep(0.2)
             out["page"] = page
-        finally:
+    finally:
+        if driver is not None:
             driver.quit()
     record = bench.wait(uid)
     out["record"] = {"uid": record["uid"], "status": record["status"], "user": record["user"]}
@@ -109,10 +117,14 @@ def test_a_client_and_a_browser_on_another_host_see_the_same_queue_live_run_and_
         item = local.add(short_session(tmp_path, 8.0, name="shared-run"))
         waiting = local.add(short_session(tmp_path, 1.0, name="next-run"))
         browser = CHROMIUM.is_file() and CHROMEDRIVER.is_file()
+        ready = tmp_path / "remote-ready"
         remote = subprocess.Popen(
             ["ip", "netns", "exec", ns, sys.executable, "-c", REMOTE, svc.url, VIEWER, item["uid"],
-             str(CHROMIUM) if browser else "", str(CHROMEDRIVER), str(tmp_path / "chromium")],
+             str(CHROMIUM) if browser else "", str(CHROMEDRIVER), str(tmp_path / "chromium"), str(ready)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+        # the run starts once the other host's page is open: a browser that starts slowly on a busy machine
+        # must not miss an 8 s run
+        wait_for(lambda: ready.exists() or remote.poll() is not None, timeout_s=300)
         local.start()
         wait_for(lambda: (local.status()["running"] or {}).get("uid") == item["uid"], timeout_s=240)
         local_queue = [i["uid"] for i in local.queue()["items"]]
