@@ -22,6 +22,7 @@ fitted plant and the order in which each estimate feeds the next.
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -55,6 +56,11 @@ from hil.fit.ranges import (
 from hil.fit.rerun import match_breakaway
 
 D2R = math.pi / 180.0
+# a static log's gyro PSD bin counts for the noise only where the loop's own drive put less than this share of it
+# (``|P|^2 S_uu / S``): the ident fit's P misses the friction's stick stiffness and the mode's exact damping, and its
+# term was measured 35-70 % off below 225 Hz, a bias that adds up over bins (docs/fit.md, "Noise")
+DRIVE_SHARE_MAX = 0.04
+NOISE_BINS_MIN = 60  # fewer bins than this below the share: the least-driven ones are kept
 BREAKAWAY_UNRESOLVED = "the breakaway is not resolved (a Stribeck rate inside the stick band)"
 G0 = 9.80665
 Status = Literal["fitted", "weak", "prior", "bound"]  # weak: fitted, not to its target (wider sigma, or leaning on a
@@ -110,17 +116,21 @@ def _bandpass_shape(f_hz: np.ndarray, centre_hz: float, bandwidth_hz: float, fs_
 def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float = 150.0, settle_s: float = 1.0,
               modes_hz: Mapping[str, float] | None = None,
               driven: Mapping[str, Mapping[str, Any]] | None = None,
-              drive_delay_s: float = 0.0) -> tuple[list[Estimate], dict[str, Any]]:
+              drive_delay_s: float = 0.0,
+              drive_share_max: float = DRIVE_SHARE_MAX) -> tuple[list[Estimate], dict[str, Any]]:
     """Gyro white noise std per axis and one band-limited component (``gyro.noise_psd``) from static logs.
 
     Welch PSD (1024-sample Hann segments) of each gyro axis above ``f_min_hz`` (above the rate loop's bandwidth, so
-    the closed loop does not shape it), fitted with ``2/fs (sigma_w^2 + sigma_c^2 shape_c(f))`` + the quantisation
-    floor ``LSB^2/12`` (LSB from the data's value grid): least squares on log PSD. The component's width is the
-    prior's (not separable from its std at this resolution). On y and z the loop's own drive moves the gimbal (the
-    noise fed back, ringing the structure): with ``driven`` (gyro axis -> a plant whose drive -> gyro response the
-    ident fit has set), the spectrum is that of ``gyro - P drive``, ``S_yy - 2 Re(P* S_uy) + |P|^2 S_uu``
-    (:func:`linear_plant_frf`, the lab's wire and host ``drive_delay_s`` on the drive); and bins within 20 % of
-    ``modes_hz`` (gyro axis -> structural mode) are left out.
+    the closed loop does not shape it), modelled as ``2/fs (sigma_w^2 + sigma_c^2 shape_c(f))`` + the quantisation
+    floor ``LSB^2/12`` (LSB from the data's value grid). One joint least squares on ``PSD / model - 1``: a white std
+    per axis, one band component (std and centre) for the three, as the plant has it; its width is the prior's (not
+    separable from its std at this resolution). On y and z the loop's own drive moves the gimbal (the noise fed
+    back, ringing the structure): with ``driven`` (gyro axis -> a plant whose drive -> gyro response the ident fit
+    has set), the spectrum is that of ``gyro - P drive``, ``S_yy - 2 Re(P* S_uy) + |P|^2 S_uu``
+    (:func:`linear_plant_frf`, the lab's wire and host ``drive_delay_s`` on the drive), and only the bins where the
+    drive's part ``|P|^2 S_uu`` is under ``drive_share_max`` of the PSD count (P's error there is a bias, not noise;
+    at least :data:`NOISE_BINS_MIN`, the least driven); bins within 20 % of ``modes_hz`` (gyro axis -> structural
+    mode) are left out. The undriven x axis pins the band where a driven axis keeps few bins.
     Bias: x from its mean (no loop on it), y and z from the encoders' drift (the loop holds the measured rate at
     zero, so the gimbal turns at minus the bias)."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
@@ -140,13 +150,15 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
             rows[ax].append(lg.loop[f"gyro_{ax}_dps"][k0:])
     fs = 1.0 / static[0].dt_s
     out: list[Estimate] = []
-    comps: list[tuple[float, float, float]] = []  # (std_c, centre, weight)
+    axes_fit: list[tuple[str, float, np.ndarray, np.ndarray, Any, np.ndarray, int]] = []  # per axis, for the joint fit
+    fc_lo, fc_hi = 0.55 * f_min_hz + 0.45 * fs / 2.0 - 60.0, 0.49 * fs
     for ax in "xyz":
         x = np.concatenate([r - r.mean() for r in rows[ax]])
         levels = np.unique(np.round(np.concatenate(rows[ax]), 7))
         steps = np.diff(levels)
         lsb = float(np.median(steps[steps > 0])) if steps.size else 0.0
         f, pxx = welch(x, fs=fs, nperseg=1024)
+        share = np.zeros(f.size)  # the part of each bin the loop's drive put there
         sel = (f >= f_min_hz) & (f < 0.5 * fs * 0.98)
         motor = {"y": "el", "z": "az"}.get(ax)
         if driven is not None and motor is not None and ax in driven:
@@ -158,45 +170,61 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
             _, s_uy = csd(u, x, fs=fs, nperseg=1024)
             resp = np.zeros(f.size, dtype=complex)
             resp[1:] = linear_plant_frf(driven[ax], motor, f[1:], drive_delay_s=drive_delay_s)
-            pxx = np.maximum(pxx - 2.0 * np.real(np.conj(resp) * s_uy) + np.abs(resp) ** 2 * s_uu, 1e-3 * pxx)
+            moved = np.abs(resp) ** 2 * s_uu
+            pxx = np.maximum(pxx - 2.0 * np.real(np.conj(resp) * s_uy) + moved, 1e-3 * pxx)
+            share = moved / pxx
         if (mode := (modes_hz or {}).get(ax)):  # the mode's damping is the least certain part of P
             sel &= np.abs(f - mode) > 0.2 * mode
+        if driven is not None and motor is not None and ax in driven:
+            quiet = sel & (share < drive_share_max)
+            if quiet.sum() < NOISE_BINS_MIN:
+                quiet = sel & (share <= np.sort(share[sel])[min(NOISE_BINS_MIN, int(sel.sum())) - 1])
+            sel = quiet
         f, pxx = f[sel], pxx[sel]
         q_floor = lsb * lsb / 12.0
+        shape = functools.partial(_bandpass_shape, f, bandwidth_hz=bw, fs_hz=fs)
 
-        def model(p: np.ndarray, f: np.ndarray = f, q_floor: float = q_floor) -> np.ndarray:
+        def model(p: np.ndarray, q_floor: float = q_floor, shape: Any = shape) -> np.ndarray:
             sw, sc, fc = p
-            return 2.0 / fs * (sw * sw + q_floor + sc * sc * _bandpass_shape(f, fc, bw, fs))
+            return 2.0 / fs * (sw * sw + q_floor + sc * sc * shape(centre_hz=fc))
 
         best = None
         for fc0 in (320.0, 380.0, 440.0, float(psd_prior["centre_hz"])):
             p0 = np.array([math.sqrt(max(np.median(pxx) * fs / 2.0 - q_floor, 1e-8)), 0.01, fc0])
-            res = least_squares(lambda p, pxx=pxx: pxx / model(p) - 1.0, p0,  # unbiased (log would be biased by ~1/K)
-                                bounds=([1e-5, 0.0, 0.55 * f_min_hz + 0.45 * fs / 2.0 - 60.0], [1.0, 1.0, 0.49 * fs]))
+            res = least_squares(lambda p, pxx=pxx, model=model: pxx / model(p) - 1.0, p0,  # unbiased (log would
+                                bounds=([1e-5, 0.0, fc_lo], [1.0, 1.0, fc_hi]))  # be biased by ~1/K)
             if best is None or res.cost < best.cost:
                 best = res
         assert best is not None
-        sw, sc, fc = (float(v) for v in best.x)
-        # 1-sigma from the Jacobian; each Welch bin of ~2 x (segments) averages has a log-PSD std of 1/sqrt(K)
-        k_avg = max(1, x.size // 512 - 1)
-        jac = best.jac
-        cov = np.linalg.pinv(jac.T @ jac) / k_avg
-        sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        k_avg = max(1, x.size // 512 - 1)  # each Welch bin of ~2 x (segments) averages: log-PSD std 1/sqrt(K)
+        axes_fit.append((ax, lsb, f, pxx, model, best.x, k_avg))
+    # one joint fit: each axis its white noise, the three one band (the plant's model: one component for all axes),
+    # which the undriven x axis pins where a driven axis keeps only the bins its drive leaves alone
+    starts = np.array([a[5] for a in axes_fit])
+    sc0 = float(np.median(starts[:, 1]))
+    fc0 = float(np.average(starts[:, 2], weights=starts[:, 1] + 1e-9))
+
+    def joint(p: np.ndarray) -> np.ndarray:
+        return np.concatenate([math.sqrt(a[6]) * (a[3] / a[4](np.array([p[i], p[-2], p[-1]])) - 1.0)
+                               for i, a in enumerate(axes_fit)])
+
+    n_ax = len(axes_fit)
+    res = least_squares(joint, np.array([*starts[:, 0], sc0, fc0]),
+                        bounds=([1e-5] * n_ax + [0.0, fc_lo], [1.0] * n_ax + [1.0, fc_hi]))
+    sig = np.sqrt(np.clip(np.diag(np.linalg.pinv(res.jac.T @ res.jac)), 0.0, None))
+    std_c, centre = float(res.x[-2]), float(res.x[-1])
+    for i, (ax, lsb, f, pxx, model, _, _) in enumerate(axes_fit):
         name = f"gyro.noise_std_dps.{ax}"
-        out.append(Estimate(name, sw, float(sig[0]), "deg/s", "fitted", f"static: PSD above {f_min_hz:g} Hz",
-                            prior=get_param(prior, name), note=f"quantisation LSB {lsb:.3g} deg/s"))
-        comps.append((sc, fc, 1.0 / max(float(sig[1]) ** 2, 1e-12)))
-        extras["psd"][ax] = {"f_hz": f, "psd": pxx, "model": model(best.x), "lsb": lsb}
-    wts = np.array([c[2] for c in comps])
-    std_c = float(np.average([c[0] for c in comps], weights=wts))
-    centre = float(np.average([c[1] for c in comps], weights=[c[2] * max(c[0], 1e-6) for c in comps]))
+        out.append(Estimate(name, float(res.x[i]), float(sig[i]), "deg/s", "fitted",
+                            f"static: PSD above {f_min_hz:g} Hz", prior=get_param(prior, name),
+                            note=f"quantisation LSB {lsb:.3g} deg/s; {f.size} bins"))
+        extras["psd"][ax] = {"f_hz": f, "psd": pxx, "model": model(np.array([res.x[i], std_c, centre])), "lsb": lsb}
     strong = std_c > 0.2 * min(e.value or 0.0 for e in out)
-    out.append(Estimate("gyro.noise_psd.std_dps", std_c, float(np.std([c[0] for c in comps])), "deg/s", "fitted",
+    out.append(Estimate("gyro.noise_psd.std_dps", std_c, float(sig[-2]), "deg/s", "fitted",
                         "static: PSD band component", prior=get_param(prior, "gyro.noise_psd.std_dps")))
     if strong:
-        out.append(Estimate("gyro.noise_psd.centre_hz", centre, float(np.std([c[1] for c in comps])), "Hz",
-                            "fitted", "static: PSD band component",
-                            prior=get_param(prior, "gyro.noise_psd.centre_hz")))
+        out.append(Estimate("gyro.noise_psd.centre_hz", centre, float(sig[-1]), "Hz", "fitted",
+                            "static: PSD band component", prior=get_param(prior, "gyro.noise_psd.centre_hz")))
     else:
         out.append(Estimate("gyro.noise_psd.centre_hz", get_param(prior, "gyro.noise_psd.centre_hz"), None, "Hz",
                             "prior", "static: the band component is too weak to place",
