@@ -57,8 +57,8 @@ from hil.fit.rerun import match_breakaway
 
 D2R = math.pi / 180.0
 # a static log's gyro PSD bin counts for the noise only where the loop's own drive put less than this share of it
-# (``|P|^2 S_uu / S``): the ident fit's P misses the friction's stick stiffness and the mode's exact damping, and its
-# term was measured 35-70 % off below 225 Hz, a bias that adds up over bins (docs/fit.md, "Noise")
+# (``|P|^2 S_uu / S``): the ident fit's P (friction left out) misses the presliding a gimbal at rest feels, and its
+# term was measured 35-75 % off below 250 Hz, a bias that adds up over bins (docs/fit.md, "Gyro noise")
 DRIVE_SHARE_MAX = 0.04
 NOISE_BINS_MIN = 60  # fewer bins than this below the share: the least-driven ones are kept
 BREAKAWAY_UNRESOLVED = "the breakaway is not resolved (a Stribeck rate inside the stick band)"
