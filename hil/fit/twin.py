@@ -773,21 +773,38 @@ def fit_mechanics(logs: list[FitLog], axis: str, plant: Mapping[str, Any], *, ba
 
     best: tuple[float, float, float | None, np.ndarray, np.ndarray, np.ndarray] | None = None
     cache: dict[tuple[float, float | None], tuple[np.ndarray, np.ndarray]] = {}
+
+    def evaluate(vs: float, limit: float | None) -> tuple[float, float, float | None, np.ndarray, np.ndarray,
+                                                          np.ndarray]:
+        xs, ys = [], []
+        for b in blocks:
+            x, y = design(b, vs, limit)
+            xs.append(x[b["keep"]])
+            ys.append(y[b["keep"]])
+        x_all, y_all = np.concatenate(xs), np.concatenate(ys)
+        y_adj = y_all - x_all[:, 0]  # the motor torque is known: coefficient 1
+        coef = _lstsq_fixed(x_all[:, 1:], y_adj, held)
+        cache[(vs, limit)] = (x_all, y_adj)
+        return float(np.sum((y_adj - x_all[:, 1:] @ coef) ** 2)), vs, limit, coef, x_all, y_adj
+
     for limit in limits:
         for vs in vs_grid:
-            xs, ys = [], []
-            for b in blocks:
-                x, y = design(b, float(vs), limit)
-                xs.append(x[b["keep"]])
-                ys.append(y[b["keep"]])
-            x_all, y_all = np.concatenate(xs), np.concatenate(ys)
-            y_adj = y_all - x_all[:, 0]  # the motor torque is known: coefficient 1
-            coef = _lstsq_fixed(x_all[:, 1:], y_adj, held)
-            sse = float(np.sum((y_adj - x_all[:, 1:] @ coef) ** 2))
-            cache[(float(vs), limit)] = (x_all, y_adj)
-            if best is None or sse < best[0]:
-                best = (sse, float(vs), limit, coef, x_all, y_adj)
+            trial = evaluate(float(vs), limit)
+            if best is None or trial[0] < best[0]:
+                best = trial
     assert best is not None
+    if best[2] is not None:  # the grid's limits are ~10 % apart: refine between the best one's neighbours
+        from scipy.optimize import minimize_scalar  # noqa: PLC0415  (heavy: loaded only when this computation runs)
+
+        grid = [lim for lim in limits if lim is not None]
+        at = grid.index(best[2])
+        lo, hi = grid[max(0, at - 1)], grid[min(len(grid) - 1, at + 1)] if at + 1 < len(grid) else 0.999 * i_peak
+        vs_best = best[1]
+        found = minimize_scalar(lambda lim: evaluate(vs_best, float(lim))[0], bounds=(lo, hi), method="bounded",
+                                options={"xatol": 1e-3 * best[2]})
+        refined = evaluate(vs_best, float(found.x))
+        if refined[0] < best[0]:
+            best = refined
     sse, vs, limit, coef, x_all, y_adj = best
     # a limit counts only if it explains the data better than none by more than noise would (F-test-like, 1 %)
     sse_none = min(float(np.sum((yn - xn[:, 1:] @ _lstsq_fixed(xn[:, 1:], yn, held)) ** 2))
