@@ -9,7 +9,16 @@ controller, ``read_provenance`` reads it back.
 
 from hil.log.frames import LogFrames, read_log_frames
 from hil.log.provenance import collect_provenance, read_provenance
-from hil.log.reader import LogData, RecoverReport, export_log, read_attrs, read_log, recover_log, units_path
+from hil.log.reader import (
+    LogData,
+    RecoverReport,
+    export_log,
+    free_path,
+    read_attrs,
+    read_log,
+    recover_log,
+    units_path,
+)
 from hil.log.schema import ATTRS, LOG_FORMAT_VERSION, SCHEMA, AttrSpec, Channel, Group
 from hil.log.writer import LogError, SessionLog, prestart_writer
 
@@ -27,6 +36,7 @@ __all__ = [
     "SessionLog",
     "collect_provenance",
     "export_log",
+    "free_path",
     "prestart_writer",
     "read_attrs",
     "read_log",

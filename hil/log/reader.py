@@ -257,7 +257,9 @@ def _fsync_path(path: Path) -> None:
         os.close(fd)
 
 
-def _free_name(path: Path) -> Path:
+def free_path(path: Path) -> Path:
+    """``path``, or the first of ``STEM-2.SUFFIX``, ``STEM-3.SUFFIX``, ... that does not exist: two logs of one name
+    started in the same second (sim sessions take less) never meet."""
     if not path.exists():
         return path
     for i in range(2, 10_000):
@@ -338,7 +340,7 @@ def recover_log(path: str | Path, *, output: Path | None = None) -> RecoverRepor
             out.attrs["json_attrs"] = json.dumps(sorted(names | {"recovered", "json_attrs"}))
         _fsync_path(tmp)
         if output is None:
-            backup = _free_name(path.with_name(f"{path.stem}.crashed.h5"))
+            backup = free_path(path.with_name(f"{path.stem}.crashed.h5"))
             os.rename(path, backup)
         os.replace(tmp, target)
         _fsync_path(target.parent)

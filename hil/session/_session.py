@@ -40,7 +40,7 @@ from hil.config import ConfigError, PortConfig, SessionConfig
 from hil.control.oracle import TruthSource, truth_refusal
 from hil.control.registry import needs_truth
 from hil.link import Capture, Link, LinkError, PortClaims, SerialLink, claim_ports
-from hil.log import SessionLog
+from hil.log import SessionLog, free_path
 from hil.log.provenance import collect_provenance
 from hil.protocol import (
     LINKS,
@@ -275,7 +275,7 @@ class Session:
     def _open_log(self) -> None:
         now = datetime.now(UTC)
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.log_path = self.out_dir / f"{self.config.name}-{now:%Y%m%d-%H%M%S}.h5"
+        self.log_path = free_path(self.out_dir / f"{self.config.name}-{now:%Y%m%d-%H%M%S}.h5")
         idents = {name: getattr(self, name).ident_dict() for name in LINKS}
 
         emulated = self.extra_attrs.get("loopback", self.emulated or self.lockstep or self.open_link is not None)

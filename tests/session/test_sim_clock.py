@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import subprocess
 import sys
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,25 @@ def test_sim_is_deterministic_and_seeds_differ(tmp_path: Path) -> None:
     assert assert_same_channels(a.log_path, b.log_path, ticks=1000) > 0
     ga, gc = read_log(a.log_path).groups["loop"], read_log(c.log_path).groups["loop"]
     assert not np.array_equal(ga["gyro_y_dps"][:1000], gc["gyro_y_dps"][:1000])
+
+
+def test_two_sessions_of_one_name_in_one_second_keep_both_logs(tmp_path: Path) -> None:
+    """A sim session takes less than a second: the second of two of one name gets its own file, never the first's
+    (a log name holds the second it started in; an ident's levelling passes run that fast)."""
+    config = session_config(duration_s=0.3, seed=2)
+    now = datetime.now(UTC)
+    taken = [tmp_path / f"{config.name}-{now + timedelta(seconds=k):%Y%m%d-%H%M%S}.h5" for k in range(-1, 30)]
+    for path in taken:  # every name the session could choose in the next 30 s already exists
+        path.write_bytes(b"another log")
+    first, _ = sim_run(config, tmp_path)
+    second, _ = sim_run(config, tmp_path)
+    assert first.status == second.status == "completed"
+    assert first.log_path != second.log_path
+    # the first takes "-2" of its second; the second "-3" of the same second, or "-2" of the next
+    assert first.log_path.stem.endswith("-2") and second.log_path.stem[-2:] in ("-2", "-3")
+    assert all(path.read_bytes() == b"another log" for path in taken)
+    for result in (first, second):
+        assert read_log(result.log_path).groups["loop"]["tick"].size >= 300
 
 
 def _hil(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
