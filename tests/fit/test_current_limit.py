@@ -7,12 +7,10 @@ from __future__ import annotations
 
 import pytest
 
-from firmware_stub.plant import DEFAULT_PLANT_CONFIG
-from hil.fit.logs import load_fit_log
-from hil.fit.ranges import draw_plant, dump_plant, get_param, load_plant_dict
+from hil.fit.ranges import get_param
 from hil.fit.record import session_on_plant
 from hil.fit.twin import fit_mechanics, lab_wire_delay_s
-from hil.session import run
+from tests.fit.helpers import drawn_plant, recorded
 
 SEED = 41
 
@@ -21,13 +19,10 @@ SEED = 41
 def swing(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The fit's high-gain swing (3 deg / 1 Hz, 20 s, sim clock) on the hidden plant."""
     work = tmp_path_factory.mktemp("limit")
-    hidden, _ = draw_plant(SEED, load_plant_dict(DEFAULT_PLANT_CONFIG))
-    path = dump_plant(hidden, work / "hidden.yaml", f"draw_plant({SEED})")
+    hidden, path = drawn_plant(SEED, work)
     cfg = session_on_plant(path, work, name="fit-swing-hg", swing="swing-3deg-1hz", controller="eso_kf_high_gain",
                            seconds=20.0, tracking=True)
-    log = run(cfg, clock="sim").log_path
-    assert log is not None
-    return {"hidden": hidden, "log": load_fit_log(log)}
+    return {"hidden": hidden, "log": recorded(cfg)}
 
 
 def test_the_current_limit_is_refined_between_the_grids_limits(swing: dict) -> None:

@@ -8,12 +8,10 @@ import math
 
 import pytest
 
-from firmware_stub.plant import DEFAULT_PLANT_CONFIG
-from hil.fit.logs import load_fit_log
-from hil.fit.ranges import draw_plant, dump_plant, get_param, load_plant_dict
+from hil.fit.ranges import get_param
 from hil.fit.record import recording_plan, session_on_plant
 from hil.fit.twin import fit_noise, lab_wire_delay_s
-from hil.session import run
+from tests.fit.helpers import drawn_plant, recorded
 
 # draw_plant(14): a 355 Hz gyro with a band component (0.0196 deg/s at 423 Hz) stronger than its white noise
 # (0.0165 deg/s), an elevation whose loop drive carries 9-15 % of the gyro's PSD at 150-250 Hz
@@ -24,13 +22,10 @@ SEED = 14
 def static(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The fit's static recording (30 s, ESO+KF holding, sim clock) on the hidden plant."""
     work = tmp_path_factory.mktemp("noise")
-    hidden, _ = draw_plant(SEED, load_plant_dict(DEFAULT_PLANT_CONFIG))
-    path = dump_plant(hidden, work / "hidden.yaml", f"draw_plant({SEED})")
+    hidden, path = drawn_plant(SEED, work)
     (rec,) = recording_plan(session_on_plant(path, work, name="fit", swing=None), axes=(), swings=())
     assert rec.kind == "static" and rec.seconds == 30.0
-    log = run(rec.config, clock="sim").log_path
-    assert log is not None
-    return {"hidden": hidden, "log": load_fit_log(log)}
+    return {"hidden": hidden, "log": recorded(rec.config)}
 
 
 def _fit(static: dict, **kw: float) -> dict[str, float]:
