@@ -27,7 +27,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -113,6 +113,19 @@ def _bandpass_shape(f_hz: np.ndarray, centre_hz: float, bandwidth_hz: float, fs_
     return np.abs(h) ** 2 / gain
 
 
+class _AxisSpectrum(NamedTuple):
+    """One gyro axis of :func:`fit_noise`: the bins kept, their PSD, its model (white std, band std, band centre)
+    and that axis' own fit as the joint fit's start; ``k_avg`` Welch averages per bin."""
+
+    axis: str
+    lsb: float
+    f_hz: np.ndarray
+    psd: np.ndarray
+    model: Any
+    start: np.ndarray
+    k_avg: int
+
+
 def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float = 150.0, settle_s: float = 1.0,
               modes_hz: Mapping[str, float] | None = None,
               driven: Mapping[str, Mapping[str, Any]] | None = None,
@@ -150,7 +163,7 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
             rows[ax].append(lg.loop[f"gyro_{ax}_dps"][k0:])
     fs = 1.0 / static[0].dt_s
     out: list[Estimate] = []
-    axes_fit: list[tuple[str, float, np.ndarray, np.ndarray, Any, np.ndarray, int]] = []  # per axis, for the joint fit
+    axes_fit: list[_AxisSpectrum] = []  # per axis, for the joint fit
     fc_lo, fc_hi = 0.55 * f_min_hz + 0.45 * fs / 2.0 - 60.0, 0.49 * fs
     for ax in "xyz":
         x = np.concatenate([r - r.mean() for r in rows[ax]])
@@ -197,15 +210,15 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
                 best = res
         assert best is not None
         k_avg = max(1, x.size // 512 - 1)  # each Welch bin of ~2 x (segments) averages: log-PSD std 1/sqrt(K)
-        axes_fit.append((ax, lsb, f, pxx, model, best.x, k_avg))
+        axes_fit.append(_AxisSpectrum(ax, lsb, f, pxx, model, best.x, k_avg))
     # one joint fit: each axis its white noise, the three one band (the plant's model: one component for all axes),
     # which the undriven x axis pins where a driven axis keeps only the bins its drive leaves alone
-    starts = np.array([a[5] for a in axes_fit])
+    starts = np.array([a.start for a in axes_fit])
     sc0 = float(np.median(starts[:, 1]))
     fc0 = float(np.average(starts[:, 2], weights=starts[:, 1] + 1e-9))
 
     def joint(p: np.ndarray) -> np.ndarray:
-        return np.concatenate([math.sqrt(a[6]) * (a[3] / a[4](np.array([p[i], p[-2], p[-1]])) - 1.0)
+        return np.concatenate([math.sqrt(a.k_avg) * (a.psd / a.model(np.array([p[i], p[-2], p[-1]])) - 1.0)
                                for i, a in enumerate(axes_fit)])
 
     n_ax = len(axes_fit)
@@ -798,7 +811,7 @@ def fit_mechanics(logs: list[FitLog], axis: str, plant: Mapping[str, Any], *, ba
 
         grid = [lim for lim in limits if lim is not None]
         at = grid.index(best[2])
-        lo, hi = grid[max(0, at - 1)], grid[min(len(grid) - 1, at + 1)] if at + 1 < len(grid) else 0.999 * i_peak
+        lo, hi = grid[max(0, at - 1)], grid[at + 1] if at + 1 < len(grid) else 0.999 * i_peak
         vs_best = best[1]
         found = minimize_scalar(lambda lim: evaluate(vs_best, float(lim))[0], bounds=(lo, hi), method="bounded",
                                 options={"xatol": 1e-3 * best[2]})
