@@ -248,8 +248,9 @@ class DaskEngine(_Base):
                     _log.warning("no dask workers on %s yet: cells wait for `dask worker %s`", self.scheduler,
                                  self.scheduler)
             if self.shared_dir is not None:
-                for worker, why in self.client.run(_writable_here, str(self.shared_dir)).items():
-                    if why is not None:
+                # a worker that goes away during the check is left out (on_error: its exception, not a raise)
+                for worker, why in self.client.run(_writable_here, str(self.shared_dir), on_error="return").items():
+                    if why is not None and not isinstance(why, BaseException):
                         raise EngineError(f"shared_dir={str(self.shared_dir)!r}: {why} (worker {worker})")
         except BaseException:
             self.close()
