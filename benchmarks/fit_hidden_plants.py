@@ -59,7 +59,8 @@ def main() -> None:
             print(f"{key[0]:14s} {key[1]:18s} {key[2]:22s} hidden {h:9.4f} twin {twn[key]:9.4f}  x{ratio:.3f}")
         worst = max(abs(c["ratio"] - 1.0) for c in cells)
         print(f"plant {seed}: worst campaign metric {worst * 100:.1f} % off; total {time.perf_counter() - t0:.0f} s")
-        summary.append({"seed": seed, "params": params, "campaign": cells, "worst": worst})
+        summary.append({"seed": seed, "params": params, "campaign": cells, "worst": worst,
+                        "logs": [str(p) for p in logs]})  # the logs the fit read: refit them with hil fit
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1, default=str), encoding="utf-8")
     print()
     print(markdown(summary))
