@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hil.fit.ranges import param_range
-from hil.fit.twin import Estimate, correlation_inflation, grade
+from hil.fit.twin import Estimate, FrfFit, correlation_inflation, grade, pole_doubts
 
 
 def est(name: str, value: float, sigma: float | None, status: str = "fitted") -> Estimate:
@@ -53,3 +53,21 @@ def test_residuals_correlated_from_bin_to_bin_widen_the_sigma_as_ar1_predicts() 
     # anti-correlated residuals never narrow it, and a constant half is left out
     assert correlation_inflation(np.tile([1.0, -1.0], n)) == 1.0
     assert correlation_inflation(np.concatenate([np.ones(n), white[:n]])) == pytest.approx(1.0, abs=0.15)
+
+
+def pole(axis: str, bandwidth_hz: float, sigma_hz: float, top_hz: float = 320.0) -> FrfFit:
+    return FrfFit(axis=axis, k_m=0.02, bandwidth_hz=bandwidth_hz, delay_s=1e-3, mode_hz=None, damping=None,
+                  spring_q=None, sigma={"bandwidth_hz": sigma_hz}, rms_db=0.0, rms_deg=0.0,
+                  f_range_hz=(2.0, top_hz), log=f"ident-{axis}")
+
+
+def test_a_pole_the_logs_disagree_on_or_beyond_the_coherent_band_is_doubted() -> None:
+    """One gyro for both axes: two ident logs that pin its pole 2 combined sigmas apart, or a pole above the top of
+    the best log's coherent band, make the bandwidth and delay weak, with the reason (hil.fit.twin.pole_doubts)."""
+    assert pole_doubts([]) == ""
+    assert pole_doubts([pole("el", 300.0, 15.0), pole("az", 340.0, 15.0)]) == ""  # 40 Hz < 2 x 21.2 Hz
+    why = pole_doubts([pole("el", 300.0, 15.0), pole("az", 355.0, 20.0)])  # 55 Hz > 2 x 25 Hz
+    assert why.startswith("the logs disagree") and "300 +- 15 Hz (ident-el)" in why and "ident-az" in why
+    above = pole_doubts([pole("el", 276.0, 26.0, top_hz=220.0)])
+    assert "above the top of the coherent band (220 Hz)" in above
+    assert pole_doubts([pole("el", 219.0, 26.0, top_hz=220.0)]) == ""
