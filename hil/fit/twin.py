@@ -1035,11 +1035,18 @@ def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, A
                             prior=k_m_of(base, axis)))
         plant = apply_params(plant, {name: km})
     # bandwidth and delay trade against each other: the pair of the log that pins the pole best (smallest relative
-    # sigma), else every log's delay with the prior's bandwidth
+    # sigma) and holds without its band's top third octave (pole_doubts); else the best one, graded weak; else every
+    # log's delay with the prior's bandwidth
     resolved = sorted((f for f in frfs if f.bandwidth_identified),
                       key=lambda f: f.sigma["bandwidth_hz"] / max(f.bandwidth_hz, 1e-9))
-    edge = fit_one(ident_logs[resolved[0].log], resolved[0].f_range_hz[1] / EDGE_RATIO) if resolved else None
-    pole_doubt = pole_doubts(resolved, edge)
+    pole_doubt = ""
+    for i, cand in enumerate(resolved):
+        others = resolved[:i] + resolved[i + 1:]
+        why = pole_doubts([cand, *others], fit_one(ident_logs[cand.log], cand.f_range_hz[1] / EDGE_RATIO))
+        if not why:
+            resolved, pole_doubt = [cand, *others], ""
+            break
+        pole_doubt = pole_doubt or why
     if resolved:
         best_pair = resolved[0]
         shared["gyro.bandwidth_hz"].append((best_pair.bandwidth_hz, max(best_pair.sigma["bandwidth_hz"], 1e-3)))
