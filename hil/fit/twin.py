@@ -317,20 +317,14 @@ def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n
     """The emulated plant's own drive -> gyro response of ``axis`` (deg/s per count) at ``f_hz``, as the 1 kHz loop
     sees it (drive k held over the tick after sample k, from ``drive_delay_s`` after that tick's start: the lab's
     wire and host, whole ticks of it as a delay line, as the emulator applies them): the plant kernel run on a
-    doublet with Coulomb friction, the cable's spring, the imbalance, the current limit and noise off, then the DFT
-    ratio. The linear damping stays: the viscous friction plus the cable's damping, what friction is to a small
-    signal on an ident sweep's rate offset (no reversal; LuGre's bristles settle in ~0.1 ms); left out, it reads as
-    ~4 deg of phase lead at 2 Hz on a plant with b / J = 1.5 /s, which the fit's heavy low-frequency weights trade
-    against the gyro's pole. The cable's spring is the fit's own ``q`` (:func:`_spring_factor`). Exact for whatever
-    the kernel does (zero-order hold, the two-mass mode, the gyro's lag and delay discretised as the emulator does
-    them; a delay on the drive is not the same as as much more of the gyro's: the gyro's fraction of a tick is
+    doublet with friction, cable, imbalance, current limit and noise off, then the DFT ratio. Exact for whatever the
+    kernel does (zero-order hold, the two-mass mode, the gyro's lag and delay discretised as the emulator does them;
+    a delay on the drive is not the same as as much more of the gyro's: the gyro's fraction of a tick is
     interpolated between tick ends)."""
 
     c = copy.deepcopy(dict(plant))
     for ax in AXES:
-        damping = (float(c["friction"][ax].get("viscous_n_m_s_per_rad") or 0.0)
-                   + float(((c.get("cable") or {}).get(ax) or {}).get("damping_n_m_s_per_rad") or 0.0))
-        c["friction"][ax] = {"coulomb_n_m": 0.0, "viscous_n_m_s_per_rad": damping,
+        c["friction"][ax] = {"coulomb_n_m": 0.0, "viscous_n_m_s_per_rad": 0.0,
                              "smoothing_rate_dps": c["friction"][ax].get("smoothing_rate_dps", 0.1), "model": "tanh"}
     for key in ("cable", "ripple", "drive"):
         c.pop(key, None)
@@ -443,14 +437,13 @@ def linear_frf(log: FitLog, *, coherence_min: float = 0.8) -> tuple[Any, float, 
 
 
 def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
-                           spring_q: float | None = None, drive_delay_s: float = 0.0,
-                           f_max_hz: float | None = None) -> FrfFit:
+                           spring_q: float | None = None, drive_delay_s: float = 0.0) -> FrfFit:
     """The ident log's FRF (``hil.analysis.estimate_sweep_frf``, indirect, at two resolutions) and the joint least-
     squares fit on its coherent bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as
     ``hil.analysis.fit_plant``. The rigid fit of ``hil.analysis`` starts it; the mode's frequency starts from a grid
     over the band. ``drive_delay_s``: the lab's wire and host (:func:`lab_wire_delay_s`); the kernel's fit puts it
     on the drive, where the lab has it, and fits the gyro's own delay. The result's ``delay_s`` is the whole
-    transport delay, both together. ``f_max_hz``: leave the bins above it out (:func:`pole_doubts`' edge check)."""
+    transport delay, both together."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     ax = log.axis or "el"
@@ -462,8 +455,6 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
                             "followed the sweep (drive saturation, a restrained axis) and record it again") from None
     f = frf.freq_hz
     sel = np.isfinite(frf.response) & (np.abs(frf.response) > 0) & (frf.coherence >= coherence_min) & (f >= 2 * f_lo)
-    if f_max_hz is not None:
-        sel &= f <= f_max_hz
     if np.count_nonzero(sel) < 8:
         raise FitInputError(f"{log.path}: only {np.count_nonzero(sel)} coherent bins in the sweep")
     fs, p = f[sel], frf.response[sel]
@@ -1005,18 +996,12 @@ def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, A
     lab's ``wire_s`` (:func:`lab_wire_delay_s`), never below 0."""
     frfs: list[FrfFit] = []
     unusable: dict[str, str] = {}  # axis -> why its ident log was left out
-    ident_logs: dict[str, FitLog] = {}
-
-    def fit_one(lg: FitLog, f_max_hz: float | None = None) -> FrfFit:
-        return fit_frequency_response(lg, prior=plant, spring_q=(springs or {}).get(lg.axis or ""),
-                                      drive_delay_s=wire_s, f_max_hz=f_max_hz)
-
     for lg in logs:
         if lg.kind != "ident":
             continue
         try:
-            frfs.append(fit_one(lg))
-            ident_logs[lg.name] = lg
+            frfs.append(fit_frequency_response(lg, prior=plant, spring_q=(springs or {}).get(lg.axis or ""),
+                                               drive_delay_s=wire_s))
         except UnusableSweep as exc:
             unusable[lg.axis or "el"] = str(exc)
     est: list[Estimate] = []
@@ -1035,18 +1020,10 @@ def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, A
                             prior=k_m_of(base, axis)))
         plant = apply_params(plant, {name: km})
     # bandwidth and delay trade against each other: the pair of the log that pins the pole best (smallest relative
-    # sigma) and holds without its band's top third octave (pole_doubts); else the best one, graded weak; else every
-    # log's delay with the prior's bandwidth
+    # sigma; weak when another log pins it elsewhere), else every log's delay with the prior's bandwidth
     resolved = sorted((f for f in frfs if f.bandwidth_identified),
                       key=lambda f: f.sigma["bandwidth_hz"] / max(f.bandwidth_hz, 1e-9))
-    pole_doubt = ""
-    for i, cand in enumerate(resolved):
-        others = resolved[:i] + resolved[i + 1:]
-        why = pole_doubts([cand, *others], fit_one(ident_logs[cand.log], cand.f_range_hz[1] / EDGE_RATIO))
-        if not why:
-            resolved, pole_doubt = [cand, *others], ""
-            break
-        pole_doubt = pole_doubt or why
+    pole_doubt = pole_doubts(resolved)
     if resolved:
         best_pair = resolved[0]
         shared["gyro.bandwidth_hz"].append((best_pair.bandwidth_hz, max(best_pair.sigma["bandwidth_hz"], 1e-3)))
@@ -1106,33 +1083,13 @@ def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, A
 POLE_AGREE_SIGMAS = 2.0  # two ident logs' poles (one gyro) further apart than this many combined sigmas disagree
 
 
-EDGE_RATIO = 2.0 ** (1.0 / 3.0)  # the edge check refits the best ident log without its top third octave
-
-
-def pole_doubts(resolved: list[FrfFit], edge: FrfFit | None = None) -> str:
+def pole_doubts(resolved: list[FrfFit]) -> str:
     """Why the gyro's pole of the best log (``resolved[0]``, the logs that pinned it, best first) is not to be called
-    fitted, or "". Its sigma counts the noise, not a model that misses something in the band's top bins, where the
-    coherence falls, the structural mode and the pole trade, and a levelled drive nears its limit. Measured on
-    hidden plant 14 (pole 355 Hz, bands to 300-330 Hz): six elevation passes of one levelling gave 232-354 Hz, each
-    with a 1-sigma of 3-8 %. So the pole is doubted when:
-
-    - ``edge``, the same log refitted without its top third octave (:data:`EDGE_RATIO`), no longer pins it or moves
-      it by more than :data:`POLE_AGREE_SIGMAS` combined sigmas (plant 14's 303 +- 16 Hz pass: not pinned; its
-      352 +- 10 Hz pass, band to 322 Hz: 328 +- 15 Hz, kept);
-    - another log pins it (one gyro for every axis) that far from it."""
+    fitted, or "": the gyro is one for every axis, so another log that pins it further than
+    :data:`POLE_AGREE_SIGMAS` combined sigmas away says the model misses something in one of them."""
     if not resolved:
         return ""
     best = resolved[0]
-    top_hz = best.f_range_hz[1]
-    if edge is not None:
-        if not edge.bandwidth_identified:
-            return (f"the gyro's pole ({best.bandwidth_hz:.0f} Hz, {best.log}) rests on the top third octave of the "
-                    f"coherent band: without the bins above {top_hz / EDGE_RATIO:.0f} Hz the sweep no longer pins it")
-        gap = abs(edge.bandwidth_hz - best.bandwidth_hz)
-        if gap > POLE_AGREE_SIGMAS * math.hypot(edge.sigma["bandwidth_hz"], best.sigma["bandwidth_hz"]):
-            return (f"the gyro's pole moves with the band's edge: {best.bandwidth_hz:.0f} +- "
-                    f"{best.sigma['bandwidth_hz']:.0f} Hz to {top_hz:.0f} Hz, {edge.bandwidth_hz:.0f} +- "
-                    f"{edge.sigma['bandwidth_hz']:.0f} Hz to {top_hz / EDGE_RATIO:.0f} Hz ({best.log})")
     for other in resolved[1:]:
         gap = abs(other.bandwidth_hz - best.bandwidth_hz)
         if gap > POLE_AGREE_SIGMAS * math.hypot(other.sigma["bandwidth_hz"], best.sigma["bandwidth_hz"]):
