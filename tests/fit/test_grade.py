@@ -55,10 +55,10 @@ def test_residuals_correlated_from_bin_to_bin_widen_the_sigma_as_ar1_predicts() 
     assert correlation_inflation(np.concatenate([np.ones(n), white[:n]])) == pytest.approx(1.0, abs=0.15)
 
 
-def pole(axis: str, bandwidth_hz: float, sigma_hz: float, top_hz: float = 320.0) -> FrfFit:
+def pole(axis: str, bandwidth_hz: float, sigma_hz: float) -> FrfFit:
     return FrfFit(axis=axis, k_m=0.02, bandwidth_hz=bandwidth_hz, delay_s=1e-3, mode_hz=None, damping=None,
                   spring_q=None, sigma={"bandwidth_hz": sigma_hz}, rms_db=0.0, rms_deg=0.0,
-                  f_range_hz=(2.0, top_hz), log=f"ident-{axis}")
+                  f_range_hz=(2.0, 320.0), log=f"ident-{axis}")
 
 
 def test_a_pole_the_logs_disagree_on_is_doubted() -> None:
@@ -68,4 +68,3 @@ def test_a_pole_the_logs_disagree_on_is_doubted() -> None:
     assert pole_doubts([pole("el", 300.0, 15.0), pole("az", 340.0, 15.0)]) == ""  # 40 Hz < 2 x 21.2 Hz
     why = pole_doubts([pole("el", 300.0, 15.0), pole("az", 355.0, 20.0)])  # 55 Hz > 2 x 25 Hz
     assert why.startswith("the logs disagree") and "300 +- 15 Hz (ident-el)" in why and "ident-az" in why
-
