@@ -974,8 +974,7 @@ def fit_logs(paths: list[str | Path], *, prior: str | Path | Mapping[str, Any] |
     if frfs:
         bw, td = float(plant["gyro"]["bandwidth_hz"]), float(plant["gyro"]["delay_s"])
         total_ms = (1.0 / (2.0 * math.pi * bw) + td + wire_s) * 1e3
-        weak = next((e.note.split("; record")[0] for e in lin_est if e.name == "gyro.delay_s" and e.status == "weak"),
-                    "")
+        weak = next((e.note for e in lin_est if e.name == "gyro.delay_s" and e.status == "weak"), "")
         notes.append(f"total loop delay {total_ms:.3f} ms: the gyro's lag {1e3 / (2 * math.pi * bw):.3f} ms "
                      f"(1 / 2 pi bandwidth) + its delay {td * 1e3:.3f} ms + the wire and the host "
                      f"{wire_s * 1e3:.3f} ms" + (f"; the split is weak: {weak}" if weak else ""))
