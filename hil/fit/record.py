@@ -95,7 +95,8 @@ def recording_plan(base: SessionConfig, *, static_s: float = 30.0, swing_s: floa
                               f"k_m of {axis}, the gyro's bandwidth and delay (the whole loop delay, the wire's "
                               f"included), the {axis} structural mode: a sweep to {f_stop_hz:g} Hz, levelled (up "
                               "to 6 sweeps, the amplitude raised where the coherence fails; again with pi_lpf if "
-                              "the ESO loop clips through the band where k_m shows)",
+                              "the ESO loop clips through the band where k_m shows); the fit takes the kept "
+                              "pass and the one that measured most above its band, both named by `hil ident`",
                               cfg.model_copy(update={"excitation": sweep}), sweep))
     for swing, controller in swings:
         name = f"fit-{swing}-{controller.replace('_', '-')}"
