@@ -316,8 +316,7 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
             "loop_delay_ms": fit.model_delay_s * 1e3 if fit.gyro_bandwidth_hz is None else None,
             "rms_error_db": fit.rms_error_db, "coherent_band_hz": list(best.band_hz or ()),
             "f_range_hz": list(fit.f_range_hz), "bins": fit.n_bins, "bode_png": str(png),
-            "resonance_hz": sweeps.resonance_hz, "levelling": sweeps.why, "passes": passes,
-            "fit_logs": [str(p.run.log_path) for p in (best, sweeps.top) if p is not None]}
+            "resonance_hz": sweeps.resonance_hz, "levelling": sweeps.why, "passes": passes}
     js.write_text(json.dumps(data, indent=2))
     return IdentRun(run=best.run, frf=best.frf, fit=fit, bode_png=png, json_path=js, report=data,
                     passes=sweeps.passes, band_hz=best.band_hz)

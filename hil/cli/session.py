@@ -296,10 +296,6 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
                   f"vs the controllers' default {K_M_DEFAULT} (set b0_dps2_per_count to the fitted value if it "
                   "differs)", highlight=False)
     console.print(f"bode: {done.bode_png}\nident: {done.json_path}", highlight=False)
-    if len(done.report["fit_logs"]) > 1:
-        console.print("for `hil fit`, this axis' logs: " + " ".join(done.report["fit_logs"]) + " (the kept pass, and "
-                      "the pass that measured most above its band: the gyro's pole and a mode near the band's top)",
-                      highlight=False)
 
 
 @app.command()

@@ -95,8 +95,7 @@ def recording_plan(base: SessionConfig, *, static_s: float = 30.0, swing_s: floa
                               f"k_m of {axis}, the gyro's bandwidth and delay (the whole loop delay, the wire's "
                               f"included), the {axis} structural mode: a sweep to {f_stop_hz:g} Hz, levelled (up "
                               "to 6 sweeps, the amplitude raised where the coherence fails; again with pi_lpf if "
-                              "the ESO loop clips through the band where k_m shows); the fit takes the kept "
-                              "pass and the one that measured most above its band, both named by `hil ident`",
+                              "the ESO loop clips through the band where k_m shows)",
                               cfg.model_copy(update={"excitation": sweep}), sweep))
     for swing, controller in swings:
         name = f"fit-{swing}-{controller.replace('_', '-')}"
@@ -112,9 +111,8 @@ def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None 
            progress: Callable[[str], Any] | None = None, level: bool = True) -> list[Path]:
     """Run a recording plan: on the emulated lab (``loopback``: the sim clock) or on the lab's boards; an ident
     recording as `hil ident` runs it by default, levelled (``level``; False: its sweep once, as planned; docs/fit.md
-    "Hidden plants, recorded with the defaults"), gives the pass the levelling kept and, where another pass measured
-    more above its band, that one too (``IdentSweeps.top``). The logs' paths, in the plan's order; RuntimeError
-    naming the recording when one does not complete.
+    "Hidden plants, recorded with the defaults"). The logs' paths, in the plan's order; RuntimeError naming the
+    recording when one does not complete.
 
     An ident sweep whose loop was not linear where k_m shows (the drive at its limit through the band, or the axis
     turning back: ``hil.fit.twin.linear_frf``) is recorded again with PI + LPF (``FALLBACK_CONTROLLER``), whose
@@ -125,26 +123,22 @@ def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None 
         if progress is not None:
             each = " a sweep, up to 6 sweeps when levelled" if rec.sweep is not None and level else ""
             progress(f"{i}/{len(plan)} {rec.name} ({rec.seconds:g} s{each})")
-        top = None
         if rec.sweep is not None:
-            sweeps = ident_sweeps(rec.config, rec.sweep, level=level, loopback=loopback, clock=clock, out=out_dir)
-            result = sweeps.run
+            result = ident_sweeps(rec.config, rec.sweep, level=level, loopback=loopback, clock=clock,
+                                  out=out_dir).run
             if (result.status == "completed" and not _passes_linearly(result.log_path)
                     and rec.config.controller.name != FALLBACK_CONTROLLER):
                 if progress is not None:
                     progress(f"{i}/{len(plan)} {rec.name}: the loop was not linear where k_m shows; again with "
                              f"{FALLBACK_CONTROLLER}")
                 config = rec.config.model_copy(update={"controller": ControllerConfig(name=FALLBACK_CONTROLLER)})
-                sweeps = ident_sweeps(config, rec.sweep, level=level, loopback=loopback, clock=clock, out=out_dir)
-                result = sweeps.run
-            top = sweeps.top
+                result = ident_sweeps(config, rec.sweep, level=level, loopback=loopback, clock=clock,
+                                      out=out_dir).run
         else:
             result = run(rec.config, loopback=loopback, clock=clock, out=out_dir)
         if result.status != "completed" or result.log_path is None:
             raise RuntimeError(f"{rec.name}: {result.status}: {result.message}")
         logs.append(result.log_path)
-        if top is not None and top.run.log_path is not None:
-            logs.append(top.run.log_path)
     return logs
 
 

@@ -89,31 +89,6 @@ class IdentSweeps:
     def run(self) -> RunResult:
         return self.best.run
 
-    @property
-    def top(self) -> IdentPass | None:
-        """The pass, other than ``best``, that measured the response furthest above ``best``'s coherent band: the
-        highest coherence in the third octave just above that band, if higher than ``best``'s there. The gyro's pole
-        and a structural mode near the band's top show in those bins, where a pass's noise biases the fit (hidden
-        plant 14, pole 355 Hz: the kept elevation pass, coherence 0.30 at 356 Hz, gave 303 +- 16 Hz; the levelling's
-        last pass, 0.53 there, 352 +- 10 Hz). ``hil fit`` takes it beside ``best`` (docs/fit.md). None when no pass
-        does better there, or ``best``'s band reaches the sweep's top."""
-        check, band = self.best.check, self.best.band_hz
-        if check is None or band is None:
-            return None
-        above = np.flatnonzero(check.freq_hz > band[1])
-        if not above.size:
-            return None
-        f_above = float(check.freq_hz[above[0]])
-
-        def coherence_above(p: IdentPass) -> float:
-            if p.check is None or p.run.log_path is None or p.run.status != "completed":
-                return -1.0
-            return float(p.check.coherence[int(np.argmin(np.abs(p.check.freq_hz - f_above)))])
-
-        floor = coherence_above(self.best)
-        others = [p for p in self.passes if p is not self.best and coherence_above(p) > floor]
-        return max(others, key=coherence_above, default=None)
-
 
 def fit_from_hz(sweep: SweptSine) -> float:
     """Where the fit starts: an octave above the sweep's start (the chirp's first octave starts at a Welch segment's

@@ -34,7 +34,6 @@ from hil.config import SessionConfig, session_yaml
 from hil.fit.ranges import draw_plant, dump_plant, load_plant_dict
 from hil.fit.record import session_on_plant
 from hil.log import LogData
-from hil.session import IdentPass, IdentSweeps, RunResult
 from hil.session import _ident as session_ident  # the module whose session runs the test replaces
 from tests.ident.test_ident import LOOP_CHANNELS, as_log, run_plant
 
@@ -123,27 +122,6 @@ def test_the_coherent_band_bridges_one_third_octave_not_two() -> None:
     lo, hi = coherent_band(check_of(two), sweep)  # type: ignore[misc]
     assert lo == pytest.approx(2.0 ** (7 / 3) / third) and hi == 16.0  # the wider side of the gap
     assert coherent_band(check_of([0.5] * 13), sweep) is None
-
-
-def test_the_fit_also_gets_the_pass_that_measured_most_above_the_kept_band(tmp_path: Path) -> None:
-    """``IdentSweeps.top``: of the other passes, the one with the highest coherence in the third octave just above
-    the kept pass's band, if higher than the kept pass's there (where the gyro's pole and a mode near the band's top
-    show); none when the kept band reaches the sweep's top or no pass does better there."""
-    sweep = SweptSine(f_start_hz=1.0, f_stop_hz=16.0, duration_s=4.0)
-
-    def made(i: int, coh: list[float], status: str = "completed") -> IdentPass:
-        check = check_of(coh)
-        run = RunResult(status, 0, "", tmp_path / f"pass-{i}.h5", "sim", None)  # type: ignore[arg-type]
-        return IdentPass(sweep, run, None, check, coherent_band(check, sweep))
-
-    kept = made(1, [0.9] * 9 + [0.4, 0.1, 0.1, 0.1])  # coherent to the 9th third octave (6.3 Hz)
-    better = made(2, [0.5] * 9 + [0.6, 0.2, 0.1, 0.1])  # narrower, but more coherent just above the kept band
-    best_above = made(3, [0.5] * 9 + [0.7, 0.1, 0.1, 0.1])
-    failed = made(4, [0.5] * 9 + [0.9, 0.9, 0.9, 0.9], status="fault")
-    assert IdentSweeps([kept, better, best_above, failed], kept, None, "").top is best_above
-    assert IdentSweeps([kept, made(5, [0.5] * 9 + [0.3, 0.9, 0.9, 0.9])], kept, None, "").top is None
-    whole = made(6, [0.9] * 13)
-    assert IdentSweeps([whole, better], whole, None, "").top is None  # nothing above the sweep's top
 
 
 @pytest.mark.parametrize("offset", [0.0, 10.0])
