@@ -250,7 +250,10 @@ class DaskEngine(_Base):
             if self.shared_dir is not None:
                 # a worker that goes away during the check is left out (on_error: its exception, not a raise)
                 for worker, why in self.client.run(_writable_here, str(self.shared_dir), on_error="return").items():
-                    if why is not None and not isinstance(why, BaseException):
+                    if isinstance(why, BaseException):
+                        _log.warning("dask worker %s did not answer the shared_dir check (%s: %s); left out of it",
+                                     worker, type(why).__name__, why)
+                    elif why is not None:
                         raise EngineError(f"shared_dir={str(self.shared_dir)!r}: {why} (worker {worker})")
         except BaseException:
             self.close()

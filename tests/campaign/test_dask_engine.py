@@ -22,7 +22,7 @@ import yaml
 
 import hil
 from hil.campaign import CellResult, load_results
-from hil.campaign.engines import DaskEngine, LocalEngine
+from hil.campaign.engines import DaskEngine, EngineError, LocalEngine
 from hil.log.truth import truth_path
 from tests.campaign.test_campaign import write_campaign
 from tests.session.helpers import assert_same_channels
@@ -208,3 +208,21 @@ def test_bad_engine_options_are_one_line_errors_before_anything_is_written(tmp_p
     assert proc.returncode == 2, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and f"--scheduler tcp://127.0.0.1:{port}" in proc.stderr
     assert not out.exists()
+
+
+def test_a_worker_that_fails_the_shared_dir_check_is_logged_and_left_out(cluster: distributed.LocalCluster,
+                                                                        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                        caplog: pytest.LogCaptureFixture) -> None:
+    """The shared directory is checked on every worker when the engine opens. A worker that goes away during the
+    check (its answer an exception) is logged and left out, and the engine opens; a worker that answers that it
+    cannot write there is a one-line error naming it."""
+    answers: dict[str, object] = {}
+    monkeypatch.setattr(distributed.Client, "run", lambda self, fn, *args, **kw: dict(answers))
+    answers.update({"tcp://10.0.0.1:1": None, "tcp://10.0.0.2:2": OSError("comm closed")})
+    with caplog.at_level("WARNING", logger="hil.campaign"), DaskEngine(cluster.scheduler_address,
+                                                                       shared_dir=tmp_path) as engine:
+        assert engine.client is not None
+    assert any("tcp://10.0.0.2:2" in r.getMessage() and "comm closed" in r.getMessage() for r in caplog.records)
+    answers["tcp://10.0.0.3:3"] = "not writable here"
+    with pytest.raises(EngineError, match=r"^shared_dir='.*': not writable here \(worker tcp://10.0.0.3:3\)"):
+        DaskEngine(cluster.scheduler_address, shared_dir=tmp_path).open()
