@@ -279,6 +279,7 @@ class FrfFit:
     bandwidth_identified: bool = True  # False: the coherent band ends below the pole; the prior's bandwidth is used
     kernel_plant: dict[str, Any] | None = None  # the plant the kernel fit finished on (None: analytic model only)
     drive_delay_s: float = 0.0  # the lab's wire and host on the drive in the kernel fit; delay_s includes it
+    current_limited_ticks: int = 0  # ticks whose drive was taken at the driver's current limit (linear_frf)
 
     def response(self, f_hz: np.ndarray) -> np.ndarray:
         """The fitted response: the kernel's own (:func:`linear_plant_frf`) where the fit finished on it."""
@@ -410,10 +411,45 @@ def _kernel_plant(plant: Mapping[str, Any], axis: str, x: np.ndarray, with_mode:
     return c
 
 
-def linear_frf(log: FitLog, *, coherence_min: float = 0.8) -> tuple[Any, float, float]:
+def armature_current_a(drive_counts: np.ndarray, rate_dps: np.ndarray, motor: Mapping[str, Any]) -> np.ndarray:
+    """The armature current (A) a drive makes at the motor's rate, ``i = (clip(u V_count, bus) - K_e w) / R``, from
+    the plant file's motor (``motor_<axis>``); the inductance's lag (L / R ~0.1 ms) left out."""
+    volts = np.clip(drive_counts * motor["volts_per_count"], -motor["bus_voltage_v"], motor["bus_voltage_v"])
+    return (volts - motor["back_emf_v_s_per_rad"] * np.radians(rate_dps)) / motor["resistance_ohm"]
+
+
+def drive_at_current_limit(drive_counts: np.ndarray, rate_dps: np.ndarray, motor: Mapping[str, Any],
+                           current_limit_a: float) -> tuple[np.ndarray, int]:
+    """The drive the plant received where the driver held the current at ``current_limit_a``: on those ticks the drive
+    (counts, as a float) whose current is the limit (:func:`armature_current_a` inverted), elsewhere the commanded
+    one; and how many ticks were limited. The driver's limit acts inside the power stage, so the log's commanded
+    drive is not the plant's input there: a few limited ticks bias an FRF of the command (hidden plant 14: 20 ticks
+    at 64 Hz moved k_m by +1 % and read a 355 Hz gyro pole as a pinned 303 +- 15 Hz)."""
+    i = armature_current_a(drive_counts, rate_dps, motor)
+    limited = np.abs(i) > current_limit_a
+    if not limited.any():
+        return np.asarray(drive_counts, dtype=float), 0
+    held = (np.clip(i, -current_limit_a, current_limit_a) * motor["resistance_ohm"]
+            + motor["back_emf_v_s_per_rad"] * np.radians(rate_dps)) / motor["volts_per_count"]
+    return np.where(limited, held, drive_counts), int(np.count_nonzero(limited))
+
+
+class LinearFrf(NamedTuple):
+    """:func:`linear_frf`'s result."""
+
+    frf: Any  # hil.analysis.Frf
+    f_lo_hz: float  # the sweep's lower frequency
+    dt_s: float  # the log's tick
+    current_limited_ticks: int  # ticks whose drive was taken at the driver's current limit (drive_at_current_limit)
+
+
+def linear_frf(log: FitLog, *, coherence_min: float = 0.8, motor: Mapping[str, Any] | None = None,
+               current_limit_a: float | None = None) -> LinearFrf:
     """The ident log's FRF (``hil.analysis.estimate_sweep_frf``) with the bins the loop did not pass linearly
     (:func:`nonlinear_bins`) at coherence 0; its sweep's lower frequency and the log's tick. :class:`UnusableSweep`
-    if no linear, coherent bin is left below ``LINEAR_LOW_HZ``."""
+    if no linear, coherent bin is left below ``LINEAR_LOW_HZ``. With the axis' ``motor`` (the plant file's
+    ``motor_<axis>``) and the driver's ``current_limit_a``, the FRF's input is the drive the plant received
+    (:func:`drive_at_current_limit`); ``current_limited_ticks`` counts the ticks it changed."""
     ax = log.axis or "el"
     sweep = SweptSine(**log.excitation) if log.excitation else None
     r, u, y = log.loop[f"rate_cmd_{ax}_dps"], log.loop[f"drive_{ax}_counts"], log.gyro(ax)
@@ -425,7 +461,10 @@ def linear_frf(log: FitLog, *, coherence_min: float = 0.8) -> tuple[Any, float, 
     a, b = max(0, k0 + round((sweep.window_s[0] - pad) / dt)), min(r.size, k0 + round((sweep.window_s[1] + pad) / dt))
     f_lo, f_hi = sorted((sweep.f_start_hz, sweep.f_stop_hz))
     f_hi = min(f_hi, 0.45 / dt)
-    frf = estimate_sweep_frf(r[a:b], u[a:b], y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi)
+    u_in, limited = u[a:b], 0
+    if motor is not None and current_limit_a is not None:
+        u_in, limited = drive_at_current_limit(u[a:b], y[a:b], motor, current_limit_a)
+    frf = estimate_sweep_frf(r[a:b], u_in, y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi)
     max_drive = float((log.config.get("safety") or {}).get("max_drive_counts") or 0.0)
     nonlinear = nonlinear_bins(frf.freq_hz, sweep, u, y, dt, k0, max_drive)
     if np.any(nonlinear):  # the clipped or reversed stretches are not the plant's linear response: left out
@@ -439,21 +478,24 @@ def linear_frf(log: FitLog, *, coherence_min: float = 0.8) -> tuple[Any, float, 
                 f"axis={ax} again, with a controller whose b0 is nearer this axis (PI + LPF: docs/ident.md) or a "
                 "smaller amplitude")
         frf = replace(frf, coherence=np.where(nonlinear, 0.0, frf.coherence))
-    return frf, f_lo, dt
+    return LinearFrf(frf, f_lo, dt, limited)
 
 
 def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
-                           spring_q: float | None = None, drive_delay_s: float = 0.0) -> FrfFit:
+                           spring_q: float | None = None, drive_delay_s: float = 0.0,
+                           current_limit_a: float | None = None) -> FrfFit:
     """The ident log's FRF (``hil.analysis.estimate_sweep_frf``, indirect, at two resolutions) and the joint least-
     squares fit on its coherent bins: log-magnitude (nepers) and phase (rad) alike, weights ``g/(1-g)/f`` as
     ``hil.analysis.fit_plant``. The rigid fit of ``hil.analysis`` starts it; the mode's frequency starts from a grid
     over the band. ``drive_delay_s``: the lab's wire and host (:func:`lab_wire_delay_s`); the kernel's fit puts it
     on the drive, where the lab has it, and fits the gyro's own delay. The result's ``delay_s`` is the whole
-    transport delay, both together."""
+    transport delay, both together. ``current_limit_a``: the driver's current limit on this axis (the torque
+    balance's), with ``prior``'s motor: the FRF takes the drive the plant received (:func:`linear_frf`)."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     ax = log.axis or "el"
-    frf, f_lo, dt = linear_frf(log, coherence_min=coherence_min)
+    motor = prior.get(f"motor_{ax}") if prior is not None else None
+    frf, f_lo, dt, limited = linear_frf(log, coherence_min=coherence_min, motor=motor, current_limit_a=current_limit_a)
     try:
         rigid = fit_plant(frf, coherence_min=coherence_min, f_min_hz=2.0 * f_lo, lag=True)
     except ValueError as exc:
@@ -565,6 +607,7 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
         rms_deg=float(np.degrees(np.sqrt(np.mean(np.angle(np.exp(1j * e.imag)) ** 2)))),
         f_range_hz=(float(fs.min()), f_top), frf=frf, log=log.name, bandwidth_identified=bandwidth_identified,
         kernel_plant=kernel_plant, drive_delay_s=drive_delay_s if kernel_plant is not None else 0.0,
+        current_limited_ticks=limited,
     )
 
 
@@ -725,8 +768,7 @@ def fit_mechanics(logs: list[FitLog], axis: str, plant: Mapping[str, Any], *, ba
     reaches a stick (|v| < ``stick_dps``, where friction is the unknown holding torque) are left out. ``fixed``
     holds coefficients (``cable_n_m_per_rad``, ``m_rho_z_kg_mm``) at given values instead of fitting them."""
     m = plant[f"motor_{axis}"]
-    kt, ke, r_ohm, vpc, bus = (m["torque_constant_n_m_per_a"], m["back_emf_v_s_per_rad"], m["resistance_ohm"],
-                               m["volts_per_count"], m["bus_voltage_v"])
+    kt = m["torque_constant_n_m_per_a"]
     j_kg_m2 = m["inertia_kg_m2"]
     use = [lg for lg in logs if lg.kind in ("swing", "ident")]
     if not use:
@@ -741,9 +783,7 @@ def fit_mechanics(logs: list[FitLog], axis: str, plant: Mapping[str, Any], *, ba
         v_dps = savgol_filter(theta_deg, 9, 2, deriv=1, delta=dt)
         v_mid = 0.5 * (v_dps[:-1] + v_dps[1:])  # over the tick k -> k + 1
         th_mid = np.radians(0.5 * (theta_deg[:-1] + theta_deg[1:]))
-        u = lg.loop[f"drive_{axis}_counts"][:-1]
-        volts = np.clip(u * vpc, -bus, bus)
-        i_cmd = (volts - ke * np.radians(v_mid)) / r_ohm
+        i_cmd = armature_current_a(lg.loop[f"drive_{axis}_counts"][:-1], v_mid, m)
         g = lg.gyro(axis)
         half = max(1, round(smooth_ms * 1e-3 / dt))
         acc = np.radians(np.diff(_smooth(g, half))) / dt  # rad/s^2 over the tick k -> k + 1
@@ -973,9 +1013,13 @@ def fit_logs(paths: list[str | Path], *, prior: str | Path | Mapping[str, Any] |
     plant, lin_est, frfs = _linear_pass(logs, base, plant, None, wire_s)
     plant, mech_est, mech = _mechanics_pass(logs, base, plant, say, wire_s)
     if frfs:  # again, with the low-frequency spring the torque balance found (k_c, gravity on the imbalance)
-        say("frequency response, with the springs of the torque balance")
-        springs = {f.axis: _spring_q(plant, f.axis, logs) for f in frfs}
-        plant, lin_est, frfs = _linear_pass(logs, base, plant, springs, wire_s)
+        say("frequency response, with the springs and the current limits of the torque balance")
+        springs = {f.axis: sweep_spring_q(plant, f.axis, logs) for f in frfs}
+        limits = {axis: m.current_limit_a for axis, m in mech.items()}
+        plant, lin_est, frfs = _linear_pass(logs, base, plant, springs, wire_s, current_limits=limits)
+        notes += [f"{f.log}: the driver held the {f.axis} current at its {limits[f.axis]:.2f} A limit (the torque "
+                  f"balance's) on {f.current_limited_ticks} ticks of the sweep; the frequency response takes the "
+                  "drive the plant received there, not the commanded one" for f in frfs if f.current_limited_ticks]
         plant, mech_est, mech = _mechanics_pass(logs, base, plant, say, wire_s)
     if frfs:
         bw, td = float(plant["gyro"]["bandwidth_hz"]), float(plant["gyro"]["delay_s"])
@@ -994,18 +1038,20 @@ def fit_logs(paths: list[str | Path], *, prior: str | Path | Mapping[str, Any] |
 
 
 def _linear_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str, Any],
-                 springs: Mapping[str, float] | None,
-                 wire_s: float = 0.0) -> tuple[dict[str, Any], list[Estimate], list[FrfFit]]:
+                 springs: Mapping[str, float] | None, wire_s: float = 0.0, *,
+                 current_limits: Mapping[str, float | None] | None = None,
+                 ) -> tuple[dict[str, Any], list[Estimate], list[FrfFit]]:
     """k_m, the structural modes, the gyro's bandwidth and delay from the ident logs, set in ``plant``. The FRF's
     delay is the whole transport delay from the drive command to the gyro: the gyro's is what is left after the
-    lab's ``wire_s`` (:func:`lab_wire_delay_s`), never below 0."""
+    lab's ``wire_s`` (:func:`lab_wire_delay_s`), never below 0. ``current_limits``: per axis, the driver's current
+    limit the torque balance found (None: not reached), which the FRFs take into account (:func:`linear_frf`)."""
     frfs: list[FrfFit] = []
     unusable: dict[str, str] = {}  # axis -> why its ident log was left out
     fitted_logs: list[FitLog] = []  # the log of each of frfs
 
     def fit_one(lg: FitLog, prior: Mapping[str, Any]) -> FrfFit:
         return fit_frequency_response(lg, prior=prior, spring_q=(springs or {}).get(lg.axis or ""),
-                                      drive_delay_s=wire_s)
+                                      drive_delay_s=wire_s, current_limit_a=(current_limits or {}).get(lg.axis or ""))
 
     for lg in logs:
         if lg.kind != "ident":
@@ -1158,7 +1204,7 @@ def _mechanics_pass(logs: list[FitLog], base: Mapping[str, Any], plant: dict[str
     return plant, est, mech
 
 
-def _spring_q(plant: Mapping[str, Any], axis: str, logs: list[FitLog]) -> float:
+def sweep_spring_q(plant: Mapping[str, Any], axis: str, logs: list[FitLog]) -> float:
     """K / J of the spring an ident sweep on ``axis`` feels: the cable, plus for elevation gravity on the imbalance
     at the sweep's mean elevation (``T = -m rho_z g sin(el) - m rho_x g cos(el)``, linearised)."""
     k = float(((plant.get("cable") or {}).get(axis) or {}).get("stiffness_n_m_per_rad") or 0.0)
