@@ -29,6 +29,7 @@ from hil.fit.record import campaign_on_plant, record, record_platform_logs, reco
 from hil.fit.twin import fit_frequency_response, fit_logs, lab_wire_delay_s
 
 HIDDEN_SEED = 12  # a draw of hil.fit.ranges.draw_plant; benchmarks/fit_hidden_plants.py runs others
+SEEDS_1_3 = (1, 2, 3)  # the acceptance campaign's seeds: a limit-cycling cell's single seed is noisy
 
 
 @pytest.fixture(scope="module")
@@ -169,9 +170,12 @@ def test_a_sweep_that_ends_below_the_gyro_pole_takes_the_pole_another_log_pinned
 
 def test_twin_gives_the_hidden_plants_campaign_within_15_percent(platform: dict, twin: dict) -> None:
     """ESO, ESO+KF and high-gain ESO+KF at 1 and 3 deg / 1 Hz (miss range and std, rate error std): every metric
-    on the twin within 15 % of the hidden plant's (same seeds)."""
-    hid = campaign_on_plant(platform["path"], platform["work"] / "on-hidden", duration_s=8.0)
-    twn = campaign_on_plant(twin["path"], platform["work"] / "on-twin", duration_s=8.0)
+    on the twin within 15 % of the hidden plant's, each the mean over seeds 1-3, as a campaign reports it. The
+    high-gain ESO+KF limit-cycles at 3 deg: its miss std on seed 1 alone read +7.7 %, +9.5 % and +16.8 % on three
+    twins of this plant whose parameters differ by 1e-7 (the fit's float rounding from run to run), and +6.5 % to
+    +9.4 % as the mean over the three seeds (docs/fit.md)."""
+    hid = campaign_on_plant(platform["path"], platform["work"] / "on-hidden", seeds=SEEDS_1_3, duration_s=8.0)
+    twn = campaign_on_plant(twin["path"], platform["work"] / "on-twin", seeds=SEEDS_1_3, duration_s=8.0)
     assert len(hid) == 2 * 3 * 5
     off = {k: twn[k] / v - 1.0 for k, v in hid.items()}
     assert all(math.isfinite(x) for x in off.values())
