@@ -60,6 +60,11 @@ D2R = math.pi / 180.0
 # (``|P|^2 S_uu / S``): the ident fit's P (friction left out) misses the presliding a gimbal at rest feels, and its
 # term was measured 35-75 % off below 250 Hz, a bias that adds up over bins (docs/fit.md, "Gyro noise")
 DRIVE_SHARE_MAX = 0.04
+# ... and only where P's two small-signal limits, friction sliding (viscous) and stuck (LuGre's bristles a spring
+# and damper on the motor), give noise levels within this of each other: a gimbal held at rest by a loop creeps at
+# its gyro bias and reverses with the noise, so its P lies between the two; measured 35-50 deg of phase between them
+# at 200-350 Hz on a plant whose bristles ring at ~180 Hz, where the sliding P alone read the white noise 5-9 % low
+P_SPREAD_MAX = 0.02
 NOISE_BINS_MIN = 60  # fewer bins than this below the share: the least-driven ones are kept
 BREAKAWAY_UNRESOLVED = "the breakaway is not resolved (a Stribeck rate inside the stick band)"
 G0 = 9.80665
@@ -113,6 +118,38 @@ def _bandpass_shape(f_hz: np.ndarray, centre_hz: float, bandwidth_hz: float, fs_
     return np.abs(h) ** 2 / gain
 
 
+def _residual_inflation(resid: np.ndarray, bins_hz: np.ndarray, *, dof: float, lags: int = 3) -> float:
+    """The factor a weighted least squares' 1-sigma grows by when its residuals ``resid`` (at frequencies
+    ``bins_hz``, ``dof`` degrees of freedom left) are not the independent, unit-variance ones the weights assume:
+    ``sqrt(max(1, chi2 / dof) * max(1, 1 + 2 sum_k rho_k))``, ``rho_k`` their correlation between bins ``k`` apart
+    (``k <= lags``; only pairs with no bin left out between them). Welch's Hann segments correlate neighbouring
+    bins (rho_1 = 4/9, rho_2 = 1/36 in theory), so a spectral fit that counts every bin as independent understates
+    its 1-sigma by about sqrt(1 + 2 (4/9 + 1/36)) = 1.39."""
+    ss = float(resid @ resid)
+    if ss <= 0.0 or dof <= 0.0 or resid.size < 2:
+        return 1.0
+    df = float(np.min(np.diff(bins_hz)))
+    rho_sum = 0.0
+    for k in range(1, min(lags, resid.size - 1) + 1):
+        adjacent = np.isclose(bins_hz[k:] - bins_hz[:-k], k * df)
+        rho_sum += float(resid[k:][adjacent] @ resid[:-k][adjacent]) / ss
+    return math.sqrt(max(1.0, ss / dof) * max(1.0, 1.0 + 2.0 * rho_sum))
+
+
+def _welch_variance(segments: int, nperseg: int = 1024) -> float:
+    """The variance of a Welch PSD bin over its mean squared, for ``segments`` half-overlapping Hann segments of
+    Gaussian noise: ``(1 + 2 c^2) / K``, ``c`` the window's correlation with itself half a segment on (1/6 for Hann;
+    Welch 1967)."""
+    w = np.hanning(nperseg + 1)[:-1]  # scipy.signal.welch's periodic Hann
+    c = float(w[: nperseg // 2] @ w[nperseg // 2:]) / float(w @ w)
+    return (1.0 + 2.0 * c * c) / segments
+
+
+def _over(x: np.ndarray, limit: float) -> np.ndarray:
+    """``x / limit``, zero for an infinite ``limit`` (no limit)."""
+    return x / limit if math.isfinite(limit) else np.zeros_like(x)
+
+
 class _AxisSpectrum(NamedTuple):
     """One gyro axis of :func:`fit_noise`: the bins kept, their PSD, its model (white std, band std, band centre)
     and that axis' own fit as the joint fit's start; ``k_avg`` Welch averages per bin."""
@@ -130,7 +167,8 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
               modes_hz: Mapping[str, float] | None = None,
               driven: Mapping[str, Mapping[str, Any]] | None = None,
               drive_delay_s: float = 0.0,
-              drive_share_max: float = DRIVE_SHARE_MAX) -> tuple[list[Estimate], dict[str, Any]]:
+              drive_share_max: float = DRIVE_SHARE_MAX,
+              p_spread_max: float = P_SPREAD_MAX) -> tuple[list[Estimate], dict[str, Any]]:
     """Gyro white noise std per axis and one band-limited component (``gyro.noise_psd``) from static logs.
 
     Welch PSD (1024-sample Hann segments) of each gyro axis above ``f_min_hz`` (above the rate loop's bandwidth, so
@@ -141,9 +179,11 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
     back, ringing the structure): with ``driven`` (gyro axis -> a plant whose drive -> gyro response the ident fit
     has set), the spectrum is that of ``gyro - P drive``, ``S_yy - 2 Re(P* S_uy) + |P|^2 S_uu``
     (:func:`linear_plant_frf`, the lab's wire and host ``drive_delay_s`` on the drive), and only the bins where the
-    drive's part ``|P|^2 S_uu`` is under ``drive_share_max`` of the PSD count (P's error there is a bias, not noise;
-    at least :data:`NOISE_BINS_MIN`, the least driven); bins within 20 % of ``modes_hz`` (gyro axis -> structural
-    mode) are left out. The undriven x axis pins the band where a driven axis keeps few bins.
+    drive's part ``|P|^2 S_uu`` is under ``drive_share_max`` of the PSD and where P sliding and P stuck
+    (``at_rest``) give PSDs within ``p_spread_max`` of each other count (P's error there is a bias, not noise; at
+    least :data:`NOISE_BINS_MIN`, the least driven); bins within 20 % of ``modes_hz`` (gyro axis -> structural
+    mode) are left out. The undriven x axis pins the band where a driven axis keeps few bins. Each 1-sigma is the
+    least squares' own, grown by :func:`_residual_inflation` (neighbouring Welch bins are not independent).
     Bias: x from its mean (no loop on it), y and z from the encoders' drift (the loop holds the measured rate at
     zero, so the gimbal turns at minus the bias)."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
@@ -171,7 +211,9 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
         steps = np.diff(levels)
         lsb = float(np.median(steps[steps > 0])) if steps.size else 0.0
         f, pxx = welch(x, fs=fs, nperseg=1024)
-        share = np.zeros(f.size)  # the part of each bin the loop's drive put there
+        # how far each bin is from being trusted, 1 at the limit: the part the loop's drive put there over
+        # drive_share_max, the spread between P sliding and P stuck over p_spread_max, whichever is larger
+        doubt = np.zeros(f.size)
         sel = (f >= f_min_hz) & (f < 0.5 * fs * 0.98)
         motor = {"y": "el", "z": "az"}.get(ax)
         if driven is not None and motor is not None and ax in driven:
@@ -181,19 +223,25 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
             u = u - u.mean()
             _, s_uu = welch(u, fs=fs, nperseg=1024)
             _, s_uy = csd(u, x, fs=fs, nperseg=1024)
-            resp = np.zeros(f.size, dtype=complex)
-            resp[1:] = linear_plant_frf(driven[ax], motor, f[1:], drive_delay_s=drive_delay_s)
-            moved = np.abs(resp) ** 2 * s_uu
-            pxx = np.maximum(pxx - 2.0 * np.real(np.conj(resp) * s_uy) + moved, 1e-3 * pxx)
-            share = moved / pxx
+            raw, est = pxx, {}
+            for at_rest in (False, True):
+                resp = np.zeros(f.size, dtype=complex)
+                resp[1:] = linear_plant_frf(driven[ax], motor, f[1:], drive_delay_s=drive_delay_s, at_rest=at_rest)
+                moved = np.abs(resp) ** 2 * s_uu
+                est[at_rest] = np.maximum(raw - 2.0 * np.real(np.conj(resp) * s_uy) + moved, 1e-3 * raw), moved
+            (pxx, moved), (stuck, _) = est[False], est[True]
+            doubt = np.maximum(_over(moved / pxx, drive_share_max), _over(np.abs(stuck / pxx - 1.0), p_spread_max))
         if (mode := (modes_hz or {}).get(ax)):  # the mode's damping is the least certain part of P
             sel &= np.abs(f - mode) > 0.2 * mode
         if driven is not None and motor is not None and ax in driven:
-            quiet = sel & (share < drive_share_max)
+            quiet = sel & (doubt < 1.0)
             if quiet.sum() < NOISE_BINS_MIN:
-                quiet = sel & (share <= np.sort(share[sel])[min(NOISE_BINS_MIN, int(sel.sum())) - 1])
+                quiet = sel & (doubt <= np.sort(doubt[sel])[min(NOISE_BINS_MIN, int(sel.sum())) - 1])
             sel = quiet
-        f, pxx = f[sel], pxx[sel]
+        k_avg = max(1, x.size // 512 - 1)  # Welch segments per bin (1024 samples, half overlapping)
+        # least squares on PSD / model - 1 settles on E[PSD^2] / E[PSD] = (1 + v) E[PSD], v the variance of a bin
+        # over its mean squared: divided out, so the fit is unbiased (+0.9 % on the white std of a 30 s log if not)
+        f, pxx = f[sel], pxx[sel] / (1.0 + _welch_variance(k_avg))
         q_floor = lsb * lsb / 12.0
         shape = functools.partial(_bandpass_shape, f, bandwidth_hz=bw, fs_hz=fs)
 
@@ -204,12 +252,11 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
         best = None
         for fc0 in (320.0, 380.0, 440.0, float(psd_prior["centre_hz"])):
             p0 = np.array([math.sqrt(max(np.median(pxx) * fs / 2.0 - q_floor, 1e-8)), 0.01, fc0])
-            res = least_squares(lambda p, pxx=pxx, model=model: pxx / model(p) - 1.0, p0,  # unbiased (log would
-                                bounds=([1e-5, 0.0, fc_lo], [1.0, 1.0, fc_hi]))  # be biased by ~1/K)
+            res = least_squares(lambda p, pxx=pxx, model=model: pxx / model(p) - 1.0, p0,
+                                bounds=([1e-5, 0.0, fc_lo], [1.0, 1.0, fc_hi]))
             if best is None or res.cost < best.cost:
                 best = res
         assert best is not None
-        k_avg = max(1, x.size // 512 - 1)  # each Welch bin of ~2 x (segments) averages: log-PSD std 1/sqrt(K)
         axes_fit.append(_AxisSpectrum(ax, lsb, f, pxx, model, best.x, k_avg))
     # one joint fit: each axis its white noise, the three one band (the plant's model: one component for all axes),
     # which the undriven x axis pins where a driven axis keeps only the bins its drive leaves alone
@@ -225,6 +272,15 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
     res = least_squares(joint, np.array([*starts[:, 0], sc0, fc0]),
                         bounds=([1e-5] * n_ax + [0.0, fc_lo], [1.0] * n_ax + [1.0, fc_hi]))
     sig = np.sqrt(np.clip(np.diag(np.linalg.pinv(res.jac.T @ res.jac)), 0.0, None))
+    # each axis' white noise by its own residuals; the shared band by all of them (its 2 parameters shared out)
+    bounds = np.cumsum([0] + [a.f_hz.size for a in axes_fit])
+    n_bins = int(bounds[-1])
+    for i, a in enumerate(axes_fit):
+        sig[i] *= _residual_inflation(res.fun[bounds[i]:bounds[i + 1]], a.f_hz,
+                                      dof=a.f_hz.size - 1.0 - 2.0 * a.f_hz.size / n_bins)
+    sig[-2:] *= max(_residual_inflation(res.fun[bounds[i]:bounds[i + 1]], a.f_hz,
+                                        dof=a.f_hz.size - 1.0 - 2.0 * a.f_hz.size / n_bins)
+                    for i, a in enumerate(axes_fit))
     std_c, centre = float(res.x[-2]), float(res.x[-1])
     for i, (ax, lsb, f, pxx, model, _, _) in enumerate(axes_fit):
         name = f"gyro.noise_std_dps.{ax}"
@@ -314,7 +370,7 @@ def _spring_factor(s: np.ndarray, q: float | None) -> np.ndarray:
 
 
 def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n_ticks: int = 2048,
-                     drive_delay_s: float = 0.0) -> np.ndarray:
+                     drive_delay_s: float = 0.0, at_rest: bool = False) -> np.ndarray:
     """The emulated plant's own drive -> gyro response of ``axis`` (deg/s per count) at ``f_hz``, as the 1 kHz loop
     sees it (drive k held over the tick after sample k, from ``drive_delay_s`` after that tick's start: the lab's
     wire and host, whole ticks of it as a delay line, as the emulator applies them): the plant kernel run on a
@@ -325,10 +381,12 @@ def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n
     against the gyro's pole. The cable's spring is the fit's own ``q`` (:func:`_spring_factor`). Exact for whatever
     the kernel does (zero-order hold, the two-mass mode, the gyro's lag and delay discretised as the emulator does
     them; a delay on the drive is not the same as as much more of the gyro's: the gyro's fraction of a tick is
-    interpolated between tick ends)."""
+    interpolated between tick ends). ``at_rest``: the response of a gimbal stuck in friction instead (a doublet far
+    below the breakaway, every friction model as configured: LuGre's bristles a stiff spring and damper on the
+    motor), what a loop holding the platform at rest sees at the top of its sliding-or-stuck range."""
 
     c = copy.deepcopy(dict(plant))
-    for ax in AXES:
+    for ax in () if at_rest else AXES:
         damping = (float(c["friction"][ax].get("viscous_n_m_s_per_rad") or 0.0)
                    + float(((c.get("cable") or {}).get(ax) or {}).get("damping_n_m_s_per_rad") or 0.0))
         c["friction"][ax] = {"coulomb_n_m": 0.0, "viscous_n_m_s_per_rad": damping,
@@ -341,7 +399,8 @@ def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n
     c["camera"] = {**c["camera"], "centroid_noise_std_px": 0.0}
     plant_obj = Plant(PlantConfig.model_validate(c), seed=1)
     u = np.zeros(n_ticks)
-    u[8], u[9] = 1000.0, -1000.0  # a doublet: the rate returns to rest, so the response decays within the record
+    amp = 1e-3 if at_rest else 1000.0  # counts: at rest, far below any breakaway torque
+    u[8], u[9] = amp, -amp  # a doublet: the rate returns to rest, so the response decays within the record
     zero = np.zeros(n_ticks)
     whole_ticks = int(drive_delay_s / Plant.TICK_S + 1e-9)
     out = plant_obj.run(u if axis == "az" else zero, u if axis == "el" else zero, np.zeros((n_ticks, 18)),
