@@ -120,7 +120,8 @@ PLAUSIBLE: tuple[ParamRange, ...] = (
                "(docs/emulator.md, Calibration)"),
     ParamRange("gyro.noise_std_dps", 0.01, 0.06, "deg/s", "datasheet-typical MEMS noise density at 1 kHz "
                "(paper Fig 12a: 0.0315)", log=True, target_rel=0.05,
-               resolved_by="a static session (`hil run` with profiles/swing/static.yaml, 30 s)"),
+               resolved_by="a static session (`hil run` with profiles/swing/static.yaml, 30 s; each further one "
+               "adds to it, the 1-sigma falling as 1/sqrt(their total duration))"),
     ParamRange("gyro.noise_psd.std_dps", 0.0, 0.03, "deg/s",
                "FACTS (MEMS noise shaped near its sense band; one 2nd-order component)"),
     ParamRange("gyro.noise_psd.centre_hz", 300.0, 480.0, "Hz", "FACTS (sense-mode band below Nyquist)"),

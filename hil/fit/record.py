@@ -85,7 +85,8 @@ def recording_plan(base: SessionConfig, *, static_s: float = 30.0, swing_s: floa
         return SessionConfig.model_validate(data)
 
     plan = [Recording("fit-static", "static", static_s, "the gyro's white and coloured noise and its bias (30 s: "
-                      "a 1-sigma of 1-2 % for the 5 % target; 10 s gives 2-4 %)",
+                      "a 1-sigma of 1-2 % on x for the 5 % target, up to ~5 % on y and z, where the loop's "
+                      "drive leaves fewer bins; 10 s gives 1.7 times as much)",
                       session("fit-static", None, "eso_kf", static_s, False))]
     for axis in axes:
         sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s, amplitude_dps=amplitude_dps,
