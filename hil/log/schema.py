@@ -161,6 +161,22 @@ SCHEMA: tuple[Group, ...] = (
         ),
     ),
     Group(
+        "drive",
+        "100 Hz",
+        "The motor driver's DRIVE_STATUS reports: its power stage's state and the currents it measured.",
+        (
+            Channel("t_host_ns", "i8", "ns", "host monotonic time when the report was decoded"),
+            Channel("loop_tick", "u4", "1", "the last loop tick when the report arrived"),
+            Channel("last_cmd_tick", "u4", "1", "tick of the last DRIVE_CMD the driver applied"),
+            Channel("enabled", "u1", "1", "AxisMask of the enabled axes (1 azimuth, 2 elevation)"),
+            Channel("faults", "u1", "1", "DriveFault flags (1, 2 overcurrent az, el, latched; 4 stale command)"),
+            Channel("az_current_a", "f4", "A", "azimuth motor current, measured by the driver"),
+            Channel("el_current_a", "f4", "A", "elevation motor current, measured by the driver"),
+            Channel("bus_voltage_v", "f4", "V", "DC bus voltage"),
+            Channel("stale_commands", "u4", "1", "times the stale-command timeout zeroed the output"),
+        ),
+    ),
+    Group(
         "links",
         "10 Hz",
         "Cumulative counters of the bench's frame decoders, one column set per serial link.",

@@ -184,7 +184,8 @@ def _software_version() -> str:
 def chunk_rows(group: Group) -> int:
     """Chunk length of the group's datasets: about a second of data, at most ~32 KB per chunk."""
     per_row = max(np.dtype(c.dtype).itemsize for c in group.channels)
-    by_rate = {"loop": 1024, "timing": 1024, "image": 128, "hexapod": 128, "links": 16}.get(group.name, 64)
+    by_rate = {"loop": 1024, "timing": 1024, "image": 128, "hexapod": 128, "drive": 128,
+               "links": 16}.get(group.name, 64)
     return max(1, min(by_rate, 32768 // per_row))
 
 

@@ -20,7 +20,7 @@ from hil.control.oracle import TruthSource, bind_truth
 from hil.control.registry import build_controller
 from hil.log import SessionLog
 from hil.log.schema import LATE_US, LINK_COUNTERS
-from hil.protocol import LINKS, NO_LATENCY_US, GyroSample, LoopTiming, MissDistance
+from hil.protocol import LINKS, NO_LATENCY_US, DriveStatus, GyroSample, LoopTiming, MissDistance
 from hil.telemetry import Telemetry
 
 LATE_NS = round(LATE_US * 1000)  # a cycle whose command went out more than 1 ms after its sample arrived is late
@@ -180,6 +180,11 @@ class ControlLoop:
                                    t_exposure_s=t_exp, now_s=self.t_s + (self.t0_s or 0.0))
             self.track_el.on_frame(frame=m.frame, miss_px=m.miss_y_px, track_valid=m.track_valid,
                                    t_exposure_s=t_exp, now_s=self.t_s + (self.t0_s or 0.0))
+
+    def on_drive_status(self, m: DriveStatus) -> None:
+        """Log the driver's report (its state and measured currents)."""
+        self.log.append("drive", (time.monotonic_ns(), self.last_tick or 0, m.last_tick, int(m.enabled),
+                                  int(m.faults), m.az_current_a, m.el_current_a, m.bus_voltage_v, m.stale_commands))
 
     def on_pose(self, t_profile_s: float, pose: tuple[float, ...]) -> None:
         self.log.append("hexapod", (t_profile_s, time.monotonic_ns(), *pose))

@@ -205,8 +205,9 @@ class Session:
 
     def _on_driver(self, frame: Frame) -> None:
         msg = frame.message
-        if type(msg) is DriveStatus and self.loop_ is not None and self.loop_.armed:
-            if msg.faults & 0x03:
+        if type(msg) is DriveStatus and self.loop_ is not None:
+            self.loop_.on_drive_status(msg)
+            if self.loop_.armed and msg.faults & 0x03:
                 self.fault(f"driver fault {msg.faults!r}: overcurrent, axes now disabled")
         elif type(msg) is Ident and self.loop_ is not None and self.loop_.armed:
             self.fault("driver board reset (it announced itself mid-session; the power stage is disabled)")

@@ -20,7 +20,7 @@ from hil.log.schema import Group, group_by_name
 
 ATTRS = {"config": {"test": "crash"}, "ident": {"servo": {"firmware_version": "1.2.3"}}, "seed": 1234}
 GROUPS = group_by_name(SCHEMA)
-EVERY = {"loop": 1, "timing": 1, "image": 10, "hexapod": 10, "links": 100}  # rows every N loop ticks
+EVERY = {"loop": 1, "timing": 1, "image": 10, "hexapod": 10, "drive": 10, "links": 100}  # rows every N loop ticks
 
 
 def pattern_value(dtype: str, ci: int, k: int) -> int | float | bytes:

@@ -584,13 +584,16 @@ def test_crash_writer_pattern_is_exact_in_every_dtype():
 
 def test_schema_has_the_specified_channels_and_units():
     names = [g.name for g in SCHEMA]
-    assert names == ["loop", "timing", "image", "hexapod", "links", "events"]
+    assert names == ["loop", "timing", "image", "hexapod", "drive", "links", "events"]
     loop = {c.name: (c.dtype, c.unit) for c in G["loop"].channels}
     assert len(loop) == 22
     assert loop["tick"] == ("u4", "1") and loop["t_host_ns"] == ("i8", "ns") and loop["t_s"] == ("f8", "s")
     assert loop["gyro_z_dps"] == ("f4", "deg/s") and loop["el_deg"] == ("f8", "deg")
     assert loop["drive_el_counts"] == ("i4", "counts") and loop["tick_gap"] == ("u4", "1")
     assert loop["dist_az_counts"] == ("f4", "counts") and loop["latency_us"] == ("f4", "us")
+    drive = {c.name: (c.dtype, c.unit) for c in G["drive"].channels}
+    assert drive["az_current_a"] == drive["el_current_a"] == ("f4", "A") and drive["bus_voltage_v"] == ("f4", "V")
+    assert drive["last_cmd_tick"] == ("u4", "1") and drive["faults"] == ("u1", "1")
     links = [c.name for c in G["links"].channels]
     assert len(links) == 37 and links[1] == "servo_frames_ok" and links[-1] == "hexapod_rejected"
     assert {c.name: c.dtype for c in G["events"].channels} == {

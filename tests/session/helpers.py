@@ -102,15 +102,17 @@ def within_session(group: str, g: dict, loop: dict, ticks: int) -> int:  # type:
         return int(np.count_nonzero(np.asarray(g["t_exposure_s"]) <= loop["t_s"][ticks - 1]))
     if group == "timing":
         return int(np.count_nonzero(np.asarray(g["tick"]) < ticks))
+    if group == "drive":  # DRIVE_STATUS every 10 world ticks, logged beside the loop tick it arrived after
+        return int(np.count_nonzero(np.asarray(g["loop_tick"]) < ticks))
     return ticks // 10  # hexapod: POSE every 10 world ticks from the first
 
 
 def assert_same_channels(a: Path, b: Path, ticks: int) -> int:
-    """Every dataset of /loop, /image, /hexapod and /timing in the session's first ``ticks`` ticks equal, the
-    host's clock aside. Returns the number of values compared."""
+    """Every dataset of /loop, /image, /hexapod, /timing and /drive in the session's first ``ticks`` ticks equal,
+    the host's clock aside. Returns the number of values compared."""
     la, lb = read_log(a), read_log(b)
     compared = 0
-    for group in ("loop", "image", "hexapod", "timing"):
+    for group in ("loop", "image", "hexapod", "timing", "drive"):
         ga, gb = la.groups[group], lb.groups[group]
         assert set(ga) == set(gb), group
         n = within_session(group, ga, la.groups["loop"], ticks)
