@@ -63,7 +63,7 @@ DRIVE_SHARE_MAX = 0.04
 # ... and only where P's two small-signal limits, friction sliding (viscous) and stuck (LuGre's bristles a spring
 # and damper on the motor), give noise levels within this of each other: a gimbal held at rest by a loop creeps at
 # its gyro bias and reverses with the noise, so its P lies between the two; measured 35-50 deg of phase between them
-# at 200-350 Hz on a plant whose bristles ring at ~180 Hz, where the sliding P alone read the white noise 5-9 % low
+# at 200-350 Hz on plants whose bristles ring at 170-225 Hz, where the sliding P alone read the white noise 5-9 % low
 P_SPREAD_MAX = 0.02
 NOISE_BINS_MIN = 60  # fewer bins than this below the share: the least-driven ones are kept
 BREAKAWAY_UNRESOLVED = "the breakaway is not resolved (a Stribeck rate inside the stick band)"
