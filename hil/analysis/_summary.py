@@ -112,6 +112,14 @@ def summarize_log(path: str | Path, settle_s: float = 1.0, *, data: LogData | No
         out[f"rate_error_{axis}_dps"] = _spread(err)
         drive = loop.get(f"drive_{axis}_counts", np.zeros(0))[keep].astype(float)
         out[f"drive_ripple_{axis}_counts"] = drive_ripple(drive)
+    drive_status = data.groups.get("drive", {})
+    if drive_status.get("loop_tick") is not None and drive_status["loop_tick"].size and t.size:
+        rows = np.clip(np.searchsorted(loop["tick"], drive_status["loop_tick"]), 0, t.size - 1)
+        run = keep[rows] & (drive_status["enabled"] > 0)
+        for axis in ("el", "az"):
+            amps = np.abs(drive_status[f"{axis}_current_a"][run].astype(float))
+            out[f"motor_current_{axis}_a"] = {"rms": float(np.sqrt(np.mean(amps**2))) if amps.size else float("nan"),
+                                              "peak": float(np.max(amps)) if amps.size else float("nan")}
     if image:
         ti = image["t_exposure_s"]
         valid = (image["track_valid"] > 0) & ((ti - t0) >= settle_s) & ((ti - t0) < run_s)

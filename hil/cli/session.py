@@ -94,6 +94,9 @@ def print_summary(s: dict[str, Any]) -> None:
         e = s[f"rate_error_{axis}_dps"]
         t.add_row(f"rate error {axis}: range +- / std", f"{_fmt(e['range_pm'])} / {_fmt(e['std'])}", "deg/s")
         t.add_row(f"drive ripple {axis} (std)", _fmt(s[f"drive_ripple_{axis}_counts"], 0), "counts")
+        if (amps := s.get(f"motor_current_{axis}_a")) is not None:
+            t.add_row(f"motor current {axis}: rms / peak", f"{_fmt(amps['rms'], 2)} / {_fmt(amps['peak'], 2)}",
+                      "A, the driver's DRIVE_STATUS")
     if "miss_x_px" in s:
         for axis in ("x", "y"):
             m = s[f"miss_{axis}_px"]

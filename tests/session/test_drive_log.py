@@ -7,8 +7,10 @@ import asyncio
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from firmware_stub.plant import DEFAULT_PLANT_CONFIG
+from hil.analysis import summarize_log
 from hil.config import PROFILES
 from hil.fit.ranges import load_plant_dict
 from hil.fit.twin import armature_current_a
@@ -40,3 +42,14 @@ def test_the_logged_currents_are_those_the_logged_drive_makes(tmp_path: Path) ->
         assert rms > 0.5, (axis, rms)  # the swing takes amperes
         assert float(np.sqrt(np.mean((made[rows[ok]] - measured) ** 2))) < 0.015 * rms, axis
         assert float(np.sqrt(np.mean((made[rows[ok] + 1] - measured) ** 2))) > 0.02 * rms, axis
+    # the session's summary: the currents over the run (the first settle_s and the wind-down left out)
+    summary = summarize_log(result.log_path)
+    t_s = np.asarray(loop["t_s"]) - float(loop["t_s"][0])
+    in_run = (t_s >= summary["settle_s"]) & (t_s < 3.0)
+    reports = in_run[np.searchsorted(np.asarray(loop["tick"]), np.asarray(drive["loop_tick"]))] & enabled
+    assert 190 <= reports.sum() <= 201  # 100 Hz over the 2 s after the settle
+    for axis in ("az", "el"):
+        amps = np.abs(np.asarray(drive[f"{axis}_current_a"], dtype=float)[reports])
+        got = summary[f"motor_current_{axis}_a"]
+        assert got["rms"] == pytest.approx(np.sqrt(np.mean(amps ** 2)), rel=1e-9) and got["rms"] > 0.5
+        assert got["peak"] == pytest.approx(amps.max(), rel=1e-9) and got["peak"] > got["rms"]
