@@ -15,7 +15,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from hil.protocol import LINKS
+from hil.protocol import CATALOGUE, LINKS, DriveStatus
 
 LOG_FORMAT_VERSION = 1
 
@@ -69,6 +69,19 @@ def _links_channels() -> tuple[Channel, ...]:
     out = [Channel("t_host_ns", "i8", "ns", "host monotonic time when the counters were read")]
     for link in LINKS:
         out += [Channel(f"{link}_{name}", "u4", "1", f"{link} link: {doc}") for name, doc in LINK_COUNTER_DOCS.items()]
+    return tuple(out)
+
+
+_LOG_DTYPE = {"u8": "u1", "bool": "u1", "u32": "u4", "i32": "i4"}  # a catalogue field's unscaled integer kinds
+
+
+def _message_channels(message: type) -> tuple[Channel, ...]:
+    """One channel per field of a catalogue message, named and documented as the catalogue has it: a scaled field
+    as ``f4`` in its engineering unit, an integer one in its own width (docs/protocol.md)."""
+    out = []
+    for f in CATALOGUE.by_type[message].fields:
+        w = f.wire
+        out.append(Channel(f.name, "f4" if w.scale != 1 else _LOG_DTYPE[w.kind], w.unit or "1", w.doc))
     return tuple(out)
 
 
@@ -167,13 +180,7 @@ SCHEMA: tuple[Group, ...] = (
         (
             Channel("t_host_ns", "i8", "ns", "host monotonic time when the report was decoded"),
             Channel("loop_tick", "u4", "1", "the last loop tick when the report arrived"),
-            Channel("last_cmd_tick", "u4", "1", "tick of the last DRIVE_CMD the driver applied"),
-            Channel("enabled", "u1", "1", "AxisMask of the enabled axes (1 azimuth, 2 elevation)"),
-            Channel("faults", "u1", "1", "DriveFault flags (1, 2 overcurrent az, el, latched; 4 stale command)"),
-            Channel("az_current_a", "f4", "A", "azimuth motor current, measured by the driver"),
-            Channel("el_current_a", "f4", "A", "elevation motor current, measured by the driver"),
-            Channel("bus_voltage_v", "f4", "V", "DC bus voltage"),
-            Channel("stale_commands", "u4", "1", "times the stale-command timeout zeroed the output"),
+            *_message_channels(DriveStatus),
         ),
     ),
     Group(

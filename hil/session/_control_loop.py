@@ -183,8 +183,7 @@ class ControlLoop:
 
     def on_drive_status(self, m: DriveStatus) -> None:
         """Log the driver's report (its state and measured currents)."""
-        self.log.append("drive", (time.monotonic_ns(), self.last_tick or 0, m.last_tick, int(m.enabled),
-                                  int(m.faults), m.az_current_a, m.el_current_a, m.bus_voltage_v, m.stale_commands))
+        self.log.append("drive", (time.monotonic_ns(), self.last_tick or 0, *m))  # the group's fields are m's
 
     def on_pose(self, t_profile_s: float, pose: tuple[float, ...]) -> None:
         self.log.append("hexapod", (t_profile_s, time.monotonic_ns(), *pose))

@@ -593,7 +593,7 @@ def test_schema_has_the_specified_channels_and_units():
     assert loop["dist_az_counts"] == ("f4", "counts") and loop["latency_us"] == ("f4", "us")
     drive = {c.name: (c.dtype, c.unit) for c in G["drive"].channels}
     assert drive["az_current_a"] == drive["el_current_a"] == ("f4", "A") and drive["bus_voltage_v"] == ("f4", "V")
-    assert drive["last_cmd_tick"] == ("u4", "1") and drive["faults"] == ("u1", "1")
+    assert drive["last_tick"] == ("u4", "1") and drive["faults"] == ("u1", "1")
     links = [c.name for c in G["links"].channels]
     assert len(links) == 37 and links[1] == "servo_frames_ok" and links[-1] == "hexapod_rejected"
     assert {c.name: c.dtype for c in G["events"].channels} == {

@@ -21,7 +21,7 @@ from tests.session.helpers import session_config
 
 def test_the_logged_currents_are_those_the_logged_drive_makes(tmp_path: Path) -> None:
     """Under a 3 deg swing, each report's current is ``(u V_count - K_e w) / R`` of the loop row of the command it
-    names (``last_cmd_tick``), from the logged drive and encoder rate and the plant file's motor: measured within
+    names (``last_tick``), from the logged drive and encoder rate and the plant file's motor: measured within
     0.4 % rms of the current; one row off, 3.5-4 %."""
     config = session_config(duration_s=3.0, seed=3, profile=str(PROFILES / "swing" / "swing-3deg-1hz.yaml"))
     result, _ = asyncio.run(run_sim_session(config, tmp_path))
@@ -32,7 +32,7 @@ def test_the_logged_currents_are_those_the_logged_drive_makes(tmp_path: Path) ->
     assert enabled.sum() >= 290  # 100 Hz over the 3 s the loop drove both axes
     assert not np.any(np.asarray(drive["faults"])) and np.all(np.asarray(drive["bus_voltage_v"]) > 0)
     plant = load_plant_dict(DEFAULT_PLANT_CONFIG)
-    rows = np.searchsorted(np.asarray(loop["tick"]), np.asarray(drive["last_cmd_tick"]))
+    rows = np.searchsorted(np.asarray(loop["tick"]), np.asarray(drive["last_tick"]))
     ok = enabled & (rows > 0) & (rows < loop["tick"].size - 1)
     for axis in ("az", "el"):
         rate_dps = np.degrees(np.gradient(np.unwrap(np.radians(np.asarray(loop[f"{axis}_deg"]))))) / 1e-3
