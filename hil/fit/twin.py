@@ -275,12 +275,10 @@ def fit_noise(logs: list[FitLog], prior: Mapping[str, Any], *, f_min_hz: float =
     # each axis' white noise by its own residuals; the shared band by all of them (its 2 parameters shared out)
     bounds = np.cumsum([0] + [a.f_hz.size for a in axes_fit])
     n_bins = int(bounds[-1])
-    for i, a in enumerate(axes_fit):
-        sig[i] *= _residual_inflation(res.fun[bounds[i]:bounds[i + 1]], a.f_hz,
-                                      dof=a.f_hz.size - 1.0 - 2.0 * a.f_hz.size / n_bins)
-    sig[-2:] *= max(_residual_inflation(res.fun[bounds[i]:bounds[i + 1]], a.f_hz,
-                                        dof=a.f_hz.size - 1.0 - 2.0 * a.f_hz.size / n_bins)
-                    for i, a in enumerate(axes_fit))
+    grow = [_residual_inflation(res.fun[bounds[i]:bounds[i + 1]], a.f_hz,
+                                dof=a.f_hz.size - 1.0 - 2.0 * a.f_hz.size / n_bins) for i, a in enumerate(axes_fit)]
+    sig[:n_ax] *= grow
+    sig[-2:] *= max(grow)
     std_c, centre = float(res.x[-2]), float(res.x[-1])
     for i, (ax, lsb, f, pxx, model, _, _) in enumerate(axes_fit):
         name = f"gyro.noise_std_dps.{ax}"
