@@ -383,6 +383,25 @@ def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n
     below the breakaway, every friction model as configured: LuGre's bristles a stiff spring and damper on the
     motor), what a loop holding the platform at rest sees at the top of its sliding-or-stuck range."""
 
+    u = np.zeros(n_ticks)
+    amp = 1e-3 if at_rest else 1000.0  # counts: at rest, far below any breakaway torque
+    u[8], u[9] = amp, -amp  # a doublet: the rate returns to rest, so the response decays within the record
+    whole_ticks = int(drive_delay_s / Plant.TICK_S + 1e-9)
+    y = _linear_plant_run(plant, axis, u, drive_delay_s - whole_ticks * Plant.TICK_S, at_rest=at_rest)
+    w = 2.0 * math.pi * np.asarray(f_hz, dtype=float) * Plant.TICK_S
+    k = np.arange(n_ticks)
+    basis = np.exp(-1j * np.outer(w, k))
+    # the loop logs drive k beside sample k and the board applies it from the next tick on: one tick later than the
+    # kernel's own indexing (checked against hil.analysis.plant_response, whose delay matches the plant's T_d)
+    return (basis @ y) / (basis @ u) * np.exp(-1j * w * (1 + whole_ticks))
+
+
+def _linear_plant_run(plant: Mapping[str, Any], axis: str, u_counts: np.ndarray, drive_delay_s: float, *,
+                      at_rest: bool = False) -> np.ndarray:
+    """The gyro of ``axis`` (deg/s) of :func:`linear_plant_frf`'s plant (sliding: Coulomb friction, the cable's
+    spring, the imbalance, the ripple and the current limit off, the linear damping kept; ``at_rest``: every friction
+    model as configured) driven by ``u_counts`` from rest, each tick's drive taking over ``drive_delay_s`` (within
+    the tick) after its start; no noise."""
     c = copy.deepcopy(dict(plant))
     for ax in () if at_rest else AXES:
         damping = (float(c["friction"][ax].get("viscous_n_m_s_per_rad") or 0.0)
@@ -395,21 +414,34 @@ def linear_plant_frf(plant: Mapping[str, Any], axis: str, f_hz: np.ndarray, *, n
     c["gyro"] = {**c["gyro"], "noise_std_dps": [0.0, 0.0, 0.0], "noise_psd": [], "random_walk": 0.0,
                  "quantisation_lsb_dps": 0.0, "bias_dps": [0.0, 0.0, 0.0]}
     c["camera"] = {**c["camera"], "centroid_noise_std_px": 0.0}
-    plant_obj = Plant(PlantConfig.model_validate(c), seed=1)
-    u = np.zeros(n_ticks)
-    amp = 1e-3 if at_rest else 1000.0  # counts: at rest, far below any breakaway torque
-    u[8], u[9] = amp, -amp  # a doublet: the rate returns to rest, so the response decays within the record
-    zero = np.zeros(n_ticks)
+    u = np.asarray(u_counts, dtype=float)
+    zero = np.zeros(u.size)
+    gyro = "gyro_z_dps" if axis == "az" else "gyro_y_dps"
+    out = Plant(PlantConfig.model_validate(c), seed=1).run(
+        u if axis == "az" else zero, u if axis == "el" else zero, np.zeros((u.size, 18)), outputs=[gyro],
+        drive_delay_s=max(0.0, drive_delay_s))
+    return out[gyro]
+
+
+def sweep_reading(plant: Mapping[str, Any], axis: str, lin: LinearFrf, *, drive_delay_s: float = 0.0) -> np.ndarray:
+    """How the sweep's FRF estimator reads :func:`linear_plant_frf`'s plant, relative to its exact response, on
+    every bin of ``lin.frf``: the estimate (``hil.analysis.estimate_sweep_frf``: the log's own command, drive and
+    band) of that plant's gyro driven by the log's drive, over the plant's exact response. Welch's segments cut the
+    response to a chirp: near a lightly damped mode, whose ringing outlasts the chirp's crossing, and at the low
+    band's end, the estimate of a noise-free, exactly linear plant is off by up to ~0.35 dB and ~1 deg (hidden plant
+    54's elevation, a 190 Hz mode damped at 4.5 %: 0.3 dB and 0.5 deg, which its fit read as +3 us of loop
+    delay)."""
     whole_ticks = int(drive_delay_s / Plant.TICK_S + 1e-9)
-    out = plant_obj.run(u if axis == "az" else zero, u if axis == "el" else zero, np.zeros((n_ticks, 18)),
-                        drive_delay_s=max(0.0, drive_delay_s - whole_ticks * Plant.TICK_S))
-    y = out["gyro_z_dps" if axis == "az" else "gyro_y_dps"]
-    w = 2.0 * math.pi * np.asarray(f_hz, dtype=float) * Plant.TICK_S
-    k = np.arange(n_ticks)
-    basis = np.exp(-1j * np.outer(w, k))
-    # the loop logs drive k beside sample k and the board applies it from the next tick on: one tick later than the
-    # kernel's own indexing (checked against hil.analysis.plant_response, whose delay matches the plant's T_d)
-    return (basis @ y) / (basis @ u) * np.exp(-1j * w * (1 + whole_ticks))
+    shift = 1 + whole_ticks  # drive k acts from the tick after sample k (linear_plant_frf)
+    u = np.concatenate([np.zeros(shift), lin.drive_counts])[: lin.drive_counts.size]
+    y = _linear_plant_run(plant, axis, u, drive_delay_s - whole_ticks * Plant.TICK_S)
+    est = estimate_sweep_frf(lin.rate_cmd_dps, lin.drive_counts, y, lin.dt_s, f_min_hz=lin.f_lo_hz,
+                             f_max_hz=lin.f_hi_hz)
+    f = lin.frf.freq_hz
+    reading = np.ones(f.size, dtype=complex)
+    ok = (f > 0) & np.isfinite(est.response) & (np.abs(est.response) > 0)
+    reading[ok] = est.response[ok] / linear_plant_frf(plant, axis, f[ok], drive_delay_s=drive_delay_s)
+    return reading
 
 
 def _exact_refine(plant: Mapping[str, Any], axis: str, fs: np.ndarray, p: np.ndarray, wt: np.ndarray,  # noqa: PLR0917
@@ -491,6 +523,23 @@ def drive_at_current_limit(drive_counts: np.ndarray, rate_dps: np.ndarray, motor
     return np.where(limited, held, drive_counts), int(np.count_nonzero(limited))
 
 
+def drive_with_ripple(drive_counts: np.ndarray, rate_dps: np.ndarray, angle_deg: np.ndarray,
+                      motor: Mapping[str, Any], ripple: Mapping[str, Any]) -> np.ndarray:
+    """The drive (counts, as a float) whose current makes the torque the motor made: the plant file's torque ripple
+    ``K_t i (1 + a sin(N th_m))`` (docs/emulator.md, "Torque ripple"; ``th_m`` the motor-side angle the encoder
+    reads) taken into the drive, ``u + a sin(N th_m) (u - K_e w / V_count)``. Over an ident sweep the axis turns a few
+    ripple periods, so the loop's gain wanders by ``+-a`` with the sweep's frequency; read as the plant's, the
+    wander moves the gyro's pole and the delay with it (hidden plant 54: the elevation's total delay +4.4 us over
+    nine recordings)."""
+    a = float(ripple.get("amplitude_fraction") or 0.0)
+    u = np.asarray(drive_counts, dtype=float)
+    if a == 0.0:
+        return u
+    n = float(ripple["periods_per_rev"])
+    emf_counts = motor["back_emf_v_s_per_rad"] * np.radians(rate_dps) / motor["volts_per_count"]
+    return u + a * np.sin(n * np.radians(angle_deg)) * (u - emf_counts)
+
+
 class LinearFrf(NamedTuple):
     """:func:`linear_frf`'s result."""
 
@@ -498,15 +547,20 @@ class LinearFrf(NamedTuple):
     f_lo_hz: float  # the sweep's lower frequency
     dt_s: float  # the log's tick
     current_limited_ticks: int  # ticks whose drive was taken at the driver's current limit (drive_at_current_limit)
+    rate_cmd_dps: np.ndarray  # the estimate's window: the rate command
+    drive_counts: np.ndarray  # ... and the drive the FRF takes as the plant's input
+    f_hi_hz: float  # the estimate's upper frequency
 
 
 def linear_frf(log: FitLog, *, coherence_min: float = 0.8, motor: Mapping[str, Any] | None = None,
-               current_limit_a: float | None = None) -> LinearFrf:
+               current_limit_a: float | None = None, ripple: Mapping[str, Any] | None = None) -> LinearFrf:
     """The ident log's FRF (``hil.analysis.estimate_sweep_frf``) with the bins the loop did not pass linearly
     (:func:`nonlinear_bins`) at coherence 0; its sweep's lower frequency and the log's tick. :class:`UnusableSweep`
     if no linear, coherent bin is left below ``LINEAR_LOW_HZ``. With the axis' ``motor`` (the plant file's
     ``motor_<axis>``) and the driver's ``current_limit_a``, the FRF's input is the drive the plant received
-    (:func:`drive_at_current_limit`); ``current_limited_ticks`` counts the ticks it changed."""
+    (:func:`drive_at_current_limit`); ``current_limited_ticks`` counts the ticks it changed. With the motor and the
+    axis' torque ``ripple`` (the plant file's ``ripple.<axis>``, which the fit takes as it is), the drive whose
+    torque the motor made (:func:`drive_with_ripple`)."""
     ax = log.axis or "el"
     sweep = SweptSine(**log.excitation) if log.excitation else None
     r, u, y = log.loop[f"rate_cmd_{ax}_dps"], log.loop[f"drive_{ax}_counts"], log.gyro(ax)
@@ -521,6 +575,8 @@ def linear_frf(log: FitLog, *, coherence_min: float = 0.8, motor: Mapping[str, A
     u_in, limited = u[a:b], 0
     if motor is not None and current_limit_a is not None:
         u_in, limited = drive_at_current_limit(u[a:b], y[a:b], motor, current_limit_a)
+    if motor is not None and ripple:
+        u_in = drive_with_ripple(u_in, y[a:b], log.loop[f"{ax}_deg"][a:b], motor, ripple)
     frf = estimate_sweep_frf(r[a:b], u_in, y[a:b], dt, f_min_hz=f_lo, f_max_hz=f_hi)
     max_drive = float((log.config.get("safety") or {}).get("max_drive_counts") or 0.0)
     nonlinear = nonlinear_bins(frf.freq_hz, sweep, u, y, dt, k0, max_drive)
@@ -535,7 +591,7 @@ def linear_frf(log: FitLog, *, coherence_min: float = 0.8, motor: Mapping[str, A
                 f"axis={ax} again, with a controller whose b0 is nearer this axis (PI + LPF: docs/ident.md) or a "
                 "smaller amplitude")
         frf = replace(frf, coherence=np.where(nonlinear, 0.0, frf.coherence))
-    return LinearFrf(frf, f_lo, dt, limited)
+    return LinearFrf(frf, f_lo, dt, limited, r[a:b], u_in, f_hi)
 
 
 def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = None, coherence_min: float = 0.8,
@@ -547,12 +603,15 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     over the band. ``drive_delay_s``: the lab's wire and host (:func:`lab_wire_delay_s`); the kernel's fit puts it
     on the drive, where the lab has it, and fits the gyro's own delay. The result's ``delay_s`` is the whole
     transport delay, both together. ``current_limit_a``: the driver's current limit on this axis (the torque
-    balance's), with ``prior``'s motor: the FRF takes the drive the plant received (:func:`linear_frf`)."""
+    balance's), with ``prior``'s motor: the FRF takes the drive the plant received (:func:`linear_frf`), and with the
+    prior's torque ripple on the axis, the drive whose torque the motor made."""
     from scipy.optimize import least_squares  # noqa: PLC0415  (heavy: loaded only when this computation runs)
 
     ax = log.axis or "el"
     motor = prior.get(f"motor_{ax}") if prior is not None else None
-    frf, f_lo, dt, limited = linear_frf(log, coherence_min=coherence_min, motor=motor, current_limit_a=current_limit_a)
+    ripple = (prior.get("ripple") or {}).get(ax) if prior is not None else None
+    lin = linear_frf(log, coherence_min=coherence_min, motor=motor, current_limit_a=current_limit_a, ripple=ripple)
+    frf, f_lo, dt, limited = lin.frf, lin.f_lo_hz, lin.dt_s, lin.current_limited_ticks
     try:
         rigid = fit_plant(frf, coherence_min=coherence_min, f_min_hz=2.0 * f_lo, lag=True)
     except ValueError as exc:
@@ -626,8 +685,13 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     if prior is not None:  # the analytic model approximates the kernel's sampling; finish on the kernel itself
 
         def refine(x: np.ndarray, bw_fixed: float | None) -> tuple[Any, np.ndarray]:
+            nonlocal p
             x0 = x.copy()
             x0[2] = max(0.0, float(x0[2]) - drive_delay_s)  # the kernel's delay is the gyro's own
+            # the data as the kernel would read exactly: the estimator's reading of the analytic start taken out
+            reading = sweep_reading(_kernel_plant(prior, ax, x0, with_mode, bw_fixed), ax, lin,
+                                    drive_delay_s=drive_delay_s)[sel]
+            p = frf.response[sel] / reading
             ex = _exact_refine(prior, ax, fs, p, wt, x0, with_mode, bw_fixed, spring_fixed=spring_q is not None,
                                drive_delay_s=drive_delay_s)
             cov = (np.linalg.pinv(ex.jac.T @ ex.jac) * (2.0 * ex.cost / max(1, 2 * fs.size - len(ex.free)))
