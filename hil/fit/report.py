@@ -84,7 +84,7 @@ def _plot_psd(fit: TwinFit, path: Path) -> Path | None:
     fig, axes = new_figure(1, len(psd), height=3.2)
     for ax, (name, d) in zip(axes[0], psd.items(), strict=False):
         ax.loglog(d["f_hz"], d["psd"], color="0.5", lw=0.8, label="logged (static)")
-        ax.loglog(d["f_hz"], d["model"], color="C3", lw=1.5, label="fitted model")
+        ax.loglog(d["f_hz"], d["model"], color="C3", lw=1.5, label="fitted model, as the estimator reads it")
         ax.set_title(f"gyro {name}")
         ax.set_xlabel("frequency (Hz)")
         ax.set_ylabel("PSD ((deg/s)^2/Hz)")
@@ -102,6 +102,8 @@ def _plot_frf(fit: TwinFit, path: Path) -> Path | None:
         frf = f.frf
         good = frf.coherence >= 0.8
         model = f.response(frf.freq_hz)
+        if f.reading is not None:  # as the sweep's estimator reads it, so that it meets the logged points
+            model = model * f.reading
         mag, ph = axes[0][j], axes[1][j]
         mag.semilogx(frf.freq_hz[good], 20 * np.log10(np.abs(frf.response[good])), ".", ms=2, color="0.4",
                      label="logged (coherence >= 0.8)")

@@ -334,6 +334,7 @@ class FrfFit:
     kernel_plant: dict[str, Any] | None = None  # the plant the kernel fit finished on (None: analytic model only)
     drive_delay_s: float = 0.0  # the lab's wire and host on the drive in the kernel fit; delay_s includes it
     current_limited_ticks: int = 0  # ticks whose drive was taken at the driver's current limit (linear_frf)
+    reading: Any = None  # on frf's bins, how its estimator reads the kernel (sweep_reading); None: not divided out
 
     def response(self, f_hz: np.ndarray) -> np.ndarray:
         """The fitted response: the kernel's own (:func:`linear_plant_frf`) where the fit finished on it."""
@@ -682,16 +683,17 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
     if not bandwidth_identified:
         _, with_mode, res, mode_hz = search(prior_bandwidth_hz)
     kernel_plant = None
+    reading = None
     if prior is not None:  # the analytic model approximates the kernel's sampling; finish on the kernel itself
 
         def refine(x: np.ndarray, bw_fixed: float | None) -> tuple[Any, np.ndarray]:
-            nonlocal p
+            nonlocal p, reading
             x0 = x.copy()
             x0[2] = max(0.0, float(x0[2]) - drive_delay_s)  # the kernel's delay is the gyro's own
             # the data as the kernel would read exactly: the estimator's reading of the analytic start taken out
             reading = sweep_reading(_kernel_plant(prior, ax, x0, with_mode, bw_fixed), ax, lin,
-                                    drive_delay_s=drive_delay_s)[sel]
-            p = frf.response[sel] / reading
+                                    drive_delay_s=drive_delay_s)
+            p = frf.response[sel] / reading[sel]
             ex = _exact_refine(prior, ax, fs, p, wt, x0, with_mode, bw_fixed, spring_fixed=spring_q is not None,
                                drive_delay_s=drive_delay_s)
             cov = (np.linalg.pinv(ex.jac.T @ ex.jac) * (2.0 * ex.cost / max(1, 2 * fs.size - len(ex.free)))
@@ -728,7 +730,7 @@ def fit_frequency_response(log: FitLog, *, prior: Mapping[str, Any] | None = Non
         rms_deg=float(np.degrees(np.sqrt(np.mean(np.angle(np.exp(1j * e.imag)) ** 2)))),
         f_range_hz=(float(fs.min()), f_top), frf=frf, log=log.name, bandwidth_identified=bandwidth_identified,
         kernel_plant=kernel_plant, drive_delay_s=drive_delay_s if kernel_plant is not None else 0.0,
-        current_limited_ticks=limited,
+        current_limited_ticks=limited, reading=reading,
     )
 
 
