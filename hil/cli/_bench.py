@@ -53,7 +53,10 @@ def run_on_bench(url: str, file: Path, out: Path | None, json_out: bool, *, kind
 
         def on_view(view: dict[str, Any]) -> None:
             if view["state"] == "queued":
-                bar.update(task, what=f"{file.name}: waiting in {bench.url}'s queue (place {view['position']})")
+                stopped = view.get("queue_stopped")
+                why = (f"; the queue is stopped ({stopped}): `hil queue start --bench {bench.url}` starts it"
+                       if stopped else "")
+                bar.update(task, what=f"{file.name}: waiting in {bench.url}'s queue (place {view['position']}){why}")
             elif view.get("total"):
                 bar.update(task, total=view["total"], completed=view.get("cycles", 0),
                            what=f"{file.name} on {bench.url}")

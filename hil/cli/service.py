@@ -43,6 +43,10 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
     emulator_cpu: Annotated[int, typer.Option(
         help="With --loopback: pin the emulated lab to this CPU (-1: the last, where the shipped sessions put the "
              "loop and the emulator).")] = -1,
+    allow_host: Annotated[list[str] | None, typer.Option(
+        "--allow-host", help="A further host name the service answers to (its DNS name on the lab's network); "
+                             "repeatable. Requests naming any other Host are refused (docs/service.md, \"Same "
+                             "origin\").")] = None,
 ) -> None:
     """Serve the bench to the lab: the queue, the history, the lease, a live page at http://HOST:PORT/, and a
     worker that owns the boards' ports and runs one item at a time as `hil run` does. Ctrl-C stops it (a running
@@ -72,7 +76,7 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
         raise fail(f"--state-dir {state_dir}: {exc.strerror or exc}") from None
     options = ServiceOptions(state_dir=state_dir.absolute(), loopback=loopback, lab=lab.absolute() if lab else None,
                              emulator=emulator.absolute() if emulator else None, seed=seed, host=host, port=port,
-                             emulator_cpu=emulator_cpu)
+                             emulator_cpu=emulator_cpu, allow_hosts=tuple(allow_host or ()))
     shown = "localhost" if host in ("127.0.0.1", "::1") else host
     url = f"http://{shown}:{port}/"
 
@@ -82,6 +86,8 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
                           highlight=False)
         ports = ", ".join(f"{k} {v}" for k, v in _manager.worker_info.get("ports", {}).items())
         note(f"the worker holds the lab's ports: {ports}")
+        note(f"the queue is stopped ({_manager.queue_stopped}): nothing runs until an operator starts it, "
+             "`hil queue start` or Start on the page")
 
     fatal: list[str] = []
 
@@ -125,7 +131,7 @@ def queue_list(bench: BenchOption = None, json_out: JsonOption = False) -> None:
     if json_out:
         print_json(data)
         return
-    t = Table(title=f"queue ({'running' if data['running'] else 'stopped'})")
+    t = Table(title=f"queue ({'running' if data['running'] else 'stopped: ' + str(data.get('stopped') or '')})")
     for col in ("#", "uid", "kind", "name", "user", "submitted", "state"):
         t.add_column(col)
     for i, item in enumerate(data["items"]):
@@ -174,7 +180,9 @@ def queue_start(stop_on_failure: Annotated[bool, typer.Option(
         "--stop-on-failure", help="Stop the queue after an item that did not complete.")] = False,
         bench: BenchOption = None, json_out: JsonOption = False) -> None:
     """Run the queue's items one after another."""
-    show(call(client(bench).start, stop_on_failure), json_out, "the queue runs")
+    data = call(client(bench).start, stop_on_failure)
+    show(data, json_out, "the queue runs" + (f" (it was stopped: {data['was_stopped']})" if data.get("was_stopped")
+                                             else ""))
 
 
 @queue_app.command("stop")
@@ -211,7 +219,8 @@ def bench_status(bench: BenchOption = None, json_out: JsonOption = False) -> Non
         total = running.get("total") or 0
         done = f"{running.get('cycles', 0) / total:.0%}" if total else "starting"
         console.print(f"running: {running['name']} ({running['kind']}, {running['user']}) {done}", highlight=False)
-    console.print(f"queue: {'running' if q['running'] else 'stopped'}, {q['waiting']} waiting", highlight=False)
+    console.print(f"queue: {'running' if q['running'] else 'stopped (' + str(q.get('stopped')) + ')'}, "
+                  f"{q['waiting']} waiting", highlight=False)
     console.print("lease: " + (f"{lease['holder']}, {lease['remaining_s']:.0f} s left" if lease else "none"),
                   highlight=False)
 

@@ -20,12 +20,17 @@ class SubmitItem(_Body):
     kind: Literal["session", "ident", "campaign"] = "session"
     file_name: str = Field(min_length=1, max_length=255, description="the file's name, e.g. demo.yaml")
     body: str = Field(description="the file's text (a session as loaded: controller, profile and limits inline)")
-    options: dict[str, Any] = Field(default_factory=dict, description="ident: {axis: el|az}")
-    position: int | None = Field(default=None, ge=0, description="where in the queue (default: at its end)")
+    files: dict[str, str] = Field(
+        default_factory=dict, max_length=64,
+        description="the item's own files, by the relative name the item's file gives them (a campaign's session "
+        "and profiles); nothing else is read (docs/service.md, \"A submitted item stands on its own\")")
+    options: dict[str, Any] = Field(default_factory=dict, description="ident: {axis: el|az, f_start_hz, ...}")
+    position: int | None = Field(default=None, ge=0, le=1_000_000,
+                                 description="where in the queue (default: at its end)")
 
 
 class MoveItem(_Body):
-    position: int = Field(ge=0, description="0: first among the waiting items")
+    position: int = Field(ge=0, le=1_000_000, description="0: first among the waiting items")
 
 
 class StartQueue(_Body):
@@ -33,7 +38,8 @@ class StartQueue(_Body):
 
 
 class EndItem(_Body):
-    uid: str | None = Field(default=None, description="the running item's uid (refused if another one runs)")
+    uid: str | None = Field(default=None, max_length=64,
+                            description="the running item's uid (refused if another one runs)")
     reason: str = Field(default="", max_length=500)
 
 
@@ -46,16 +52,42 @@ class BreakLease(_Body):
     reason: str = Field(min_length=1, max_length=500, description="why; it goes into the lease history")
 
 
+ERROR_SCHEMA: dict[str, Any] = {"type": "object", "required": ["detail"], "additionalProperties": False,
+                                "properties": {"detail": {"type": "string", "description": "one line"}}}
+# every route may answer these: the Host and Origin checks, the token, the state store
+COMMON_ERRORS = {"400": "bad request: the Host is not this service's, the body is not JSON",
+                 "401": "no valid token (a service with tokens)",
+                 "403": "another site's page (Origin), or an operator's action asked by a viewer",
+                 "404": "no such item or record",
+                 "503": "the state store cannot be read or written now",
+                 "507": "the state store's disk is full; nothing was changed"}
+BODY_ERRORS = {"409": "not now (the lease, a running item)",
+               "413": "the body is larger than 2 MiB",
+               "415": "the body is not Content-Type: application/json",
+               "422": "bad input: one line naming the field or the file"}
+FILE_TYPES = {"/api/history/{uid}/log": "application/x-hdf5", "/api/history/{uid}/report": "text/html"}
+SUCCESS = {"/api/queue/items": "201", "/api/bench/doctor": "202"}
+
+
 def openapi_document(routes: list[tuple[Any, ...]], version: str) -> dict[str, Any]:
     """OpenAPI 3.1 for ``routes`` ((method, path, handler, operator action, body model, summary) each): every
-    route with its parameters, its body's JSON schema and its errors."""
+    route with its parameters, its body's JSON schema, and every status it may answer with its schema (errors are
+    all ``{"detail": "one line"}``)."""
     paths: dict[str, dict[str, Any]] = {}
-    schemas: dict[str, Any] = {}
+    schemas: dict[str, Any] = {"Error": ERROR_SCHEMA}
+    error = {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}
     for method, path, _handler, operator, model, summary in routes:
+        ok = SUCCESS.get(path, "200") if method == "POST" else "200"
+        media = FILE_TYPES.get(path, "application/json")
+        ok_schema = {"type": "string", "format": "binary"} if media != "application/json" else {"type": "object"}
+        responses: dict[str, Any] = {ok: {"description": "the answer", "content": {media: {"schema": ok_schema}}}}
+        responses.update({code: {"description": text, "content": error} for code, text in COMMON_ERRORS.items()})
+        if method != "GET":
+            responses.update({code: {"description": text, "content": error} for code, text in BODY_ERRORS.items()})
+        if path == "/api/history":
+            responses["422"] = {"description": "limit is not an integer", "content": error}
         op: dict[str, Any] = {"summary": summary, "operationId": f"{method.lower()}_{_op_name(path)}",
-                              "responses": {"200": {"description": "JSON (a file for /log and /report)"},
-                                            "401": {"description": "no valid token (a service with tokens)"},
-                                            "404": {"description": "no such item"}}}
+                              "responses": responses}
         params = [{"name": p, "in": "path", "required": True, "schema": {"type": "string"}}
                   for p in _path_params(path)]
         if path == "/api/history":
@@ -63,8 +95,6 @@ def openapi_document(routes: list[tuple[Any, ...]], version: str) -> dict[str, A
         if params:
             op["parameters"] = params
         if operator is not None:
-            op["responses"]["403"] = {"description": f"{operator}: needs the operator role"}
-            op["responses"]["409"] = {"description": "not now (the lease, a running item)"}
             op["description"] = f"Operators only ({operator})."
         if model is not None:
             schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
@@ -72,13 +102,14 @@ def openapi_document(routes: list[tuple[Any, ...]], version: str) -> dict[str, A
             schemas[model.__name__] = schema
             op["requestBody"] = {"required": False, "content": {"application/json": {
                 "schema": {"$ref": f"#/components/schemas/{model.__name__}"}}}}
-            op["responses"]["422"] = {"description": "bad input: one line naming the field or the file"}
         paths.setdefault(path, {})[method.lower()] = op
     return {"openapi": "3.1.0",
             "info": {"title": "hil serve", "version": version,
                      "description": "The bench as a lab service (docs/service.md). Authenticate with "
                                     "Authorization: Bearer TOKEN when the service has tokens. The live feed is the "
-                                    "WebSocket /ws (status and live messages)."},
+                                    "WebSocket /ws (status and live messages). Same origin only: a request that "
+                                    "changes state and carries an Origin must come from the service's own pages; "
+                                    "POST bodies are application/json."},
             "paths": paths, "components": {"schemas": schemas}}
 
 

@@ -36,7 +36,8 @@ class CheckedItem:
     config: Any
 
 
-def check_item(kind: str, file_name: str, body: str) -> CheckedItem:
+def check_item(kind: str, file_name: str, body: str, *, files: dict[str, str] | None = None,
+               options: dict[str, Any] | None = None) -> CheckedItem:
     """Load ``body`` as ``file_name`` of ``kind`` exactly as the command line would load that file; ItemError with
     the loader's one-line message (naming ``file_name``, never a path of the service's) if it does not load."""
     if kind not in ITEM_KINDS:

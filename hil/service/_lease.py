@@ -3,7 +3,8 @@
 A lease has a time-to-live that its holder's client renews; it lapses by itself when the client goes away (no
 renewal within the TTL), the way labgrid's places release when a CI job is cancelled. Another operator may break it,
 with a reason. Every change goes into the store's lease history, and the lease itself (holder and wall-clock expiry)
-into its settings, so a restarted service keeps a lease until it would have lapsed.
+into its settings, so a restarted service keeps a lease until it would have lapsed. A lease lapses when its time is up
+even while the store takes no writes (its disk full): the lapse is recorded once it does.
 """
 
 from __future__ import annotations
@@ -42,15 +43,25 @@ class LeaseBook:
         self.clock = clock
         saved = store.setting("lease")
         self._lease = Lease(**saved) if saved else None
+        self._lapsed: Lease | None = None  # a lapse not recorded yet (the store took no writes)
 
     def current(self) -> Lease | None:
-        """The lease in force, or None; a lease past its expiry lapses here (and is recorded so)."""
+        """The lease in force, or None; a lease past its expiry lapses here, and is recorded so (StoreUnavailable
+        if the store cannot record it now: the lease has lapsed all the same, and is recorded at the next call)."""
         lease = self._lease
         if lease is not None and self.clock() >= lease.expires_s:
-            self._set(None)
-            self.store.lease_event("lapsed", lease.holder, lease.holder, f"not renewed within {lease.ttl_s:g} s")
-            return None
-        return lease
+            self._lease, self._lapsed = None, lease
+        self._record_lapse()
+        return self._lease
+
+    def _record_lapse(self) -> None:
+        lapsed = self._lapsed
+        if lapsed is None:
+            return
+        if self._lease is None:
+            self.store.set_setting("lease", None)
+        self.store.lease_event("lapsed", lapsed.holder, lapsed.holder, f"not renewed within {lapsed.ttl_s:g} s")
+        self._lapsed = None
 
     def runs(self, user: str) -> bool:
         """May an item of ``user`` run now? Anyone's when no lease is held, else only the holder's."""
@@ -90,5 +101,6 @@ class LeaseBook:
         return lease
 
     def _set(self, lease: Lease | None) -> None:
-        self._lease = lease
+        """Record ``lease`` in the store, then hold it (StoreUnavailable: neither)."""
         self.store.set_setting("lease", None if lease is None else asdict(lease))
+        self._lease = lease

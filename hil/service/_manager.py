@@ -5,10 +5,15 @@ It owns the state (hil.service.Store, SQLite in the state directory) and the wor
 run, stop or abort, and passes the worker's live values on to the pages. A slow page or a stuck client costs only
 its own buffer (each WebSocket has its own, bounded; newer values replace older ones), never the worker's time.
 
-The queue runs when started (``POST /api/queue/start``), one item at a time, the first waiting item whose user
-may run now (the lease holder's, when a lease is held); it goes on after a failed item unless started with
-``stop_on_failure``. An item is checked when submitted (422 with the loader's one line) and again by the worker
-just before it runs.
+The queue runs when an operator starts it (``POST /api/queue/start``), one item at a time, the first waiting item
+whose user may run now (the lease holder's, when a lease is held); it goes on after a failed item unless started
+with ``stop_on_failure``. Every start of the service leaves the queue stopped, whatever it was before: nothing runs
+that an operator did not start, also after a crash. An item is checked when submitted (422 with the loader's one
+line) and again by the worker just before it runs.
+
+The state store failing (its disk full) never wedges the manager: a request that needs to write answers 507 (503
+for another SQLite error) with one line; an item's end that cannot be recorded is kept and recorded once the store
+takes writes again, and nothing new starts meanwhile; the background tasks say what happened on stderr and go on.
 """
 
 from __future__ import annotations
@@ -28,7 +33,9 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 from starlette.applications import Starlette
-from starlette.requests import HTTPConnection, Request
+from starlette.exceptions import HTTPException
+from starlette.middleware import Middleware
+from starlette.requests import ClientDisconnect, HTTPConnection, Request
 from starlette.responses import FileResponse, JSONResponse, Response
 from starlette.routing import Mount, Route, WebSocketRoute
 from starlette.staticfiles import StaticFiles
@@ -47,7 +54,8 @@ from hil.service._api_models import (
 from hil.service._auth import AuthError, Caller, Gate
 from hil.service._items import ItemError, check_item
 from hil.service._lease import LeaseBook, LeaseError
-from hil.service._store import HistoryRecord, Store, StoreError
+from hil.service._origin import SameOrigin, served_names
+from hil.service._store import HistoryRecord, Store, StoreError, StoreUnavailable
 
 _log = logging.getLogger("hil.service")
 STATIC = Path(__file__).parent / "static"
@@ -55,6 +63,7 @@ WS_SEND_HZ = 25.0  # pages get the live values this often (each message carries 
 WS_MAX_POINTS = 250  # a page that cannot keep up loses its oldest points beyond this
 STATUS_EVERY_S = 1.0  # and the status at least this often (the lease's remaining time, the queue)
 WORKER_RESTART_S = 2.0
+MAX_BODY_BYTES = 2 << 20  # a request body beyond this is refused (413) before it is read whole
 
 
 @dataclass
@@ -69,6 +78,7 @@ class ServiceOptions:
     seed: int = 0
     host: str = "127.0.0.1"
     port: int = 8765
+    allow_hosts: tuple[str, ...] = ()  # further names the service answers to (its Host check), --allow-host
 
 
 class Page:
@@ -89,8 +99,11 @@ class Manager:
                  on_fatal: Callable[[str], None] | None = None) -> None:
         self.options = options
         self.gate = gate
-        self.store, self.interrupted = Store.open(options.state_dir)
+        self.store, self.interrupted = Store.open(options.state_dir, log_for=self.log_of)
         self.lease = LeaseBook(self.store)
+        self.store_error: str | None = None  # the state store's last failure, until a write succeeds again
+        self.unrecorded: dict[str, dict[str, Any]] = {}  # items that ended while the store took no writes
+        self._last_status: dict[str, Any] = {}
         self.worker: asyncio.subprocess.Process | None = None
         self.worker_state = "starting"  # starting | ready | down
         self.worker_info: dict[str, Any] = {}
@@ -108,12 +121,47 @@ class Manager:
         self.on_fatal = on_fatal  # the first worker cannot serve (a port held by another bench): the service ends
         self.ever_ready = False
         self.items_run = 0
+        waiting = self.store.waiting()
+        restarted = waiting > 0 or bool(self.interrupted) or bool(self.store.history(1))
+        self.stop_queue("the service restarted" if restarted else "the service started")
 
     # --- the queue's settings ----------------------------------------------------------------------
 
     @property
     def queue_running(self) -> bool:
-        return bool(self.store.setting("queue_running", True))  # a new service runs what is submitted
+        return bool(self.store.setting("queue_running", False))
+
+    @property
+    def queue_stopped(self) -> str | None:
+        """Why the queue is stopped (with how many items wait), or None while it runs."""
+        if self.queue_running:
+            return None
+        why = str(self.store.setting("queue_stopped", "") or "stopped")
+        waiting = self.store.waiting()
+        return f"{why}; {waiting} item{'s' if waiting != 1 else ''} wait{'s' if waiting == 1 else ''}"
+
+    def stop_queue(self, why: str) -> None:
+        """Start no further item until an operator starts the queue; ``why`` is shown until then."""
+        self.store.set_setting("queue_stopped", why)
+        self.store.set_setting("queue_running", False)
+
+    def log_of(self, uid: str) -> str | None:
+        """The log an item left in its directory (the newest, for an item of several sessions), or None."""
+        logs = sorted((self.options.state_dir / "runs" / uid).glob("*.h5"), key=lambda p: p.stat().st_mtime)
+        return str(logs[-1]) if logs else None
+
+    def store_failed(self, what: str, exc: StoreUnavailable) -> None:
+        """Say on stderr (once per different failure) that the store refused ``what``; the service goes on."""
+        if str(exc) != self.store_error:
+            _log.error("%s: %s", what, exc)
+            self.store_error = str(exc)
+            self.changed()
+
+    def store_ok(self) -> None:
+        if self.store_error is not None:
+            _log.warning("the state store takes writes again")
+            self.store_error = None
+            self.changed()
 
     @property
     def stop_on_failure(self) -> bool:
@@ -176,13 +224,16 @@ class Manager:
                     msg = json.loads(line)
                 except ValueError:
                     continue
-                self._on_worker(msg)
+                try:
+                    self._on_worker(msg)
+                except Exception:  # a bug here must not stop the manager hearing its worker
+                    _log.exception("the worker's %r line could not be handled", msg.get("ev"))
             code = await self.worker.wait()
             self.worker_state = "down"
             if self.running_uid is not None:
                 self._finish(self.running_uid, {"status": "fault", "exit_code": 1,
                                                 "message": f"the worker process ended (exit code {code}) while it ran",
-                                                "log": None, "summary": {}})
+                                                "log": self.log_of(self.running_uid), "summary": {}})
             self.changed()
             if self._closing:
                 return
@@ -235,25 +286,48 @@ class Manager:
                 self._finish(uid, msg)
 
     def _finish(self, uid: str, done: dict[str, Any]) -> None:
-        status = str(done.get("status", "fault"))
-        summary = {"exit_code": done.get("exit_code"), "report": done.get("report"),
-                   "metrics": done.get("summary") or {}}
-        try:
-            self.store.finish(uid, status, str(done.get("message", "")), log_path=done.get("log"), summary=summary)
-        except StoreError as exc:
-            _log.error("item %s: %s", uid, exc)
+        """The running item ended: its history record (kept here and recorded later if the store takes no writes
+        now), and the queue stopped after a failure when it was started with ``stop_on_failure``."""
         self.running_uid, self.ending, self.progress = None, None, {}
         self.items_run += 1
-        if status != "completed" and self.stop_on_failure:
-            self.store.set_setting("queue_running", False)
+        self.unrecorded[uid] = done
+        self._record_ended()
         self.changed()
+
+    def _record_ended(self) -> None:
+        """Record the items that ended and are not in the history yet (in the order they ended)."""
+        for uid, done in list(self.unrecorded.items()):
+            status = str(done.get("status", "fault"))
+            code = done.get("exit_code")
+            summary = {"exit_code": 1 if code is None and status != "completed" else code,
+                       "report": done.get("report"), "metrics": done.get("summary") or {}}
+            try:
+                record = self.store.finish(uid, status, str(done.get("message", "")),
+                                           log_path=done.get("log") or self.log_of(uid), summary=summary)
+                if status != "completed" and self.stop_on_failure:
+                    self.stop_queue(f"item {record.name} ended {status} (the queue stops on a failure)")
+            except StoreUnavailable as exc:
+                self.store_failed(f"item {uid} ended {status}; its record waits for the state store", exc)
+                return
+            except StoreError as exc:
+                _log.error("item %s: %s", uid, exc)
+            del self.unrecorded[uid]
+            self.store_ok()
 
     # --- the queue ----------------------------------------------------------------------------------
 
     async def _queue_task(self) -> None:
         while not self._closing:
             self.wake.clear()
-            self._start_next()
+            try:
+                if self.unrecorded:
+                    self._record_ended()
+                if not self.unrecorded:  # nothing starts before the items that ended are in the history
+                    self._start_next()
+            except StoreUnavailable as exc:
+                self.store_failed("the queue cannot start its next item", exc)
+            except Exception:  # a bug must not stop the queue for good
+                _log.exception("the queue's task")
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(1.0):  # also a lease that lapses by itself
                     await self.wake.wait()
@@ -263,6 +337,7 @@ class Manager:
             return
         lease = self.lease.current()
         item = self.store.start_next(None if lease is None else {lease.holder})
+        self.store_ok()
         if item is None:
             return
         self.running_uid = item.uid
@@ -270,7 +345,7 @@ class Manager:
         try:
             self.send_worker({"op": "run", "item": {"uid": item.uid, "kind": item.kind, "file_name": item.file_name,
                                                      "body": item.body, "user": item.user,
-                                                     "options": item.options}})
+                                                     "options": item.options, "files": item.files}})
         except (StoreError, OSError, ConnectionError) as exc:
             self._finish(item.uid, {"status": "fault", "message": f"not started: {exc}"})
         self.changed()
@@ -285,6 +360,10 @@ class Manager:
     async def _status_task(self) -> None:
         while not self._closing:
             await asyncio.sleep(STATUS_EVERY_S)
+            try:
+                self.lease.current()  # a lease that lapsed is recorded now, not at the next request
+            except StoreUnavailable as exc:
+                self.store_failed("the lease's lapse cannot be recorded", exc)
             if self.worker_state == "ready":  # the boards' state, for the next status
                 with contextlib.suppress(StoreError, OSError, ConnectionError):
                     self.send_worker({"op": "status"})
@@ -295,6 +374,17 @@ class Manager:
     # --- what the API shows -------------------------------------------------------------------------
 
     def status(self, caller: Caller | None = None) -> dict[str, Any]:
+        """What the page and ``GET /api/status`` show. While the state store cannot be read or written, the last
+        status it could give, with the store's error."""
+        try:
+            self._last_status = self._status(caller)
+        except StoreUnavailable as exc:
+            self.store_failed("the status", exc)
+        return {**self._last_status, "you": None if caller is None else {"user": caller.user, "role": caller.role},
+                "store": {"ok": self.store_error is None, "error": self.store_error,
+                          "unrecorded": sorted(self.unrecorded)}}
+
+    def _status(self, caller: Caller | None) -> dict[str, Any]:
         now = time.time()
         lease = self.lease.current()
         running = self.store.running()
@@ -309,7 +399,9 @@ class Manager:
                        "holder": info.get("holder"), "boards": boards, "doctor": info.get("doctor"),
                        "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"},
             "queue": {"running": self.queue_running, "stop_on_failure": self.stop_on_failure,
-                      "waiting": self.store.waiting()},
+                      "waiting": self.store.waiting(), "stopped": self.queue_stopped},
+            "store": {"ok": self.store_error is None, "error": self.store_error,
+                      "unrecorded": sorted(self.unrecorded)},
             "running": None if running is None else {**running.public(), **self.progress, "uid": running.uid,
                                                      "ending": self.ending},
             "lease": None if lease is None else lease.public(now),
@@ -322,7 +414,7 @@ class Manager:
             record = self.store.record(uid)  # StoreError: in neither
             return {"state": "done", **record_view(record)}
         state = "running" if item.started_at is not None else "queued"
-        extra = self.progress if state == "running" else {}
+        extra = self.progress if state == "running" else {"queue_stopped": self.queue_stopped}
         return {"state": state, **item.public(), **extra}
 
 
@@ -349,8 +441,17 @@ def token_of(conn: HTTPConnection) -> str | None:
     return conn.cookies.get("hil_token") or conn.query_params.get("token")
 
 
-def error(status: int, message: str) -> JSONResponse:
-    return JSONResponse({"detail": message}, status_code=status)
+def error(status: int, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
+    """Every error the service answers: ``{"detail": "one line"}``."""
+    return JSONResponse({"detail": " ".join(message.split())}, status_code=status, headers=headers)
+
+
+class RequestError(Exception):
+    """A request the service refuses before any route logic (a body too large, not JSON): its status, one line."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 Handler = Callable[[Request, Manager, Caller], Awaitable[Response]]
@@ -366,14 +467,19 @@ def endpoint(handler: Handler, *, operator: str | None = None) -> Callable[[Requ
             if operator is not None:
                 manager.gate.require_operator(caller, operator)
             return await handler(request, manager, caller)
-        except AuthError as exc:
+        except (AuthError, RequestError) as exc:
             return error(exc.status, str(exc))
         except (ItemError, ValidationError) as exc:
             return error(422, str(exc) if isinstance(exc, ItemError) else _pydantic_line(exc))
         except LeaseError as exc:
             return error(409, str(exc))
+        except StoreUnavailable as exc:
+            manager.store_failed(f"{request.method} {request.url.path}", exc)
+            return error(exc.status, str(exc))
         except StoreError as exc:
-            return error(404 if "not in the" in str(exc) else 409, str(exc))
+            return error(exc.status, str(exc))
+        except ClientDisconnect:
+            return error(400, "the client went away before its request was read")
     return route
 
 
@@ -383,14 +489,37 @@ def _pydantic_line(exc: ValidationError) -> str:
     return f"body: {where}: {first['msg']}"
 
 
+async def read_body(request: Request, limit: int = MAX_BODY_BYTES) -> bytes:
+    """The request's body, read as it arrives: 413 as soon as it is known to exceed ``limit`` (its Content-Length,
+    or the bytes so far), so a large body is never held in memory."""
+    declared = request.headers.get("content-length")
+    if declared is not None:
+        if not declared.strip().isdigit():
+            raise RequestError(400, f"Content-Length: {declared[:40]!r} is not a number of bytes")
+        if int(declared) > limit:
+            raise RequestError(413, f"body: {int(declared)} bytes, more than the {limit} a request may have")
+    chunks: list[bytes] = []
+    size = 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise RequestError(413, f"body: more than the {limit} bytes a request may have")
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
 async def body_as(request: Request, model: type[BaseModel]) -> Any:
-    raw = await request.body()
-    if len(raw) > 2 << 20:
-        raise ItemError(f"body: {len(raw)} bytes, more than {2 << 20}")
+    """The JSON body as ``model``; 413 (too large), 400 (not JSON) or 422 (not the model: one line naming the
+    field; a string that is not Unicode text)."""
+    raw = await read_body(request)
     try:
         data = json.loads(raw) if raw.strip() else {}
-    except ValueError:
-        raise ItemError("body: not JSON") from None
+    except (ValueError, RecursionError):  # RecursionError: JSON nested deeper than Python's stack
+        raise RequestError(400, "body: not JSON (or nested deeper than JSON bodies here are)") from None
+    try:
+        json.dumps(data, ensure_ascii=False).encode()
+    except UnicodeEncodeError:
+        raise ItemError("body: a string holds a lone UTF-16 surrogate (\\ud800-\\udfff): not Unicode text") from None
     return model.model_validate(data)
 
 
@@ -400,14 +529,14 @@ async def get_status(request: Request, m: Manager, caller: Caller) -> Response:
 
 async def get_queue(request: Request, m: Manager, caller: Caller) -> Response:
     return JSONResponse({"running": m.queue_running, "stop_on_failure": m.stop_on_failure,
-                         "items": [i.public() for i in m.store.items()]})
+                         "stopped": m.queue_stopped, "items": [i.public() for i in m.store.items()]})
 
 
 async def add_item(request: Request, m: Manager, caller: Caller) -> Response:
     sub: SubmitItem = await body_as(request, SubmitItem)
-    checked = check_item(sub.kind, sub.file_name, sub.body)
+    checked = check_item(sub.kind, sub.file_name, sub.body, files=sub.files, options=sub.options)
     item = m.store.add(sub.kind, checked.name, caller.user, Path(sub.file_name).name, sub.body,
-                       options=sub.options, position=sub.position)
+                       options=sub.options, position=sub.position, files=sub.files)
     m.changed()
     return JSONResponse(item.public(), status_code=201)
 
@@ -433,16 +562,20 @@ async def clear_queue(request: Request, m: Manager, caller: Caller) -> Response:
 
 async def start_queue(request: Request, m: Manager, caller: Caller) -> Response:
     start: StartQueue = await body_as(request, StartQueue)
+    was = m.queue_stopped
     m.store.set_setting("stop_on_failure", start.stop_on_failure)
     m.store.set_setting("queue_running", True)
+    m.store.set_setting("queue_stopped", "")
     m.changed()
-    return JSONResponse({"running": True, "stop_on_failure": start.stop_on_failure})
+    return JSONResponse({"running": True, "stop_on_failure": start.stop_on_failure, "was_stopped": was,
+                         "by": caller.user})
 
 
 async def stop_queue(request: Request, m: Manager, caller: Caller) -> Response:
-    m.store.set_setting("queue_running", False)
+    m.stop_queue(f"stopped by {caller.user}")
     m.changed()
-    return JSONResponse({"running": False, "note": "the running item (if any) goes on; stop or abort it"})
+    return JSONResponse({"running": False, "stopped": m.queue_stopped,
+                         "note": "the running item (if any) goes on; stop or abort it"})
 
 
 async def get_item(request: Request, m: Manager, caller: Caller) -> Response:
@@ -486,7 +619,7 @@ async def end_item(request: Request, m: Manager, caller: Caller) -> Response:
     if m.ending != "abort":
         m.ending = how
     if how == "abort":  # an operator's alarm: nothing arms the boards again until someone starts the queue
-        m.store.set_setting("queue_running", False)
+        m.stop_queue(f"aborted by {caller.user}" + (f": {end.reason}" if end.reason else ""))
     m.send_worker({"op": how, "reason": f"{how} by {caller.user}" + (f": {end.reason}" if end.reason else "")})
     m.changed()
     return JSONResponse({"uid": m.running_uid, "ending": m.ending, "queue_running": m.queue_running})
@@ -633,4 +766,21 @@ def build_app(options: ServiceOptions, gate: Gate, *, on_ready: Callable[[Manage
                          for method, path, handler, op, _model, _summary in API_ROUTES]
     routes += [WebSocketRoute("/ws", live_socket), Route("/", index, methods=["GET"]),
                Mount("/static", app=StaticFiles(directory=STATIC), name="static")]
-    return Starlette(routes=routes, lifespan=lifespan)
+    names = served_names(options.host, options.allow_hosts)
+    return Starlette(routes=routes, lifespan=lifespan, middleware=[Middleware(SameOrigin, names=names)],
+                     exception_handlers={HTTPException: http_error, Exception: server_error})
+
+
+async def http_error(request: Request, exc: Exception) -> Response:
+    """Starlette's own refusals (no such route, a method the route does not take) as the service's JSON."""
+    assert isinstance(exc, HTTPException)
+    detail = {404: f"{request.url.path[:120]}: no such route (GET /openapi.json lists them)",
+              405: f"{request.method} {request.url.path[:120]}: not a method this route takes"}.get(
+                  exc.status_code, str(exc.detail))
+    return error(exc.status_code, detail, headers=exc.headers)
+
+
+async def server_error(request: Request, exc: Exception) -> Response:
+    """A bug: its traceback on the service's stderr, one line of JSON to the client (never the traceback)."""
+    _log.error("%s %s: %s", request.method, request.url.path, type(exc).__name__, exc_info=exc)
+    return error(500, f"the service failed on this request ({type(exc).__name__}); its stderr has the details")

@@ -16,8 +16,8 @@ import json
 import sqlite3
 import threading
 import uuid
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, suppress
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -35,7 +35,7 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS queue (
     uid TEXT PRIMARY KEY, position INTEGER NOT NULL, kind TEXT NOT NULL, name TEXT NOT NULL, user TEXT NOT NULL,
     file_name TEXT NOT NULL, body TEXT NOT NULL, options TEXT NOT NULL, submitted_at TEXT NOT NULL,
-    started_at TEXT);
+    started_at TEXT, files TEXT NOT NULL DEFAULT '{}');
 CREATE TABLE IF NOT EXISTS lease_events (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, at TEXT NOT NULL, event TEXT NOT NULL, holder TEXT NOT NULL,
     by TEXT NOT NULL, reason TEXT NOT NULL);
@@ -48,6 +48,25 @@ CREATE TABLE IF NOT EXISTS history (
 
 class StoreError(ValueError):
     """A request the queue cannot do (an unknown item, a position out of range): one line naming it."""
+
+    status = 409  # the HTTP status the API answers it with
+
+
+class NotInStore(StoreError):
+    """No such item in the queue or the history."""
+
+    status = 404
+
+
+class StoreUnavailable(StoreError):
+    """The state store cannot be read or written now (its disk full: 507; locked, read-only, I/O: 503). Nothing
+    was changed; the same request succeeds once the disk has room again."""
+
+    def __init__(self, path: Path, exc: sqlite3.Error) -> None:
+        full = isinstance(exc, sqlite3.OperationalError) and "full" in str(exc).lower()
+        super().__init__(f"the service's state store ({path}) cannot be written: {exc}"
+                         + ("; free space on its disk (nothing was changed)" if full else " (nothing was changed)"))
+        self.status = 507 if full else 503
 
 
 def now_iso() -> str:
@@ -69,11 +88,13 @@ class QueuedItem:
     options: dict[str, Any] = field(default_factory=dict)
     submitted_at: str = ""
     started_at: str | None = None
+    files: dict[str, str] = field(default_factory=dict)  # the item's own files (name -> text)
 
     def public(self) -> dict[str, Any]:
-        """As the API shows it: everything but the file's text."""
+        """As the API shows it: everything but the files' text (the names of its own files are shown)."""
         out = asdict(self)
         out.pop("body")
+        out["files"] = sorted(self.files)
         return out
 
 
@@ -111,6 +132,9 @@ class Store:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.executescript(_SCHEMA)  # its own transaction (executescript commits first)
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(queue)").fetchall()}
+        if "files" not in columns:  # a state directory from before items carried their own files
+            self._db.execute("ALTER TABLE queue ADD COLUMN files TEXT NOT NULL DEFAULT '{}'")
         with self._tx() as db:
             row = db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
             if row is None:
@@ -120,11 +144,13 @@ class Store:
                                  "give another state directory")
 
     @classmethod
-    def open(cls, state_dir: Path) -> tuple[Store, list[HistoryRecord]]:
+    def open(cls, state_dir: Path, log_for: Callable[[str], str | None] | None = None,
+             ) -> tuple[Store, list[HistoryRecord]]:
         """The store, and the items that were running when the service last stopped, now in the history as
-        ``interrupted`` (off the queue: never re-run by themselves)."""
+        ``interrupted`` with exit code 1 (off the queue: never re-run by themselves); ``log_for(uid)``: the log such
+        an item left, linked from its record."""
         store = cls(state_dir)
-        return store, store._interrupt_running()
+        return store, store._interrupt_running(log_for)
 
     def close(self) -> None:
         with self._lock:
@@ -132,19 +158,36 @@ class Store:
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction; any SQLite error is a :class:`StoreUnavailable` and nothing is changed."""
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+                try:
+                    yield self._db
+                except BaseException:
+                    with suppress(sqlite3.Error):
+                        self._db.execute("ROLLBACK")
+                    raise
+                self._db.execute("COMMIT")
+            except sqlite3.Error as exc:
+                with suppress(sqlite3.Error):
+                    self._db.execute("ROLLBACK")
+                raise StoreUnavailable(self.path, exc) from None
+
+    @contextmanager
+    def _read(self) -> Iterator[sqlite3.Connection]:
+        """The connection for a read; any SQLite error is a :class:`StoreUnavailable`."""
+        with self._lock:
             try:
                 yield self._db
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
+            except sqlite3.Error as exc:
+                raise StoreUnavailable(self.path, exc) from None
 
     # --- the queue ---------------------------------------------------------------------------------
 
     def add(self, kind: str, name: str, user: str, file_name: str, body: str, *,
-            options: dict[str, Any] | None = None, position: int | None = None) -> QueuedItem:
+            options: dict[str, Any] | None = None, position: int | None = None,
+            files: dict[str, str] | None = None) -> QueuedItem:
         """Queue an item at ``position`` (0 first; None or past the end: last); returns it with its new uid."""
         if kind not in ITEM_KINDS:
             raise StoreError(f"kind={kind!r}: not {', '.join(ITEM_KINDS)}")
@@ -153,33 +196,34 @@ class Store:
             n = db.execute("SELECT COUNT(*) FROM queue").fetchone()[0]
             at = n if position is None else self._check_position(position, n + 1)
             db.execute("UPDATE queue SET position = position + 1 WHERE position >= ?", (at,))
-            db.execute("INSERT INTO queue (uid, position, kind, name, user, file_name, body, options, submitted_at) "
-                       "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                       (uid, at, kind, name, user, file_name, body, json.dumps(options or {}), now_iso()))
+            db.execute("INSERT INTO queue (uid, position, kind, name, user, file_name, body, options, submitted_at, "
+                       "files) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                       (uid, at, kind, name, user, file_name, body, json.dumps(options or {}), now_iso(),
+                        json.dumps(files or {})))
         return self.item(uid)
 
     def items(self) -> list[QueuedItem]:
         """The queue in order (a running item first: it left its place when it started)."""
-        with self._lock:
-            rows = self._db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue ORDER BY position").fetchall()
+        with self._read() as db:
+            rows = db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue ORDER BY position").fetchall()
         return [_queued(r) for r in rows]
 
     def running(self) -> QueuedItem | None:
         """The item that runs now, or None (one indexed row: what the status asks for ten times a second)."""
-        with self._lock:
-            row = self._db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue WHERE started_at IS NOT NULL").fetchone()
+        with self._read() as db:
+            row = db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue WHERE started_at IS NOT NULL").fetchone()
         return None if row is None else _queued(row)
 
     def waiting(self) -> int:
         """How many items wait."""
-        with self._lock:
-            return int(self._db.execute("SELECT COUNT(*) FROM queue WHERE started_at IS NULL").fetchone()[0])
+        with self._read() as db:
+            return int(db.execute("SELECT COUNT(*) FROM queue WHERE started_at IS NULL").fetchone()[0])
 
     def item(self, uid: str) -> QueuedItem:
-        with self._lock:
-            row = self._db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue WHERE uid = ?", (uid,)).fetchone()
+        with self._read() as db:
+            row = db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue WHERE uid = ?", (uid,)).fetchone()
         if row is None:
-            raise StoreError(f"item {uid!r}: not in the queue")
+            raise NotInStore(f"item {uid!r}: not in the queue")
         return _queued(row)
 
     def move(self, uid: str, position: int) -> QueuedItem:
@@ -187,7 +231,7 @@ class Store:
         with self._tx() as db:
             row = db.execute("SELECT position, started_at FROM queue WHERE uid = ?", (uid,)).fetchone()
             if row is None:
-                raise StoreError(f"item {uid!r}: not in the queue")
+                raise NotInStore(f"item {uid!r}: not in the queue")
             if row[1] is not None:
                 raise StoreError(f"item {uid!r}: running; a running item cannot move")
             waiting = [r[0] for r in db.execute(
@@ -242,20 +286,21 @@ class Store:
         with self._tx() as db:
             row = db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue WHERE uid = ?", (uid,)).fetchone()
             if row is None:
-                raise StoreError(f"item {uid!r}: not in the queue")
+                raise NotInStore(f"item {uid!r}: not in the queue")
             item = _queued(row)
             self._record(db, item, status, message, log_path=log_path, summary=summary)
             db.execute("DELETE FROM queue WHERE uid = ?", (uid,))
             self._renumber(db, [r[0] for r in db.execute("SELECT uid FROM queue ORDER BY position").fetchall()])
         return self.record(uid)
 
-    def _interrupt_running(self) -> list[HistoryRecord]:
+    def _interrupt_running(self, log_for: Callable[[str], str | None] | None) -> list[HistoryRecord]:
         with self._tx() as db:
             rows = db.execute(f"SELECT {_QUEUE_COLUMNS} FROM queue WHERE started_at IS NOT NULL").fetchall()
             for row in rows:
                 item = _queued(row)
                 self._record(db, item, "interrupted", "the service stopped while it ran; not run again by itself",
-                             log_path=None, summary=None)
+                             log_path=log_for(item.uid) if log_for is not None else None,
+                             summary={"exit_code": 1})
                 db.execute("DELETE FROM queue WHERE uid = ?", (item.uid,))
             self._renumber(db, [r[0] for r in db.execute("SELECT uid FROM queue ORDER BY position").fetchall()])
         return [self.record(r[0]) for r in rows]
@@ -264,23 +309,23 @@ class Store:
 
     def history(self, limit: int | None = None) -> list[HistoryRecord]:
         """The history, newest first (``limit``: the newest that many)."""
-        with self._lock:
-            rows = self._db.execute(f"SELECT {_HISTORY_COLUMNS} FROM history ORDER BY seq DESC LIMIT ?",
+        with self._read() as db:
+            rows = db.execute(f"SELECT {_HISTORY_COLUMNS} FROM history ORDER BY seq DESC LIMIT ?",
                                     (-1 if limit is None else limit,)).fetchall()
         return [_record(r) for r in rows]
 
     def record(self, uid: str) -> HistoryRecord:
-        with self._lock:
-            row = self._db.execute(f"SELECT {_HISTORY_COLUMNS} FROM history WHERE uid = ?", (uid,)).fetchone()
+        with self._read() as db:
+            row = db.execute(f"SELECT {_HISTORY_COLUMNS} FROM history WHERE uid = ?", (uid,)).fetchone()
         if row is None:
-            raise StoreError(f"item {uid!r}: not in the history")
+            raise NotInStore(f"item {uid!r}: not in the history")
         return _record(row)
 
     # --- settings that outlive the service ---------------------------------------------------------
 
     def setting(self, key: str, default: Any = None) -> Any:
-        with self._lock:
-            row = self._db.execute("SELECT value FROM meta WHERE key = ?", (f"setting.{key}",)).fetchone()
+        with self._read() as db:
+            row = db.execute("SELECT value FROM meta WHERE key = ?", (f"setting.{key}",)).fetchone()
         return default if row is None else json.loads(row[0])
 
     def set_setting(self, key: str, value: Any) -> None:
@@ -299,8 +344,8 @@ class Store:
 
     def lease_events(self, limit: int | None = None) -> list[dict[str, Any]]:
         """The lease's history, newest first."""
-        with self._lock:
-            rows = self._db.execute("SELECT seq, at, event, holder, by, reason FROM lease_events ORDER BY seq DESC "
+        with self._read() as db:
+            rows = db.execute("SELECT seq, at, event, holder, by, reason FROM lease_events ORDER BY seq DESC "
                                     "LIMIT ?", (-1 if limit is None else limit,)).fetchall()
         return [dict(zip(("seq", "at", "event", "holder", "by", "reason"), r, strict=True)) for r in rows]
 
@@ -328,15 +373,15 @@ class Store:
                     now_iso(), status, " ".join(message.split()), log_path, json.dumps(summary or {}, default=str)))
 
 
-_QUEUE_COLUMNS = "uid, position, kind, name, user, file_name, body, options, submitted_at, started_at"
+_QUEUE_COLUMNS = "uid, position, kind, name, user, file_name, body, options, submitted_at, started_at, files"
 _HISTORY_COLUMNS = ("seq, uid, kind, name, user, file_name, submitted_at, started_at, ended_at, status, message, "
                     "log_path, summary")
 
 
 def _queued(row: tuple[Any, ...]) -> QueuedItem:
-    uid, position, kind, name, user, file_name, body, options, submitted_at, started_at = row
+    uid, position, kind, name, user, file_name, body, options, submitted_at, started_at, files = row
     return QueuedItem(uid, position, kind, name, user, file_name, body, json.loads(options), submitted_at,
-                      started_at)
+                      started_at, json.loads(files))
 
 
 def _record(row: tuple[Any, ...]) -> HistoryRecord:

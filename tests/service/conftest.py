@@ -42,7 +42,9 @@ class Service:
     def url(self) -> str:
         return f"http://{self.host}:{self.port}"
 
-    def start(self, wait: bool = True) -> Service:
+    def start(self, wait: bool = True, start_queue: bool = True) -> Service:
+        """Start `hil serve`; with ``wait``, until its worker is ready, and then (``start_queue``) start its queue,
+        which every start of a service leaves stopped."""
         self.log = (self.state_dir.parent / f"serve-{self.port}.log").open("ab")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "hil", "serve", *self.args, "--port", str(self.port), "--state-dir",
@@ -50,6 +52,8 @@ class Service:
             start_new_session=True)
         if wait:
             self.wait_ready()
+            if start_queue:
+                self.bench().start()
         return self
 
     def bench(self, user: str = "tester", token: str | None = None) -> Bench:

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import h5py
+import pytest
 
 from hil.session import EmulatorProcess
 from tests.service.conftest import Service, free_port, short_session, wait_for
@@ -31,7 +32,6 @@ def test_a_manager_killed_mid_run_leaves_the_boards_safe_and_a_restart_keeps_que
         long = bench.add(short_session(tmp_path, 60.0, name="long"), position=0)
         bench.start()  # the long one goes first
         wait_for(lambda: bench.item(long["uid"]).get("cycles", 0) > 500, timeout_s=180)
-        bench.stop_queue()  # so that the restarted service does not start the waiting items by itself
         worker_pid = bench.status()["worker"]["holder"].split()[1]
         os.kill(svc.proc.pid, signal.SIGKILL)  # the manager only: its worker sees its stdin close
         svc.proc.wait(10)
@@ -45,12 +45,14 @@ def test_a_manager_killed_mid_run_leaves_the_boards_safe_and_a_restart_keeps_que
         rows = len(f["loop/tick"])
     assert "signal" in kinds and 500 < rows < 60_000
 
-    again = Service(state, port=svc.port).start()
+    again = Service(state, port=svc.port).start(start_queue=False)
     try:
         bench = again.bench(user="kim")
         record = bench.item(long["uid"])
         assert record["state"] == "done" and record["status"] == "interrupted"
         assert "not run again" in record["message"]
+        assert record["exit_code"] == 1 and record["links"]["log"].endswith("/log")  # the log it left, linked
+        assert Path(record["log_path"]) == logs[0]
         assert [i["uid"] for i in bench.queue()["items"]] == waiting  # the same queue, in the same order
         names = [r["name"] for r in bench.history()]
         assert names == ["long", "before"]
@@ -59,6 +61,40 @@ def test_a_manager_killed_mid_run_leaves_the_boards_safe_and_a_restart_keeps_que
         assert last["status"] == "completed"
         time.sleep(0.5)
         assert [r["name"] for r in bench.history()][:6] == ["w4", "w3", "w2", "w1", "w0", "long"]
+    finally:
+        again.stop()
+
+
+@pytest.mark.parametrize("attempt", range(3))
+def test_a_restarted_service_runs_nothing_until_an_operator_starts_the_queue(tmp_path: Path, attempt: int) -> None:
+    """The manager SIGKILLed while an item runs and items wait, then the same `hil serve` again: the queue is
+    stopped and says why, and no item starts (the old behaviour started the next one 5.5 s after the restart) until
+    an operator starts it."""
+    state = tmp_path / "state"
+    svc = Service(state).start()
+    try:
+        bench = svc.bench(user="kim")
+        long = bench.add(short_session(tmp_path, 60.0, name="long"))
+        waiting = [bench.add(short_session(tmp_path, 1.0, name=f"w{i}"))["uid"] for i in range(2)]
+        wait_for(lambda: bench.item(long["uid"]).get("cycles", 0) > 300, timeout_s=180)
+        assert bench.queue()["running"] is True
+        os.kill(svc.proc.pid, signal.SIGKILL)  # the manager only: its worker aborts the item and lets go
+        svc.proc.wait(10)
+    finally:
+        svc.stop(signal.SIGKILL)
+    again = Service(state, port=svc.port).start(start_queue=False)
+    try:
+        bench = again.bench(user="kim")
+        queue = bench.queue()
+        assert queue["running"] is False and queue["stopped"] == "the service restarted; 2 items wait"
+        assert [i["uid"] for i in queue["items"]] == waiting
+        assert bench.item(waiting[0])["queue_stopped"] == "the service restarted; 2 items wait"
+        time.sleep(10.0)  # twice as long as the old service took to start the next item by itself
+        assert [i["started_at"] for i in bench.queue()["items"]] == [None, None]
+        assert [r["name"] for r in bench.history()] == ["long"]  # interrupted, and nothing else ran
+        started = bench.start()
+        assert started["running"] is True and started["was_stopped"] == "the service restarted; 2 items wait"
+        assert bench.wait(waiting[0])["status"] == "completed"
     finally:
         again.stop()
 

@@ -352,8 +352,11 @@
 
     // the queue and the history, when they changed
     const q = st.queue || {};
-    $("queue-state").textContent = (q.running ? "started" : "stopped: nothing new starts") +
+    $("queue-state").textContent = (q.running ? "started" : `stopped (${q.stopped || "stopped"}): nothing starts`) +
       (q.stop_on_failure ? " · stops on a failure" : "") + ` · ${q.waiting || 0} waiting`;
+    $("queue-start").hidden = !operator || !!q.running;
+    const store = st.store || {};
+    if (store.error) showNotice(`The service's state store: ${store.error}`);
     const qsig = `${r ? r.uid : ""}|${q.waiting}`;
     if (qsig !== lastSig.queue) { lastSig.queue = qsig; refreshQueue(); }
     const hsig = r ? r.uid : "";
@@ -440,6 +443,15 @@
     }
   }
   $("stop").addEventListener("click", () => end("stop"));
+  $("queue-start").addEventListener("click", async () => {
+    const q = (page.status && page.status.queue) || {};
+    if (!window.confirm(`Start the queue? It was stopped (${q.stopped || ""}); its items then run one after another.`)) return;
+    try {
+      await api("POST", "/api/queue/start", { stop_on_failure: false });
+    } catch (e) {
+      $("action-msg").textContent = `start: ${e.message || e}`;
+    }
+  });
   $("abort").addEventListener("click", () => end("abort"));
 
   // --- the WebSocket ----------------------------------------------------------------------------
