@@ -197,6 +197,7 @@ def demo(
     if not json_out:
         note("next, the same lab as a service, for a browser and other terminals (docs/service.md):\n"
              "  .venv/bin/hil serve --loopback        then open http://localhost:8765/\n"
+             "  .venv/bin/hil queue start --bench http://localhost:8765     (every start leaves the queue stopped)\n"
              "  .venv/bin/hil run profiles/sessions/demo.yaml --bench http://localhost:8765")
     raise typer.Exit(result.exit_code)
 
