@@ -170,6 +170,9 @@ def cell_session(config: CampaignConfig, spec: CellSpec, cell_dir: Path, hardwar
     full protocol over ptys); both give the same logs."""
     base = base if base is not None else _base_session(config)
     data = _merge(base.model_dump(mode="json", exclude_none=True), config.overrides)
+    for key in ("logging", "emulator", "host"):  # sections the cell sets fields of
+        if not isinstance(data.get(key, {}), dict):
+            raise CampaignError(f"overrides: {key}: not a mapping ({type(data[key]).__name__})")
     data.update(name=spec.cell_id, seed=spec.seed, controller={"name": spec.controller.name,
                                                                "params": spec.controller.params},
                 profile=str(spec.profile.path), logging={**data.get("logging", {}), "dir": str(cell_dir)})

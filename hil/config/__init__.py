@@ -3,12 +3,15 @@
 ``load_session`` reads a session YAML (``SessionConfig``: ports, swing, controller, tracking, safety, log, MQTT);
 ``ConfigError`` is the one error a bad file gives (a ValueError naming the file and field; exit 2 at the CLI).
 Files are read bounded (``read_yaml_mapping``: size, YAML node count, regular file), relative paths resolved
-against the file that names them (``resolve_relative``); ``MqttConfig`` is the broker section."""
+against the file that names them (``resolve_relative``), or kept inside a submitted item's own files
+(``confined_to``); ``MqttConfig`` is the broker section."""
 
 from hil.config._files import (
     MAX_CONFIG_BYTES,
     MAX_YAML_NODES,
     ConfigError,
+    confined_to,
+    confinement,
     named,
     parse_yaml,
     read_file_bytes,
@@ -60,6 +63,8 @@ __all__ = [
     "SwingProfile",
     "TrackingConfig",
     "check_topic_name",
+    "confined_to",
+    "confinement",
     "load_model",
     "load_session",
     "named",

@@ -1,14 +1,18 @@
 """Reading the bench's input files safely, and checking where its output goes: bounded reads (a FIFO, a device or a
 huge file is refused unread), a YAML loader with depth, node and alias limits, and relative paths resolved against
-the file that names them. Imports no other part of the bench, so any layer may use it.
+the file that names them, or kept inside one directory (:func:`confined_to`: a submitted item reads only its own
+files). Imports no other part of the bench, so any layer may use it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import copy
 import functools
 import os
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -168,12 +172,59 @@ def read_yaml_mapping(path: str | Path) -> dict[str, Any]:
     return data
 
 
+# --- what a file may name -------------------------------------------------------------------------------------------
+
+ITEM_RULE = 'a submitted item carries its own files (docs/service.md, "A submitted item stands on its own")'
+_CONFINED: contextvars.ContextVar[Path | None] = contextvars.ContextVar("hil_config_confined", default=None)
+
+
+@contextlib.contextmanager
+def confined_to(directory: str | Path) -> Iterator[Path]:
+    """While the block runs (in this thread or task, and in every load it makes), a file a config names must lie
+    inside ``directory``, the submitted item's own files: :func:`resolve_relative` refuses any other path before
+    anything is opened, and ``mqtt.password_env`` is refused. Yields the directory, resolved."""
+    root = Path(directory).resolve()
+    token = _CONFINED.set(root)
+    try:
+        yield root
+    finally:
+        _CONFINED.reset(token)
+
+
+def confinement() -> Path | None:
+    """The directory loads are confined to (:func:`confined_to`), or None."""
+    return _CONFINED.get()
+
+
+def _as_named(value: str | Path, limit: int = 120) -> str:
+    text = str(value)
+    text = text if text.isprintable() else repr(text)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def resolve_relative(value: Any, info: ValidationInfo) -> Any:
-    """A pydantic validator: a relative path in a file is relative to that file (``context={"base_dir": ...}``)."""
+    """A pydantic validator: a relative path in a file is relative to that file (``context={"base_dir": ...}``).
+
+    Confined (:func:`confined_to`), a path that resolves outside the directory (an absolute path of the machine's,
+    ``..``, a symlink) or a relative one with no file to be relative to is refused, ValueError, unopened."""
     base = (info.context or {}).get("base_dir")
-    if isinstance(value, str | Path) and base is not None and not Path(value).is_absolute():
-        return (Path(base) / value).resolve()
-    return value
+    root = _CONFINED.get()
+    if not isinstance(value, str | Path):
+        return value
+    if root is None:
+        if base is not None and not Path(value).is_absolute():
+            return (Path(base) / value).resolve()
+        return value
+    path = Path(value)
+    if not path.is_absolute() and base is None:
+        raise ValueError(f"names {_as_named(value)}, relative to no file of the submitted item: {ITEM_RULE}")
+    try:
+        resolved = (path if path.is_absolute() else Path(base) / path).resolve()
+    except (OSError, ValueError, RuntimeError):
+        resolved = None
+    if resolved is None or not resolved.is_relative_to(root):
+        raise ValueError(f"names {_as_named(value)}, outside the submitted item: {ITEM_RULE}")
+    return resolved
 
 
 def require_regular_file(path: Path) -> Path:

@@ -38,7 +38,7 @@ from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from hil.analysis import SweptSine
 from hil.boards import load_hexapod_driver
-from hil.config._files import ConfigError, read_yaml_mapping, resolve_relative
+from hil.config._files import ConfigError, confinement, read_yaml_mapping, resolve_relative
 from hil.config._mqtt import MqttConfig
 from hil.control.registry import ControllerConfigError, controller_params
 from hil.link import baud_budget
@@ -48,6 +48,7 @@ from hil.protocol.swing import Envelope, Segment, check_envelope
 M = TypeVar("M", bound=BaseModel)
 REPO = Path(__file__).resolve().parents[2]
 PROFILES = REPO / "profiles"
+DEFAULT_EMULATOR = PROFILES / "emulator" / "default.yaml"
 
 MAX_SESSION_S = 24 * 3600.0  # longest session
 MAX_PROFILE_S = 3600.0  # latest end of a swing segment: the envelope check samples the profile every 1 ms
@@ -274,7 +275,7 @@ class LoggingConfig(Strict):
 class EmulatorRef(Strict):
     """What a loopback run starts in place of the lab."""
 
-    config: Path = PROFILES / "emulator" / "default.yaml"
+    config: Path = DEFAULT_EMULATOR
     clock: Literal["realtime", "lockstep", "sim"] = Field(
         "lockstep", description="realtime: paced 1 kHz over ptys; lockstep: the full protocol over ptys, "
         "byte-reproducible; sim: boards and plant in the bench's process, logs identical to lockstep")
@@ -289,7 +290,17 @@ class EmulatorRef(Strict):
         args = ["--rt-priority", str(self.rt_priority)]
         return args if self.cpu is None else [*args, "--cpu", str(self.cpu)]
 
-    _rel = field_validator("config", mode="before")(resolve_relative)
+    @field_validator("config", mode="before")
+    @classmethod
+    def _relative_to_the_file(cls, value: Any, info: ValidationInfo) -> Any:
+        """Relative to the session file; confined (a submitted item, :func:`hil.config.confined_to`), only the
+        default: an emulator file names further files (its plant) that the emulator reads itself, unconfined."""
+        if confinement() is None or not isinstance(value, str | Path):
+            return resolve_relative(value, info)
+        if Path(value) != DEFAULT_EMULATOR:
+            raise ValueError("a submitted item runs on the service's own lab and names no emulator file (the emulator "
+                             "reads the files an emulator file names)")
+        return DEFAULT_EMULATOR
 
 
 class SineExcitation(Strict):
@@ -412,6 +423,7 @@ def load_session(path: str | Path) -> SessionConfig:
     return load_model(SessionConfig, path)
 
 
-def session_yaml(config: SessionConfig) -> str:
-    """A loaded session as YAML that loads back to the same session anywhere (its parts inline)."""
-    return yaml.safe_dump(config.model_dump(mode="json", exclude_none=True), sort_keys=False)
+def session_yaml(config: SessionConfig, *, exclude: Any = None) -> str:
+    """A loaded session as YAML that loads back to the same session anywhere (its parts inline); ``exclude`` as
+    pydantic's ``model_dump`` takes it (``{"ports": True, "logging": {"dir"}}``) leaves those fields out."""
+    return yaml.safe_dump(config.model_dump(mode="json", exclude_none=True, exclude=exclude), sort_keys=False)

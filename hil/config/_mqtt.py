@@ -12,7 +12,7 @@ from urllib.parse import parse_qsl, unquote, urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, SecretStr, field_validator, model_validator
 
-from hil.config._files import read_text_file, resolve_relative
+from hil.config._files import confinement, read_text_file, resolve_relative
 
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")
 _NAME_RULE = "1-64 characters from A-Z a-z 0-9 _ . - starting with a letter or digit (topic-safe: no / + # or spaces)"
@@ -62,6 +62,15 @@ class MqttConfig(BaseModel):
         return check_topic_name("bench_id", v)
 
     _relative_to_the_file = field_validator("password_file", mode="before")(resolve_relative)
+
+    @field_validator("password_env", mode="before")
+    @classmethod
+    def _not_the_service_s_environment(cls, v: Any) -> Any:
+        """A submitted item (:func:`hil.config.confined_to`) names no variable of the environment it is read in."""
+        if v is not None and confinement() is not None:
+            raise ValueError("a submitted item reads no environment variable of the service's; the broker's password "
+                             "comes from the service's own configuration")
+        return v
 
     @model_validator(mode="after")
     def _backoff_order(self) -> Self:

@@ -13,7 +13,7 @@ the ports and runs one item at a time through the same code as `hil run` (hil.ap
 
 from hil.service._auth import AuthError, Caller, Gate, TokenFile, is_loopback_host, load_tokens
 from hil.service._client import Bench, BenchError, bench_url, item_text
-from hil.service._items import CheckedItem, ItemError, check_item
+from hil.service._items import IDENT_OPTIONS, MAX_ITEM_BYTES, CheckedItem, IdentOptions, ItemError, check_item
 from hil.service._lease import Lease, LeaseBook, LeaseError
 from hil.service._manager import API_ROUTES, Manager, ServiceOptions, build_app, record_view
 from hil.service._store import (
@@ -25,7 +25,7 @@ from hil.service._store import (
     StoreError,
 )
 
-__all__ = ["API_ROUTES", "EXIT_STATUSES", "ITEM_KINDS", "AuthError", "Bench", "BenchError", "Caller", "CheckedItem",
-           "Gate", "HistoryRecord", "ItemError", "Lease", "LeaseBook", "LeaseError", "Manager", "QueuedItem",
-           "ServiceOptions", "Store", "StoreError", "TokenFile", "bench_url", "build_app", "check_item",
-           "is_loopback_host", "item_text", "load_tokens", "record_view"]
+__all__ = ["API_ROUTES", "EXIT_STATUSES", "IDENT_OPTIONS", "ITEM_KINDS", "MAX_ITEM_BYTES", "AuthError", "Bench",
+           "BenchError", "Caller", "CheckedItem", "Gate", "HistoryRecord", "IdentOptions", "ItemError", "Lease",
+           "LeaseBook", "LeaseError", "Manager", "QueuedItem", "ServiceOptions", "Store", "StoreError", "TokenFile",
+           "bench_url", "build_app", "check_item", "is_loopback_host", "item_text", "load_tokens", "record_view"]

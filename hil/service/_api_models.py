@@ -18,7 +18,7 @@ class SubmitItem(_Body):
     """An item: the text of a YAML file the command line takes, with its file name (errors name it)."""
 
     kind: Literal["session", "ident", "campaign"] = "session"
-    file_name: str = Field(min_length=1, max_length=255, description="the file's name, e.g. demo.yaml")
+    file_name: str = Field(min_length=1, max_length=100, description="the file's name, e.g. demo.yaml")
     body: str = Field(description="the file's text (a session as loaded: controller, profile and limits inline)")
     files: dict[str, str] = Field(
         default_factory=dict, max_length=64,

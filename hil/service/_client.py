@@ -19,6 +19,7 @@ import contextlib
 import getpass
 import json
 import os
+import re
 import threading
 import time
 import urllib.error
@@ -32,7 +33,7 @@ import yaml
 
 from hil.api import RunResult
 from hil.campaign import load_campaign
-from hil.config import ConfigError, SessionConfig, load_session, session_yaml
+from hil.config import ConfigError, SessionConfig, load_session, read_text_file, session_yaml
 from hil.session import LoopStats, SessionResult
 
 BENCH_ENV = "HIL_BENCH"
@@ -128,10 +129,11 @@ class Bench:
 
     def add(self, file: str | Path | SessionConfig, *, kind: str = "session", options: dict[str, Any] | None = None,
             position: int | None = None) -> dict[str, Any]:
-        """Submit a session, ident or campaign file (checked here first, as the CLI would, then by the service)."""
-        file_name, body = item_text(file, kind)
+        """Submit a session, ident or campaign file (checked here first, as the CLI would, then by the service), with
+        its own files (:func:`item_text`)."""
+        file_name, body, files = item_text(file, kind)
         return self.call("POST", "/api/queue/items",  # type: ignore[no-any-return]
-                         {"kind": kind, "file_name": file_name, "body": body, "options": options or {},
+                         {"kind": kind, "file_name": file_name, "body": body, "files": files, "options": options or {},
                           **({"position": position} if position is not None else {})})
 
     def remove(self, uid: str) -> dict[str, Any]:
@@ -260,18 +262,51 @@ class Bench:
                          clock=f"bench {self.url}", session=session)
 
 
-def item_text(file: str | Path | SessionConfig, kind: str) -> tuple[str, str]:
-    """(file name, text) of an item, as the service wants it: a session as loaded here (its controller, profile
-    and limits inline, so it stands on its own); a campaign as loaded here, the files it names (its session and
-    profiles) as absolute paths, which the service must have too. ConfigError for a file that does not load, as
-    the command line says it."""
+NOT_SENT: dict[str, Any] = {"ports": True, "emulator": True, "logging": {"dir"}}  # what the service does not use
+_UNSAFE = re.compile(r"[^A-Za-z0-9_.-]+")
+
+
+def portable_session(config: SessionConfig) -> str:
+    """A loaded session as the service takes it: its parts inline, without what the service does not use (its
+    ports, its emulator, its log directory: the service runs it on its own lab), so it names no file of this
+    machine's (docs/service.md, "A submitted item stands on its own")."""
+    return session_yaml(config, exclude=NOT_SENT)
+
+
+def item_text(file: str | Path | SessionConfig, kind: str) -> tuple[str, str, dict[str, str]]:
+    """(file name, text, the item's own files) of an item, as the service wants it: a session as loaded here
+    (:func:`portable_session`); a campaign as loaded here, with its base session (as a session is sent) and its
+    profiles as the item's own files (``session.yaml``, ``profiles/NAME.yaml``), named relatively. ConfigError for
+    a file that does not load, as the command line says it."""
     if isinstance(file, SessionConfig):
-        return f"{file.name}.yaml", session_yaml(file)
+        return f"{file.name}.yaml", portable_session(file), {}
     path = Path(file)
-    if kind == "campaign":  # its files named by absolute paths: the service reads them from its own disk
-        campaign = load_campaign(path)
-        return path.name, yaml.safe_dump(campaign.model_dump(mode="json", exclude_none=True), sort_keys=False)
-    return path.name, session_yaml(load_session(path))
+    if kind != "campaign":
+        return path.name, portable_session(load_session(path)), {}
+    campaign = load_campaign(path)
+    try:
+        session = load_session(campaign.session)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: session: {exc}") from None
+    files = {"session.yaml": portable_session(session)}
+    data = campaign.model_dump(mode="json", exclude_none=True)
+    data["session"] = "session.yaml"
+    named: dict[Path, str] = {}
+    for entry, dumped in zip(campaign.profiles, data["profiles"], strict=True):
+        if entry.path not in named:
+            stem = _UNSAFE.sub("-", entry.path.stem).strip(".-")[:60] or "profile"
+            name = f"profiles/{stem}.yaml"
+            n = 1
+            while name in files:
+                n += 1
+                name = f"profiles/{stem}-{n}.yaml"
+            try:
+                files[name] = read_text_file(entry.path)
+            except ValueError as exc:
+                raise ConfigError(f"{path}: profiles: {exc}") from None
+            named[entry.path] = name
+        dumped["path"] = named[entry.path]
+    return path.name, yaml.safe_dump(data, sort_keys=False), files
 
 
 def _detail(exc: urllib.error.HTTPError) -> str:

@@ -9,8 +9,9 @@ Three checks on every request, before any route runs, each refusal one line of J
 * a request that changes state (any method but GET, HEAD, OPTIONS) and every WebSocket must not come from another
   origin: an ``Origin`` header, when sent (browsers always send it on these), must be this service's own
   (``http://`` + the request's ``Host``), and ``Sec-Fetch-Site`` must not be ``cross-site``; 403 otherwise.
-* a POST carries ``Content-Type: application/json``; 415 otherwise. A cross-site form or a ``no-cors`` fetch can
-  only send ``text/plain``, form or multipart bodies without a CORS preflight, and the service answers no preflight.
+* a POST with a body carries ``Content-Type: application/json``; 415 otherwise. A cross-site form or a ``no-cors``
+  fetch can only send ``text/plain``, form or multipart bodies without a CORS preflight, and the service answers no
+  preflight.
 
 Clients that are not browsers (the command line, ``hil.Bench``, curl, scripts) send no ``Origin`` and pass.
 
@@ -115,7 +116,8 @@ class SameOrigin:
                              "change the bench (docs/service.md, \"Same origin\")")
         if headers.get("sec-fetch-site", "").lower() == "cross-site":
             return 403, "Sec-Fetch-Site: cross-site; a page from another site may not change the bench"
-        if method == "POST":
+        has_body = headers.get("content-length", "0").strip() not in ("", "0") or "transfer-encoding" in headers
+        if method == "POST" and has_body:  # a POST with no body has no content to mistype (Origin still checked)
             media = headers.get("content-type", "").split(";")[0].strip().lower()
             if media != JSON_TYPE:
                 return 415, (f"Content-Type: {media or 'none'}; send {JSON_TYPE} (an empty body is {{}})")

@@ -41,13 +41,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from hil import api
 from hil.boards import check_boards
-from hil.config import ConfigError, EmulatorRef, PortConfig, SessionConfig, load_session
+from hil.config import ConfigError, EmulatorRef, PortConfig, SessionConfig, load_session, parse_yaml
 from hil.link import Holder as PortHolder
 from hil.link import LinkError, PortClaims, PortUnavailable, check_ports, claim_ports
 from hil.protocol import LINKS
-from hil.service._items import ItemError, check_item
+from hil.service._items import IDENT_OPTIONS, ItemError, check_item, write_item
 from hil.session import BenchLab, EmulatorProcess, Session, serve_lab
 
 LIVE_HZ = 50.0  # the running item's latest values, sent to the manager this often (the page wants >= 20 Hz)
@@ -59,8 +61,6 @@ LIVE_CHANNELS = {
 }
 EXIT_INVALID = 2
 CLAIM_WAIT_S = 15.0  # a previous worker of this lab (its manager killed) aborts its item and lets go within this
-# hil.api.ident's options an ident item may carry
-IDENT_OPTIONS = ("axis", "f_start_hz", "f_stop_hz", "sweep_s", "amplitude_dps", "offset_dps", "level")
 
 
 def holder_name() -> str:
@@ -270,24 +270,25 @@ class Worker:
         uid, kind = str(item["uid"]), str(item["kind"])
         self.running = running = Running(uid, kind)
         out_dir = self.state_dir / "runs" / uid
-        try:
-            checked = check_item(kind, str(item["file_name"]), str(item["body"]))  # again, just before it runs
+        files = item.get("files") or {}
+        try:  # again, just before it runs: its own files, its options
+            checked = check_item(kind, str(item["file_name"]), str(item["body"]), files=files,
+                                 options=item.get("options") or {})
         except ItemError as exc:
             self.out.send("done", uid=uid, status="invalid", exit_code=EXIT_INVALID, message=str(exc), log=None,
                           summary={})
             self.running = None
             return
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if self.lab is not None:  # who ran it goes into the log's provenance (never a token)
-            self.lab.extra = {"provenance": {"submitted_by": str(item.get("user", "")), "service_item": uid}}
-        self.out.send("started", uid=uid, out_dir=str(out_dir))
-        options = dict(item.get("options") or {})
-        try:
+        try:  # whatever fails from here (its directory on a full disk, a bug), the manager hears how it ended
+            out_dir.mkdir(parents=True, exist_ok=True)
+            if self.lab is not None:  # who ran it goes into the log's provenance (never a token)
+                self.lab.extra = {"provenance": {"submitted_by": str(item.get("user", "")), "service_item": uid}}
+            self.out.send("started", uid=uid, out_dir=str(out_dir))
             if kind == "campaign":
-                done = await self._run_campaign(running, Path(item["file_name"]).name, str(item["body"]), out_dir,
-                                                options)
+                done = await self._run_campaign(running, str(item["file_name"]), str(item["body"]), files, out_dir)
             else:
-                done = await asyncio.to_thread(self._run_session, running, checked.config, kind, out_dir, options)
+                done = await asyncio.to_thread(self._run_session, running, checked.config, kind, out_dir,
+                                               checked.options)
         except (ConfigError, ValueError) as exc:  # refused before anything reached a board, or not fitted
             done = {"status": "invalid" if isinstance(exc, ConfigError) else "fault",
                     "exit_code": EXIT_INVALID if isinstance(exc, ConfigError) else 1,
@@ -305,7 +306,7 @@ class Worker:
         """A session or an ident item, in this thread (its own event loop), on the lab."""
         progress = self._progress(running)
         if kind == "ident":
-            chosen = {k: v for k, v in options.items() if k in IDENT_OPTIONS}
+            chosen = {k: v for k, v in options.items() if k in IDENT_OPTIONS}  # checked: IdentOptions
             try:
                 ident = api.ident(config, out=out_dir, progress=progress, **chosen)
             except ConfigError:
@@ -324,15 +325,18 @@ class Worker:
                 "log": str(result.log_path) if result.log_path else None,
                 "summary": _json_safe({**summary, **extra}), "report": None}
 
-    async def _run_campaign(self, running: Running, file_name: str, body: str, out_dir: Path,
-                            options: dict[str, Any]) -> dict[str, Any]:
-        """A campaign item: `hil campaign` as a child process (its cells are child processes of their own). On
-        the emulated lab its cells run on their own emulators, as `hil campaign` runs them; on the lab's hardware
-        the worker lets go of the ports while it runs (each cell claims them) and claims them again after."""
-        spec = out_dir / file_name
-        spec.write_text(body)
-        cmd = [sys.executable, "-m", "hil", "campaign", str(spec), "--out", str(out_dir / "campaign"), "--json"]
+    async def _run_campaign(self, running: Running, file_name: str, body: str, files: dict[str, str],
+                            out_dir: Path) -> dict[str, Any]:
+        """A campaign item: `hil campaign` as a child process (its cells are child processes of their own), on the
+        item's file and its own files written into ``out_dir/item`` as they were checked. On the emulated lab its
+        cells run on their own emulators, as `hil campaign` runs them; on the lab's hardware on the lab's ports
+        (whatever the submitted session says), the worker letting go of them while it runs (each cell claims them)
+        and claiming them again after."""
         hardware = not self.loopback
+        if hardware:
+            body = campaign_on_ports(body, self._lab_ports())
+        spec = write_item(out_dir / "item", file_name, body, files)
+        cmd = [sys.executable, "-m", "hil", "campaign", str(spec), "--out", str(out_dir / "campaign"), "--json"]
         if hardware:
             cmd.append("--hardware")
             if self.claims is not None:
@@ -362,6 +366,14 @@ class Worker:
             status, message = "completed", "the campaign ran; its acceptance failed"
         return {"status": status, "exit_code": code, "message": message, "log": None,
                 "summary": _json_safe(summary), "report": str(report) if report.is_file() else None}
+
+    def _lab_ports(self) -> dict[str, Any]:
+        """The lab's ports as a session's ``ports:`` section (its own session's, baud rates included)."""
+        if self.lab_config is not None and self.lab_config.ports is not None:
+            return self.lab_config.ports.model_dump(mode="json")
+        assert self.lab is not None
+        return {name: (self.lab.ports[name].model_dump(mode="json") if name in self.lab.ports else None)
+                for name in LINKS}
 
     def _progress(self, running: Running) -> Any:
         def progress(cycles: int, total: int) -> None:
@@ -435,6 +447,15 @@ class Worker:
                   for name, port in (lab.ports.items() if lab else [])}
         return {"boards": boards, "emulated": self.loopback, "doctor": self.doctor_report,
                 "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"}
+
+
+def campaign_on_ports(body: str, ports: dict[str, Any]) -> str:
+    """A checked campaign's text with ``ports`` (a session's ``ports:`` section, every link named, None for one the
+    lab lacks) last in its overrides: on the lab's hardware its cells open the lab's ports, never a submitted one."""
+    data = parse_yaml(body)
+    overrides = data.get("overrides") or {}
+    data["overrides"] = {**overrides, "ports": {name: ports.get(name) for name in LINKS}}
+    return yaml.safe_dump(data, sort_keys=False)
 
 
 def _json_safe(obj: Any) -> Any:

@@ -53,29 +53,41 @@ def test_a_campaign_runs_as_one_item_and_links_its_report(service: Service, tmp_
     assert html.count("data:image/png;base64,") >= 1  # one file: its plots inside
 
 
-def test_a_campaign_whose_files_are_not_on_the_service_is_refused_naming_the_field(service: Service,
-                                                                                     tmp_path: Path) -> None:
+def test_a_campaign_that_leans_on_files_it_does_not_carry_is_refused_naming_the_field(service: Service) -> None:
     text = (REPO / "profiles/campaigns/static-gyro-noise.yaml").read_text()
-    with pytest.raises(BenchError) as err:  # as written: its session is relative to a folder the service lacks
+    with pytest.raises(BenchError) as err:  # as written: its session is relative to a folder the item does not carry
         service.bench().call("POST", "/api/queue/items", {"kind": "campaign", "file_name": "c.yaml", "body": text})
-    assert err.value.status == 422 and str(err.value).startswith("c.yaml: session:")
+    assert err.value.status == 422 and str(err.value).startswith("c.yaml: session: names ../sessions/"), err.value
+    campaign = yaml.safe_load(text)
+    campaign["session"] = str(REPO / "profiles/sessions/swing-1deg-1hz-eso.yaml")  # a file on the service's disk
+    with pytest.raises(BenchError) as err:
+        service.bench().call("POST", "/api/queue/items", {"kind": "campaign", "file_name": "c.yaml",
+                                                          "body": yaml.safe_dump(campaign)})
+    assert err.value.status == 422 and "outside the submitted item" in str(err.value), err.value
 
 
-def test_an_item_is_checked_again_just_before_it_runs(service: Service, tmp_path: Path) -> None:
+def test_a_campaign_carries_its_own_files_and_runs_when_the_client_s_are_gone(service: Service,
+                                                                              tmp_path: Path) -> None:
     campaign = yaml.safe_load((REPO / "profiles/campaigns/static-gyro-noise.yaml").read_text())
-    profile = tmp_path / "static.yaml"
-    shutil.copy(REPO / "profiles/swing/static.yaml", profile)
-    campaign["session"] = str(REPO / "profiles/sessions/swing-1deg-1hz-eso.yaml")
-    campaign["profiles"][0]["path"] = str(profile)
-    file = tmp_path / "gone-later.yaml"
+    for name in ("sessions/swing-1deg-1hz-eso.yaml", "swing/static.yaml"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(REPO / "profiles" / name, tmp_path / name)
+    session = yaml.safe_load((tmp_path / "sessions/swing-1deg-1hz-eso.yaml").read_text())
+    for key in ("controller", "profile", "hexapod_limits"):
+        session[key] = str((REPO / "profiles/sessions" / session[key]).resolve())
+    (tmp_path / "sessions/swing-1deg-1hz-eso.yaml").write_text(yaml.safe_dump(session))
+    campaign.update(session="sessions/swing-1deg-1hz-eso.yaml", seeds=[1], duration_s=3.0, acceptance=[],
+                    profiles=[{"label": "static", "path": "swing/static.yaml"}])
+    file = tmp_path / "own-files.yaml"
     file.write_text(yaml.safe_dump(campaign))
     bench = service.bench()
     bench.stop_queue()
     try:
-        item = bench.add(file, kind="campaign")  # its files are there when it is submitted ...
-        profile.unlink()  # ... and one is gone when its turn comes
+        item = bench.add(file, kind="campaign")  # its session and profile go with it ...
+        shutil.rmtree(tmp_path / "sessions")  # ... so the client's copies may go before its turn comes
+        shutil.rmtree(tmp_path / "swing")
     finally:
         bench.start()
+    assert item["files"] == ["profiles/static.yaml", "session.yaml"]
     record = bench.wait(item["uid"])
-    assert record["status"] == "invalid" and record["exit_code"] == 2
-    assert record["message"].startswith("gone-later.yaml: profiles.0.path:") and "no such file" in record["message"]
+    assert record["status"] == "completed" and len(record["summary"]["cells"]) == 1, record
