@@ -43,6 +43,10 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
     emulator_cpu: Annotated[int, typer.Option(
         help="With --loopback: pin the emulated lab to this CPU (-1: the last, where the shipped sessions put the "
              "loop and the emulator).")] = -1,
+    mqtt: Annotated[Path | None, typer.Option(
+        help="The service's MQTT broker: a YAML file with a session's mqtt: section (host, port, username, and "
+             "the password inline, or password_env / password_file read here). Every session and ident item "
+             "publishes its telemetry there; a submitted item never carries the broker's secret.")] = None,
     allow_host: Annotated[list[str] | None, typer.Option(
         "--allow-host", help="A further host name the service answers to (its DNS name on the lab's network); "
                              "repeatable. Requests naming any other Host are refused (docs/service.md, \"Same "
@@ -69,6 +73,13 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
     elif not is_loopback_host(host):
         raise fail(f"--host {host}: serving beyond this machine needs --token-file FILE (tokens with roles; "
                    "docs/service.md)")
+    if mqtt is not None:
+        from hil.config import MqttConfig, load_model  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+
+        try:
+            load_model(MqttConfig, mqtt)
+        except ConfigError as exc:
+            raise fail(f"--mqtt: {exc}") from None
     check_free_port(host, port)
     try:
         state_dir.mkdir(parents=True, exist_ok=True)
@@ -76,7 +87,8 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
         raise fail(f"--state-dir {state_dir}: {exc.strerror or exc}") from None
     options = ServiceOptions(state_dir=state_dir.absolute(), loopback=loopback, lab=lab.absolute() if lab else None,
                              emulator=emulator.absolute() if emulator else None, seed=seed, host=host, port=port,
-                             emulator_cpu=emulator_cpu, allow_hosts=tuple(allow_host or ()))
+                             emulator_cpu=emulator_cpu, allow_hosts=tuple(allow_host or ()),
+                             mqtt=mqtt.absolute() if mqtt else None)
     shown = "localhost" if host in ("127.0.0.1", "::1") else host
     url = f"http://{shown}:{port}/"
 

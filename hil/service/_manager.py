@@ -79,6 +79,7 @@ class ServiceOptions:
     host: str = "127.0.0.1"
     port: int = 8765
     allow_hosts: tuple[str, ...] = ()  # further names the service answers to (its Host check), --allow-host
+    mqtt: Path | None = None  # the service's own broker section (its password from the service's configuration)
 
 
 class Page:
@@ -205,6 +206,8 @@ class Manager:
                 argv += ["--emulator-cpu", str(o.emulator_cpu)]
         elif o.lab is not None:
             argv += ["--lab", str(o.lab)]
+        if o.mqtt is not None:
+            argv += ["--mqtt", str(o.mqtt)]
         return argv
 
     async def _worker_task(self) -> None:

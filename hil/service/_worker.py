@@ -45,7 +45,16 @@ import yaml
 
 from hil import api
 from hil.boards import check_boards
-from hil.config import ConfigError, EmulatorRef, PortConfig, SessionConfig, load_session, parse_yaml
+from hil.config import (
+    ConfigError,
+    EmulatorRef,
+    MqttConfig,
+    PortConfig,
+    SessionConfig,
+    load_model,
+    load_session,
+    parse_yaml,
+)
 from hil.link import Holder as PortHolder
 from hil.link import LinkError, PortClaims, PortUnavailable, check_ports, claim_ports
 from hil.protocol import LINKS
@@ -171,12 +180,15 @@ class Worker:
     """One worker: the lab it holds (:meth:`open_lab`), the item it runs, the lines it sends."""
 
     def __init__(self, *, state_dir: Path, loopback: bool, lab_session: Path | None, emulator: Path | None,
-                 seed: int, outbox: Outbox, emulator_cpu: int | None = -1) -> None:
+                 seed: int, outbox: Outbox, emulator_cpu: int | None = -1, mqtt: Path | None = None) -> None:
         self.state_dir = state_dir
         self.loopback = loopback
         self.lab_session = lab_session
         self.emulator_config = emulator
         self.seed = seed
+        # the service's own broker (hil serve --mqtt): every session and ident item publishes there, its password
+        # read here from the service's configuration; without it an item's own mqtt section (no secret of ours)
+        self.mqtt: MqttConfig | None = load_model(MqttConfig, mqtt) if mqtt is not None else None
         self.emulator_cpu = emulator_cpu  # placed as the shipped sessions place it (emulator.cpu: -1, the loop's)
         self.out = outbox
         self.emulator: EmulatorProcess | None = None
@@ -305,6 +317,8 @@ class Worker:
                      options: dict[str, Any]) -> dict[str, Any]:
         """A session or an ident item, in this thread (its own event loop), on the lab."""
         progress = self._progress(running)
+        if self.mqtt is not None:
+            config = config.model_copy(update={"mqtt": self.mqtt})
         if kind == "ident":
             chosen = {k: v for k, v in options.items() if k in IDENT_OPTIONS}  # checked: IdentOptions
             try:
@@ -531,13 +545,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--emulator", type=Path, default=None)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--emulator-cpu", type=int, default=None, help="pin the emulated lab to this CPU")
+    parser.add_argument("--mqtt", type=Path, default=None, help="the service's broker (an MQTT section's YAML)")
     args = parser.parse_args(argv)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the manager ends the worker (quit, or its stdin closing)
     stdout = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1)
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # a stray print must not corrupt the manager's lines
     outbox = Outbox(stdout)
     worker = Worker(state_dir=args.state_dir, loopback=args.loopback, lab_session=args.lab, emulator=args.emulator,
-                    seed=args.seed, outbox=outbox, emulator_cpu=args.emulator_cpu)
+                    seed=args.seed, outbox=outbox, emulator_cpu=args.emulator_cpu, mqtt=args.mqtt)
     try:
         return asyncio.run(serve(worker))
     finally:

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import asyncio
 import os
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +17,7 @@ import yaml
 
 from hil.config import load_session
 from hil.service import IDENT_OPTIONS, MAX_ITEM_BYTES, ItemError, check_item, item_text
-from hil.service._worker import Worker, campaign_on_ports
+from hil.service._worker import Running, Worker, campaign_on_ports
 
 REPO = Path(__file__).resolve().parents[2]
 SESSION = REPO / "profiles" / "sessions" / "swing-1deg-1hz-eso.yaml"
@@ -291,3 +293,37 @@ def test_the_worker_checks_the_item_again_with_its_files_and_options(tmp_path: P
     assert messages[0].startswith("s.yaml: mqtt.password_file: names /etc/hostname")
     assert messages[1].startswith("options: f_start_hz:") and messages[2].startswith("c.yaml: session:")
     assert not (tmp_path / "runs").exists()  # nothing ran, nothing was written
+
+
+def test_the_service_s_own_broker_carries_its_password_to_every_session_item(tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """`hil serve --mqtt FILE`: the worker reads the broker's password from the service's own configuration and
+    every session item publishes there with it, whatever mqtt section the item had."""
+    secret = tmp_path / "broker-password"
+    secret.write_text("s3cret-of-the-service\n")
+    broker = tmp_path / "broker.yaml"
+    broker.write_text("host: 127.0.0.1\nport: 18830\nusername: lab\npassword_file: broker-password\n")
+    worker = Worker(state_dir=tmp_path, loopback=True, lab_session=None, emulator=None, seed=0,
+                    outbox=Lines(), mqtt=broker)  # type: ignore[arg-type]
+    seen: list[Any] = []
+
+    def fake_run(config: Any, **_: Any) -> Any:
+        seen.append(config.mqtt)
+        raise ValueError("not run here")
+
+    monkeypatch.setattr("hil.service._worker.api.run", fake_run)
+    item = check_item("session", "s.yaml", yaml.safe_dump(as_submitted(mqtt={"host": "10.0.0.9", "port": 1})))
+    with pytest.raises(ValueError, match="not run here"):
+        worker._run_session(Running("u", "session"), item.config, "session", tmp_path, {})
+    assert (seen[0].host, seen[0].port, seen[0].username) == ("127.0.0.1", 18830, "lab")
+    assert seen[0].password_value == "s3cret-of-the-service"
+
+
+def test_a_bad_service_broker_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    broker = tmp_path / "broker.yaml"
+    broker.write_text("host: 127.0.0.1\nport: 99999\n")
+    run = subprocess.run([sys.executable, "-m", "hil", "serve", "--loopback", "--mqtt", str(broker), "--state-dir",
+                          str(tmp_path / "state")], capture_output=True, text=True, timeout=120, check=False)
+    assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
+    assert "--mqtt" in run.stderr and "broker.yaml: port" in run.stderr
+    assert not (tmp_path / "state").exists()
