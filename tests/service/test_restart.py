@@ -99,6 +99,27 @@ def test_a_restarted_service_runs_nothing_until_an_operator_starts_the_queue(tmp
         again.stop()
 
 
+def test_a_killed_worker_s_item_is_a_fault_with_exit_code_1_and_its_log_linked(tmp_path: Path) -> None:
+    """The worker SIGKILLed mid-item: the item is recorded fault, exit code 1, with the log it left on disk linked
+    (it used to be recorded with neither), a new worker takes the lab and the queue goes on."""
+    svc = Service(tmp_path / "state").start()
+    try:
+        bench = svc.bench(user="kim")
+        long = bench.add(short_session(tmp_path, 60.0, name="long"))
+        wait_for(lambda: bench.item(long["uid"]).get("cycles", 0) > 300, timeout_s=180)
+        worker_pid = int(bench.status()["worker"]["holder"].split()[1])
+        os.kill(worker_pid, signal.SIGKILL)
+        record = bench.wait(long["uid"])
+        assert record["status"] == "fault" and record["exit_code"] == 1
+        assert "the worker process ended" in record["message"]
+        assert record["links"]["log"] == f"/api/history/{long['uid']}/log"
+        assert Path(record["log_path"]).parent == svc.state_dir / "runs" / long["uid"]
+        after = bench.run(short_session(tmp_path, 1.0, name="after"), out=tmp_path / "out")
+        assert after.status == "completed"
+    finally:
+        svc.stop()
+
+
 HOLD = """
 import json, sys, time
 from hil.link import claim_ports
