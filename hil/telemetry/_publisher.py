@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import errno
 import json
 import logging
 import math
@@ -66,6 +67,26 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+# paho's and aiomqtt's log: WARNING and above, as aiomqtt's own logger (paho logs every packet at DEBUG)
+mqtt_log = logging.getLogger(f"{__name__}.mqtt")
+mqtt_log.setLevel(logging.WARNING)
+# paho's lines for a connection the broker dropped ("failed to receive on socket: [Errno 104] Connection reset by
+# peer"); the publisher reports the lost broker itself, in one warning
+_PAHO_CONNECTION_LOST = ("failed to receive on socket: ", "timeout on socket: ")
+
+
+class _ConnectionLost(logging.Filter):
+    """Keeps paho's error for a dropped connection off stderr: the one line of a lost broker is the publisher's
+    own warning (``telemetry: lost the broker ...; reconnecting``); paho's line goes to the DEBUG log."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str) and record.msg.startswith(_PAHO_CONNECTION_LOST):
+            log.debug("telemetry: paho: %s", record.getMessage())
+            return False
+        return True
+
+
+mqtt_log.addFilter(_ConnectionLost())
 
 TOPIC_ROOT = "hil"
 STOP_TIMEOUT_S = 2.0  # stop() returns within this, broker or not
@@ -384,6 +405,7 @@ class Telemetry:
             clean_session=True,
             max_queued_outgoing_messages=cfg.queue_size,
             max_queued_incoming_messages=16,  # we subscribe to nothing
+            logger=mqtt_log,
         )
 
     async def _run(self) -> None:
@@ -752,6 +774,7 @@ async def _child_run(config: MqttConfig, session_id: str, units: dict[str, str],
         report("stats")
 
     tm._on_connected, tm._on_disconnected, tm._on_error = connected, disconnected, error  # type: ignore[method-assign]
+    loop.set_exception_handler(_child_loop_error)
     os.set_blocking(0, False)
     await tm.start()
     # without units from the session, the schema's import (~0.1 s, numpy) overlaps the first connection
@@ -768,6 +791,17 @@ async def _child_run(config: MqttConfig, session_id: str, units: dict[str, str],
         if warm is not None:
             with contextlib.suppress(Exception):
                 await warm
+
+
+def _child_loop_error(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+    """The child's loop errors: aiomqtt registering the socket writer of a connection the broker has just dropped
+    (``add_writer``, EBADF) is part of the lost broker the publisher reports in one warning, so DEBUG only; any
+    other error as asyncio reports it."""
+    exc = context.get("exception")
+    if isinstance(exc, OSError) and exc.errno == errno.EBADF and "add_writer" in str(context.get("message", "")):
+        log.debug("telemetry: %s: %r", context.get("message"), exc)
+        return
+    loop.default_exception_handler(context)
 
 
 def _paho_of(client: aiomqtt.Client) -> paho.Client | None:

@@ -8,8 +8,10 @@ acknowledged the subscription, on purpose: nothing the Telemetry sends after tha
 from __future__ import annotations
 
 import asyncio
+import errno
 import itertools
 import json
+import logging
 import math
 import os
 import signal
@@ -28,6 +30,7 @@ from pydantic import ValidationError
 from rich.console import Console
 
 from hil.telemetry import MqttConfig, Telemetry, TelemetryProcess, TelemetryStats, dumps, watch
+from hil.telemetry._publisher import _child_loop_error
 from tests.telemetry.broker import MqttBroker, free_port
 
 UNITS = {"gyro_x": "rad/s", "drive": "V", "temp": "degC"}
@@ -548,3 +551,57 @@ def test_process_publisher_never_blocks_counts_drops_and_says_offline_at_eof(mqt
             assert dropped_here + len(sub.on("/telemetry")) >= 20000 - 100  # every sample published or counted
 
     run(main(), timeout=60)
+
+
+def test_a_broker_restart_is_one_warning_line_on_stderr(mqtt_broker: MqttBroker,
+                                                         capfd: pytest.CaptureFixture[str]) -> None:
+    """The session's publisher (TelemetryProcess: its child writes to this process' stderr) across three broker
+    restarts: each is one line, ``telemetry: lost the broker URL (...); reconnecting``, and nothing else reaches
+    stderr, no raw ``[Errno 104] Connection reset by peer`` of paho's. The broker is frozen (SIGSTOP) while 100 ms
+    of samples reach its socket unread and then killed, so the kernel resets the connection (ECONNRESET) rather
+    than closing it: the case in which paho logged its own line."""
+    restarts = 3
+
+    async def main() -> None:
+        tm = TelemetryProcess(config(mqtt_broker, bench_id="rig-restart", telemetry_hz=1000, reconnect_max_s=0.2),
+                              "s-restart")
+        await tm.start()
+        await until(lambda: tm.stats.connected, 10, "the child connected")
+        t = await drive(tm, 0.3)
+        for n in range(1, restarts + 1):
+            assert mqtt_broker.pid is not None
+            os.kill(mqtt_broker.pid, signal.SIGSTOP)
+            t = await drive(tm, 0.1, t)  # ~100 samples sent, not read by the broker
+            mqtt_broker.kill()
+            await until(lambda: not tm.stats.connected, 5, "the child saw the broker go")
+            mqtt_broker.start()  # same port
+            await until(lambda n=n: tm.stats.connected and tm.stats.reconnects == n, 10, f"reconnection {n}")
+            t = await drive(tm, 0.3, t)
+        published = tm.stats.published
+        await tm.stop()
+        assert published > 3 * 250  # telemetry went on between the restarts (~300 due samples after each)
+
+    run(main(), timeout=60)
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+    url = f"mqtt://127.0.0.1:{mqtt_broker.port}"
+    assert len(lines) == restarts, lines
+    assert all(line.startswith(f"telemetry: lost the broker {url} (") and line.endswith("); reconnecting")
+               for line in lines), lines
+    assert not any("Errno" in line for line in lines), lines
+
+
+def test_the_childs_loop_keeps_a_dropped_sockets_writer_error_off_stderr(caplog: pytest.LogCaptureFixture) -> None:
+    """aiomqtt registering the writer of a socket the broker has just dropped (EBADF in ``add_writer``) is DEBUG
+    in the publisher child's loop; any other error there is logged as asyncio logs it."""
+    loop = asyncio.new_event_loop()
+    try:
+        with caplog.at_level(logging.DEBUG):
+            _child_loop_error(loop, {"message": "Exception in callback BaseSelectorEventLoop.add_writer(7, <cb>)",
+                                     "exception": OSError(errno.EBADF, "Bad file descriptor")})
+            assert [r.levelno for r in caplog.records] == [logging.DEBUG]
+            caplog.clear()
+            _child_loop_error(loop, {"message": "Exception in callback Thing.run()",
+                                     "exception": ValueError("a bug")})
+            assert [(r.name, r.levelno) for r in caplog.records] == [("asyncio", logging.ERROR)]
+    finally:
+        loop.close()
