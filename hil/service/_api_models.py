@@ -3,15 +3,29 @@ table (``GET /openapi.json``; docs/service.md shows every call with curl)."""
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from hil.service._lease import MAX_TTL_S, MIN_TTL_S
 
 
 class _Body(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A request body: no unknown field, no value of another type ('yes' is not a bool, '300' not a number)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+# a reason goes into the history and the log: text without control characters (in the schema, so a client knows)
+PlainText = Annotated[str, Field(pattern=r"^[^\u0000-\u001f\u007f-\u009f]*$")]
+
+
+def _integral(value: Any) -> Any:
+    """JSON Schema's integer: 62.0 is 62 (a string is still no number)."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+Position = Annotated[int, BeforeValidator(_integral)]
 
 
 class SubmitItem(_Body):
@@ -25,12 +39,12 @@ class SubmitItem(_Body):
         description="the item's own files, by the relative name the item's file gives them (a campaign's session "
         "and profiles); nothing else is read (docs/service.md, \"A submitted item stands on its own\")")
     options: dict[str, Any] = Field(default_factory=dict, description="ident: {axis: el|az, f_start_hz, ...}")
-    position: int | None = Field(default=None, ge=0, le=1_000_000,
+    position: Position | None = Field(default=None, ge=0, le=1_000_000,
                                  description="where in the queue (default: at its end)")
 
 
 class MoveItem(_Body):
-    position: int = Field(ge=0, le=1_000_000, description="0: first among the waiting items")
+    position: Position = Field(ge=0, le=1_000_000, description="0: first among the waiting items")
 
 
 class StartQueue(_Body):
@@ -40,7 +54,7 @@ class StartQueue(_Body):
 class EndItem(_Body):
     uid: str | None = Field(default=None, max_length=64,
                             description="the running item's uid (refused if another one runs)")
-    reason: str = Field(default="", max_length=500)
+    reason: PlainText = Field(default="", max_length=500, description="why; it goes into the history and the log")
 
 
 class TakeLease(_Body):
@@ -49,7 +63,7 @@ class TakeLease(_Body):
 
 
 class BreakLease(_Body):
-    reason: str = Field(min_length=1, max_length=500, description="why; it goes into the lease history")
+    reason: PlainText = Field(min_length=1, max_length=500, description="why; it goes into the lease history")
 
 
 ERROR_SCHEMA: dict[str, Any] = {"type": "object", "required": ["detail"], "additionalProperties": False,
@@ -81,6 +95,10 @@ def openapi_document(routes: list[tuple[Any, ...]], version: str) -> dict[str, A
         media = FILE_TYPES.get(path, "application/json")
         ok_schema = {"type": "string", "format": "binary"} if media != "application/json" else {"type": "object"}
         responses: dict[str, Any] = {ok: {"description": "the answer", "content": {media: {"schema": ok_schema}}}}
+        if media != "application/json":  # a file: a client may ask for a part of it (Range)
+            responses["206"] = {"description": "the part of the file asked for", "content": {media: {
+                "schema": ok_schema}}}
+            responses["416"] = {"description": "a Range beyond the file"}
         responses.update({code: {"description": text, "content": error} for code, text in COMMON_ERRORS.items()})
         if method != "GET":
             responses.update({code: {"description": text, "content": error} for code, text in BODY_ERRORS.items()})
@@ -100,7 +118,7 @@ def openapi_document(routes: list[tuple[Any, ...]], version: str) -> dict[str, A
             schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
             schemas.update(schema.pop("$defs", {}))
             schemas[model.__name__] = schema
-            op["requestBody"] = {"required": False, "content": {"application/json": {
+            op["requestBody"] = {"required": bool(schema.get("required")), "content": {"application/json": {
                 "schema": {"$ref": f"#/components/schemas/{model.__name__}"}}}}
         paths.setdefault(path, {})[method.lower()] = op
     return {"openapi": "3.1.0",

@@ -55,7 +55,7 @@ from hil.service._auth import AuthError, Caller, Gate
 from hil.service._items import ItemError, check_item
 from hil.service._lease import LeaseBook, LeaseError
 from hil.service._origin import SameOrigin, served_names
-from hil.service._store import HistoryRecord, Store, StoreError, StoreUnavailable
+from hil.service._store import HistoryRecord, NotInStore, Store, StoreError, StoreUnavailable
 
 _log = logging.getLogger("hil.service")
 STATIC = Path(__file__).parent / "static"
@@ -400,7 +400,7 @@ class Manager:
             "you": None if caller is None else {"user": caller.user, "role": caller.role},
             "worker": {"state": self.worker_state, "error": self.worker_error or None, "ports": info.get("ports", {}),
                        "holder": info.get("holder"), "boards": boards, "doctor": info.get("doctor"),
-                       "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"},
+                       "rest": info.get("rest"), "safe": None if running is not None else info.get("safe")},
             "queue": {"running": self.queue_running, "stop_on_failure": self.stop_on_failure,
                       "waiting": self.store.waiting(), "stopped": self.queue_stopped},
             "store": {"ok": self.store_error is None, "error": self.store_error,
@@ -600,7 +600,7 @@ async def get_record(request: Request, m: Manager, caller: Caller) -> Response:
 async def get_log(request: Request, m: Manager, caller: Caller) -> Response:
     record = m.store.record(request.path_params["uid"])
     if not record.log_path or not Path(record.log_path).is_file():
-        raise StoreError(f"item {record.uid!r}: its log is not in the history (status {record.status})")
+        raise NotInStore(f"item {record.uid!r}: it left no log (status {record.status})")
     return FileResponse(record.log_path, filename=Path(record.log_path).name, media_type="application/x-hdf5")
 
 
@@ -608,7 +608,7 @@ async def get_report(request: Request, m: Manager, caller: Caller) -> Response:
     record = m.store.record(request.path_params["uid"])
     report = (record.summary or {}).get("report")
     if not report or not Path(report).is_file():
-        raise StoreError(f"item {record.uid!r}: no report is in the history")
+        raise NotInStore(f"item {record.uid!r}: it made no report")
     return FileResponse(report, media_type="text/html")
 
 
@@ -765,13 +765,26 @@ def build_app(options: ServiceOptions, gate: Gate, *, on_ready: Callable[[Manage
         finally:
             await manager.close()
 
-    routes: list[Any] = [Route(path, endpoint(handler, operator=op), methods=[method])
-                         for method, path, handler, op, _model, _summary in API_ROUTES]
+    by_path: dict[str, dict[str, Callable[[Request], Awaitable[Response]]]] = {}
+    for method, path, handler, op, _model, _summary in API_ROUTES:
+        by_path.setdefault(path, {})[method] = endpoint(handler, operator=op)
+    routes: list[Any] = [Route(path, by_method(handlers), methods=list(handlers))  # one route: a right Allow
+                         for path, handlers in by_path.items()]
     routes += [WebSocketRoute("/ws", live_socket), Route("/", index, methods=["GET"]),
                Mount("/static", app=StaticFiles(directory=STATIC), name="static")]
     names = served_names(options.host, options.allow_hosts)
     return Starlette(routes=routes, lifespan=lifespan, middleware=[Middleware(SameOrigin, names=names)],
                      exception_handlers={HTTPException: http_error, Exception: server_error})
+
+
+def by_method(handlers: dict[str, Callable[[Request], Awaitable[Response]]]) -> Callable[[Request],
+                                                                                          Awaitable[Response]]:
+    """One route for every method of a path, so that a 405 lists them all in ``Allow``."""
+
+    async def route(request: Request) -> Response:
+        method = "GET" if request.method == "HEAD" else request.method
+        return await handlers[method](request)
+    return route
 
 
 async def http_error(request: Request, exc: Exception) -> Response:

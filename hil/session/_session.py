@@ -559,8 +559,10 @@ class Session:
         EXIT_STOPPED. Call it on the session's event loop. :meth:`interrupt` disables the driver first instead."""
         if self._finished is not None and not self._finished.done():
             self._stop_request = reason
-            self.event("info", stop=reason)
-            self.finish("completed", reason)
+            try:
+                self.event("info", stop=reason)
+            finally:  # whatever recording it did, the session ends
+                self.finish("completed", reason)
 
     def interrupt(self, signum: int = signal.SIGINT) -> None:
         """End the session as SIGINT (or ``signum``) would: the driver disabled first, then the usual wind-down.
@@ -569,14 +571,16 @@ class Session:
         self._on_signal(signum)
 
     def _on_signal(self, signum: int) -> None:
-        if self.driver is not None:  # the driver first, before anything else
-            with contextlib.suppress(LinkError, OSError):
-                self.driver.disable_now()
-        if self.loop_ is not None:
-            self.loop_.armed = False
-        self.exit_code = EXIT_SIGINT if signum == signal.SIGINT else EXIT_SIGTERM
-        self.event("signal", signal=signal.Signals(signum).name)
-        self.finish("interrupted", signal.Signals(signum).name)
+        try:
+            if self.driver is not None:  # the driver first, before anything else
+                with contextlib.suppress(LinkError, OSError):
+                    self.driver.disable_now()
+            if self.loop_ is not None:
+                self.loop_.armed = False
+            self.exit_code = EXIT_SIGINT if signum == signal.SIGINT else EXIT_SIGTERM
+            self.event("signal", signal=signal.Signals(signum).name)
+        finally:  # whatever failed above, the session ends
+            self.finish("interrupted", signal.Signals(signum).name)
 
     async def _host_alive_task(self) -> None:
         """HOST_ALIVE on every open link every HOST_ALIVE_S, until the end of the shutdown: the boards' host
