@@ -4,7 +4,8 @@
 distance) and the hexapod: ``HexapodDriver`` is a table's interface, ``ProtocolHexapod`` the bench's own protocol
 (entry point ``hil.boards:ProtocolHexapod``, docs/hexapod-drivers.md), ``GuardedHexapod`` holds it to the one-way
 safety rule through the session's ``Interlock``. ``check_boards`` and ``listen_to_stream`` are `hil doctor`'s checks
-that need the boards to answer (IDENT and its catalogue fingerprint, the servo stream's rate and jitter)."""
+that need the boards to answer (IDENT and its catalogue fingerprint, the servo stream's rate and jitter);
+``wait_for_rest`` the boards' rest state measured (a service's check before each item)."""
 
 from hil.boards._clients import (
     HEXAPOD_DRIVERS,
@@ -21,9 +22,11 @@ from hil.boards._clients import (
     load_hexapod_driver,
 )
 from hil.boards._doctor import check_boards, listen_to_stream
+from hil.boards._rest import REST_TIMEOUT_S, RestState, wait_for_rest
 
 __all__ = [
     "HEXAPOD_DRIVERS",
+    "REST_TIMEOUT_S",
     "DriverBoard",
     "GuardedHexapod",
     "HexapodDriver",
@@ -32,9 +35,11 @@ __all__ = [
     "Interlock",
     "InterlockClosed",
     "ProtocolHexapod",
+    "RestState",
     "ServoBoard",
     "check_boards",
     "installed_hexapod_drivers",
     "listen_to_stream",
     "load_hexapod_driver",
+    "wait_for_rest",
 ]

@@ -44,7 +44,7 @@ from typing import Any
 import yaml
 
 from hil import api
-from hil.boards import check_boards
+from hil.boards import REST_TIMEOUT_S, check_boards, wait_for_rest
 from hil.config import (
     ConfigError,
     EmulatorRef,
@@ -94,6 +94,10 @@ def predecessor(holder: PortHolder | None) -> bool:
     except PermissionError:
         return False
     return False
+
+
+class BoardsNotAtRest(RuntimeError):
+    """The boards did not come to their rest state before an item: it is not started."""
 
 
 class Outbox:
@@ -199,6 +203,9 @@ class Worker:
         self.identified: set[str] = set()  # boards that answered IDENT (the doctor's, or a session's links opened)
         self.lab_config: SessionConfig | None = None
         self.doctor_report: dict[str, Any] | None = None
+        self.rest: dict[str, Any] | None = None  # the boards' rest state as last measured (wait_for_rest)
+        self.boards_lock = asyncio.Lock()  # one of: an item, the doctor, the rest check has the ports open
+        self.rest_task: asyncio.Task[dict[str, Any]] | None = None
 
     # --- the lab -----------------------------------------------------------------------------------
 
@@ -253,6 +260,26 @@ class Worker:
         if running.end is not None:  # asked to end before the session existed
             self._end_session(running)
 
+    async def check_rest(self, timeout_s: float = REST_TIMEOUT_S) -> dict[str, Any]:
+        """Wait for the boards' rest state and measure it (hil.boards.wait_for_rest): driver disabled, stream idle,
+        hexapod IDLE or LOADED at home; the result, kept for the status."""
+        assert self.lab is not None
+        ports = {n: p.port for n, p in self.lab.ports.items()
+                 if n != "hexapod" or self.lab_config is None or self.lab_config.hexapod.driver_class.uses_link}
+        bauds = {n: p.baudrate for n, p in self.lab.ports.items()}
+        try:
+            rest = (await wait_for_rest(ports, bauds, timeout_s=timeout_s)).as_dict()
+        except (LinkError, OSError) as exc:
+            rest = {"ok": False, "boards": {}, "summary": f"not measured: {exc}", "at": time.time()}
+        self.rest = rest
+        return rest
+
+    async def _rest_between_items(self) -> None:
+        """After an item: the boards' rest state measured for the status (the next item waits for it)."""
+        async with self.boards_lock:
+            await self.check_rest()
+        self.out.send("status", **self.status())
+
     async def doctor(self, listen_s: float = 2.0) -> dict[str, Any]:
         """`hil doctor`'s checks on the ports this worker holds (between items only): each port, each board's
         IDENT and fingerprint, a listen to the servo stream. The driver is never enabled, the hexapod never moved."""
@@ -279,6 +306,12 @@ class Worker:
         self.item_task = asyncio.get_running_loop().create_task(self._run_item(item))
 
     async def _run_item(self, item: dict[str, Any]) -> None:
+        async with self.boards_lock:
+            await self._run_item_at_rest(item)
+        self.rest_task = asyncio.get_running_loop().create_task(self._rest_between_items())
+
+    async def _run_item_at_rest(self, item: dict[str, Any]) -> None:
+        """One item, from the boards' rest state measured just before it (a fault if they do not come to rest)."""
         uid, kind = str(item["uid"]), str(item["kind"])
         self.running = running = Running(uid, kind)
         out_dir = self.state_dir / "runs" / uid
@@ -295,12 +328,19 @@ class Worker:
             out_dir.mkdir(parents=True, exist_ok=True)
             if self.lab is not None:  # who ran it goes into the log's provenance (never a token)
                 self.lab.extra = {"provenance": {"submitted_by": str(item.get("user", "")), "service_item": uid}}
-            self.out.send("started", uid=uid, out_dir=str(out_dir))
+            rest = await self.check_rest()
+            if not rest["ok"]:
+                raise BoardsNotAtRest(f"the boards did not come to rest within {REST_TIMEOUT_S:g} s before it "
+                                      f"started: {rest['summary']}; nothing was armed (hil bench doctor, and check "
+                                      "the lab)")
+            self.out.send("started", uid=uid, out_dir=str(out_dir), rest=rest)
             if kind == "campaign":
                 done = await self._run_campaign(running, str(item["file_name"]), str(item["body"]), files, out_dir)
             else:
                 done = await asyncio.to_thread(self._run_session, running, checked.config, kind, out_dir,
                                                checked.options)
+        except BoardsNotAtRest as exc:
+            done = {"status": "fault", "exit_code": 1, "message": str(exc), "log": None, "summary": {}}
         except (ConfigError, ValueError) as exc:  # refused before anything reached a board, or not fitted
             done = {"status": "invalid" if isinstance(exc, ConfigError) else "fault",
                     "exit_code": EXIT_INVALID if isinstance(exc, ConfigError) else 1,
@@ -459,8 +499,9 @@ class Worker:
         boards = {name: {"port": port.port, "connected": name in links, "identified": name in self.identified,
                          "armed": armed and name in ("driver", "servo")}
                   for name, port in (lab.ports.items() if lab else [])}
-        return {"boards": boards, "emulated": self.loopback, "doctor": self.doctor_report,
-                "safe": None if running is not None else "driver disabled, stream idle, hexapod at home"}
+        return {"boards": boards, "emulated": self.loopback, "doctor": self.doctor_report, "rest": self.rest,
+                "safe": None if running is not None or self.rest is None else
+                (self.rest["summary"] if self.rest["ok"] else f"NOT AT REST: {self.rest['summary']}")}
 
 
 def campaign_on_ports(body: str, ports: dict[str, Any]) -> str:
@@ -497,6 +538,7 @@ async def serve(worker: Worker) -> int:
         await worker.doctor()
     except (LinkError, OSError, ValueError) as exc:  # the checks report; a check that cannot run is said so
         worker.doctor_report = {"at": time.time(), "ok": False, "findings": [], "error": str(exc)}
+    await worker.check_rest()
     holder = PortHolder.this_process(holder_name())
     worker.out.send("ready", ports=ports, holder=holder.describe(), pid=os.getpid(), **worker.status())
     live = asyncio.get_running_loop().create_task(worker.live_task())
@@ -524,13 +566,19 @@ async def serve(worker: Worker) -> int:
                 if worker.running is not None or (worker.item_task is not None and not worker.item_task.done()):
                     worker.out.send("doctor", error="an item is running; the checks run between items")
                 else:
-                    worker.out.send("doctor", **await worker.doctor())
+                    async with worker.boards_lock:  # after the rest check between items, if one runs
+                        report = await worker.doctor()
+                    worker.out.send("doctor", **report)
                     worker.out.send("status", **worker.status())
             elif op == "quit":
                 worker.end("abort", "the service is stopping")
                 break
         if worker.item_task is not None:
             await worker.item_task
+        if worker.rest_task is not None:
+            worker.rest_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await worker.rest_task
     finally:
         live.cancel()
         await asyncio.to_thread(worker.close_lab)
