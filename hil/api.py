@@ -38,11 +38,13 @@ from hil.log.reader import NotASessionLog
 from hil.session import (
     CLOCKS,
     MIN_BAND_OCTAVES,
+    SERVICE_RT_PRIORITY,
     Clock,
     Progress,
     RunResult,
     as_session_config,
     emulator_for_plant,
+    fifo_refusal,
     ident_sweeps,
     prepare_run,
     read_log,
@@ -377,11 +379,15 @@ def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Pa
     never enabled and the hexapod never moved. ``boards=False`` checks the ports alone, without a byte sent."""
     if not (math.isfinite(listen_s) and listen_s > 0):
         raise ConfigError(f"listen_s={listen_s!r}: not a finite number of seconds above 0")
+    refusal = fifo_refusal(SERVICE_RT_PRIORITY)
+    host = Finding("host", "realtime scheduling", refusal is None, refusal or (
+        f"this user may run the loop thread SCHED_FIFO (priority {SERVICE_RT_PRIORITY}; host.rt_priority, and "
+        "`hil serve` does it by itself)"))
     if session is None:
         by_id = sorted(Path("/dev/serial/by-id").glob("*"))
         ports = {p.name: str(p) for p in by_id}
         bauds = dict.fromkeys(ports, PortConfig.model_fields["baudrate"].default)
-        return check_ports(ports, bauds, sysfs=Path(sysfs))
+        return [*check_ports(ports, bauds, sysfs=Path(sysfs)), host]
     config = session if isinstance(session, SessionConfig) else load_session(session)
     if config.ports is None:
         raise ConfigError("ports: not set in the session file; a loopback run needs no hardware check")
@@ -390,7 +396,7 @@ def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Pa
     bauds = {n: c.baudrate for n, c in links.items() if c is not None}
     findings = check_ports(ports, bauds, sysfs=Path(sysfs))
     if not boards:
-        return findings
+        return [*findings, host]
     # the links a session opens: the hexapod's only for a driver that talks over it
     opened = [n for n in ports if n != "hexapod" or config.hexapod.driver_class.uses_link]
     free = {n: ports[n] for n in opened
@@ -404,4 +410,4 @@ def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Pa
         findings += run_coroutine(check_boards, free, bauds, listen_s=listen_s,
                                   watchdog_ms=config.safety.watchdog_ms)
     order = list(ports)
-    return sorted(findings, key=lambda f: order.index(f.link))  # each link's rows together, in the checks' order
+    return [*sorted(findings, key=lambda f: order.index(f.link)), host]  # each link's rows together, then the host

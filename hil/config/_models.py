@@ -228,6 +228,10 @@ class TrackingConfig(Strict):
     ki_per_s2: float = Field(0.0, ge=0, le=1e4)
     ifov_deg_per_px: float = Field(0.002, gt=0, le=1, description="the camera's pixel angle")
     max_rate_dps: float = Field(20.0, gt=0, le=1000)
+    max_lost_s: float = Field(
+        1.0, gt=0, le=MAX_SESSION_S,
+        description="tracking enabled: the longest the target may go without a valid frame once acquired; a session "
+        "that never acquires it, or loses it for longer, ends lost_target (exit code 4), not completed")
     stale_s: float = Field(0.05, gt=0, le=10)
     gate_px: int = Field(0, ge=0, le=65535, description="TRACK_CMD gate half-size, 0 = the whole field")
     apply_after_ms: float = Field(

@@ -25,8 +25,8 @@ from typing import Any, Literal
 
 ItemKind = Literal["session", "ident", "campaign"]
 ITEM_KINDS: tuple[str, ...] = ("session", "ident", "campaign")
-ExitStatus = Literal["completed", "fault", "stopped", "aborted", "interrupted", "invalid"]
-EXIT_STATUSES: tuple[str, ...] = ("completed", "fault", "stopped", "aborted", "interrupted", "invalid")
+ExitStatus = Literal["completed", "lost_target", "fault", "stopped", "aborted", "interrupted", "invalid"]
+EXIT_STATUSES: tuple[str, ...] = ("completed", "lost_target", "fault", "stopped", "aborted", "interrupted", "invalid")
 DB_NAME = "service.sqlite3"
 SCHEMA_VERSION = 1
 

@@ -15,7 +15,8 @@
 Import from here; the underscored modules are this package's own.
 """
 
-from hil.session._control_loop import LATE_NS, ControlLoop, LoopStats
+from hil.session._control_loop import LATE_NS, ControlLoop, LoopStats, TrackJudge
+from hil.session._host import SERVICE_RT_PRIORITY, fifo_refusal
 from hil.session._ident import MIN_BAND_OCTAVES, IdentPass, IdentSweeps, ident_sweeps
 from hil.session._lab import BenchLab, current_lab, serve_lab
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
@@ -33,7 +34,14 @@ from hil.session._run import (
     run_async,
     run_coroutine,
 )
-from hil.session._session import HOST_ALIVE_S, LINKS, Session, SessionResult, capture_for_session
+from hil.session._session import (
+    EXIT_LOST_TARGET,
+    HOST_ALIVE_S,
+    LINKS,
+    Session,
+    SessionResult,
+    capture_for_session,
+)
 from hil.session._sim import PlantTruth, SimLab, SimLink, TruthLog, run_sim_session, sim_ports
 from hil.session._watchdog import EventLoopWatchdog, Watchdog
 from hil.session._wind_down import TickWindDown
@@ -41,10 +49,12 @@ from hil.session._wind_down import TickWindDown
 __all__ = [
     "CLOCKS",
     "DEFAULT_EMULATOR",
+    "EXIT_LOST_TARGET",
     "HOST_ALIVE_S",
     "LATE_NS",
     "LINKS",
     "MIN_BAND_OCTAVES",
+    "SERVICE_RT_PRIORITY",
     "BenchLab",
     "Clock",
     "ControlLoop",
@@ -63,12 +73,14 @@ __all__ = [
     "SimLab",
     "SimLink",
     "TickWindDown",
+    "TrackJudge",
     "TruthLog",
     "Watchdog",
     "as_session_config",
     "capture_for_session",
     "current_lab",
     "emulator_for_plant",
+    "fifo_refusal",
     "ident_sweeps",
     "link_fd",
     "prepare_run",

@@ -39,6 +39,42 @@ class LoopStats:
     drive_short_writes: int = 0  # realtime: DRIVE_CMDs the driver's fd did not take whole (hil.session._loop_thread)
 
 
+class TrackJudge:
+    """Was the target tracked? Counts the camera's frames, the valid ones, and the longest stretch without a valid
+    frame once the target was first acquired (board time, from the frames' exposure times)."""
+
+    def __init__(self, max_lost_s: float) -> None:
+        self.max_lost_s = max_lost_s
+        self.frames = 0
+        self.valid = 0
+        self.first_valid_s: float | None = None
+        self.last_valid_s: float | None = None
+        self.longest_lost_s = 0.0
+
+    def on_frame(self, t_exposure_s: float, valid: bool) -> None:
+        self.frames += 1
+        if valid:
+            self.valid += 1
+            if self.first_valid_s is None:
+                self.first_valid_s = t_exposure_s
+            self.last_valid_s = t_exposure_s
+        elif self.last_valid_s is not None:
+            self.longest_lost_s = max(self.longest_lost_s, t_exposure_s - self.last_valid_s)
+
+    def verdict(self) -> str | None:
+        """None when the target was tracked; else why not, in one line."""
+        if self.valid == 0:
+            return (f"tracking: the target was never acquired (0 of {self.frames} frames valid): is it in the "
+                    "camera's view at the start pose?")
+        if self.longest_lost_s > self.max_lost_s:
+            return (f"tracking: the target was lost for {self.longest_lost_s:.2f} s (tracking.max_lost_s "
+                    f"{self.max_lost_s:g}); {self.valid} of {self.frames} frames valid")
+        return None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"frames": self.frames, "valid": self.valid, "longest_lost_s": round(self.longest_lost_s, 3)}
+
+
 class ControlLoop:
     """Per-axis controllers and tracking loops; everything that happens per sample and per frame."""
 
@@ -70,6 +106,7 @@ class ControlLoop:
         self.apply_after_us = round(config.tracking.apply_after_ms * 1000)
         self.excitation = config.excitation
         self.excite_el = config.excitation is None or config.excitation.axis == "el"
+        self.track_judge = TrackJudge(config.tracking.max_lost_s)
         self.reset_controllers()
 
     def reset_controllers(self) -> None:
@@ -169,6 +206,7 @@ class ControlLoop:
         t_exp_us = m.t_exposure_us + (self.t_wraps << 32)
         self.log.append("image", (m.frame, t_exp_us / 1e6, time.monotonic_ns(), m.miss_x_px, m.miss_y_px,
                                   int(m.track_valid), self.last_tick or 0))
+        self.track_judge.on_frame(t_exp_us / 1e6, bool(m.track_valid))
         if self.telemetry is not None:
             self.telemetry.miss(m.miss_x_px, m.miss_y_px, m.track_valid)
         self.frames.append((t_exp_us + self.apply_after_us, m))

@@ -14,8 +14,12 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
+import threading
 from pathlib import Path
 from typing import NamedTuple
+
+SERVICE_RT_PRIORITY = 50  # `hil serve`'s worker runs its items' loop threads SCHED_FIFO at this, where it may
 
 
 class Placement(NamedTuple):
@@ -76,3 +80,25 @@ def pin_process(pid: int, cpus: set[int]) -> None:
 def set_fifo(priority: int) -> None:
     """Run the calling thread SCHED_FIFO at ``priority``; children do not inherit it (OSError if refused)."""
     os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+
+
+def fifo_refusal(priority: int = SERVICE_RT_PRIORITY) -> str | None:
+    """None when a thread of this process may run SCHED_FIFO at ``priority`` (tried on a thread started and ended
+    here), else why not and how to grant it, in one line."""
+    refused: list[str] = []
+
+    def attempt() -> None:
+        try:
+            set_fifo(priority)
+        except OSError as exc:
+            refused.append(exc.strerror or str(exc))
+
+    thread = threading.Thread(target=attempt, name="hil-fifo-check")
+    thread.start()
+    thread.join()
+    if not refused:
+        return None
+    python = os.path.realpath(sys.executable)
+    return (f"SCHED_FIFO {priority} refused ({refused[0]}): the 1 kHz loop then shares the CPU with everything else; "
+            "grant it with a real-time priority limit for the lab's user (a line `USER - rtprio 80` in "
+            f"/etc/security/limits.d/hil.conf, then log in again) or `sudo setcap cap_sys_nice+ep {python}`")

@@ -75,11 +75,12 @@ LinkOpener = Callable[[str, PortConfig, Callable[[Frame], None]], Awaitable[Link
 HOST_ALIVE_S = 0.1  # HOST_ALIVE on every link this often (docs/protocol.md, "Host liveness")
 EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
 EXIT_STOPPED = 3  # ended early on request, the normal way (:meth:`Session.stop`: the service's stop)
+EXIT_LOST_TARGET = 4  # ran to its end safely, but tracking was on and never acquired the target or lost it too long
 
 
 @dataclass
 class SessionResult:
-    status: str  # completed | fault | interrupted | stopped
+    status: str  # completed | fault | interrupted | stopped | lost_target
     exit_code: int
     log_path: Path | None
     stats: LoopStats
@@ -715,6 +716,9 @@ class Session:
             self.exit_code = EXIT_FAULT
         if status == "completed" and self._stop_request is not None:
             status, message, self.exit_code = "stopped", self._stop_request, EXIT_STOPPED
+        verdict = self.loop_.track_judge.verdict() if self.loop_ is not None and self.config.tracking.enabled else None
+        if status == "completed" and verdict is not None:  # it ran safely, but did not do what it was for
+            status, message, self.exit_code = "lost_target", verdict, EXIT_LOST_TARGET
         stats = self.loop_.stats if self.loop_ else LoopStats()
         telemetry = dataclasses.asdict(self.telemetry.stats) if self.telemetry is not None else {}
         capture = self.capture.summary() if self.capture is not None else {}
@@ -837,6 +841,8 @@ class Session:
                 "latency_us_p99": pick(0.99), "faults": st.faults, "recoveries": st.recoveries,
                 "host_stalls": st.host_stalls, "clock_late": st.clock_late,
                 "drive_short_writes": st.drive_short_writes,
-                "link_errors": {n: link.decoder.counters.errors() for n, link in self.links.items()}}
+                "link_errors": {n: link.decoder.counters.errors() for n, link in self.links.items()},
+                **({"tracking": self.loop_.track_judge.as_dict()} if self.loop_ and self.config.tracking.enabled
+                   else {})}
 
 

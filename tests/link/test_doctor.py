@@ -102,8 +102,8 @@ def test_the_command_checks_a_session_s_ports(tmp_path: Path) -> None:
                              env={**os.environ, "COLUMNS": "250"})
     assert ok.returncode == 0, ok.stdout + ok.stderr
     report = json.loads(ok.stdout)
-    assert report["ok"] and {f["link"] for f in report["findings"]} == {"servo", "driver", "image", "hexapod"}
-    assert len(report["findings"]) == 16
+    assert report["ok"] and {f["link"] for f in report["findings"]} == {"servo", "driver", "image", "hexapod", "host"}
+    assert len(report["findings"]) == 17 and report["findings"][-1]["check"] == "realtime scheduling"
     # a session whose line cannot carry the link budget does not load (hil.config): the same check, bad input
     line = " ".join(bad.stderr.split())
     assert bad.returncode == 2 and "ports: servo.baudrate: 115200 baud carries 115.2 kbit/s" in line, bad.stderr
@@ -134,7 +134,7 @@ def test_every_board_answers_with_the_bench_s_fingerprint_and_the_stream_runs_ne
         with claim_ports({n: p for n, p in emulator.ports.items() if n != "control"}, "the next session"):
             pass  # the doctor let go of every port
     rows = {(f["link"], f["check"]): f for f in report["findings"]}
-    assert len(rows) == len(report["findings"]) == 21  # 4 checks of each port, 4 idents, the stream
+    assert len(rows) == len(report["findings"]) == 22  # 4 checks of each port, 4 idents, the stream, the host
     assert [f["check"] for f in report["findings"] if f["link"] == "servo"] == [
         "port", "holder", "latency timer", "baud rate", "ident", "servo stream"]
     fingerprint = f"{CATALOGUE.fingerprint:#010x}"
@@ -229,3 +229,22 @@ def test_the_stream_is_stopped_and_the_ports_released_when_the_check_is_cancelle
     assert [(r["detail"]["streaming"], r["detail"]["cause"]) for r in records(fault_log, "servo_stream")] == [
         (True, "host"), (False, "host")]
     assert records(fault_log, "drive_enable") == []
+
+
+def test_the_host_row_says_how_to_grant_realtime_scheduling_where_it_is_refused(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Where the kernel refuses SCHED_FIFO (an unprivileged user without an rtprio limit), the host row fails and
+    says how to grant it; the service's worker then runs its loop threads at normal priority and says why."""
+    import hil.session._host as host
+
+    def refuse(priority: int) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(host, "set_fifo", refuse)
+    findings = api.doctor(None, sysfs=tmp_path)
+    row = findings[-1]
+    assert (row.link, row.check, row.ok) == ("host", "realtime scheduling", False)
+    assert row.detail.startswith("SCHED_FIFO 50 refused (Operation not permitted): the 1 kHz loop then shares")
+    assert "`USER - rtprio 80` in /etc/security/limits.d/hil.conf" in row.detail and "cap_sys_nice+ep" in row.detail
+    monkeypatch.undo()
+    assert api.doctor(None, sysfs=tmp_path)[-1].ok == (os.geteuid() == 0 or host.fifo_refusal() is None)
