@@ -177,11 +177,12 @@ def write_item(directory: Path, file_name: str, body: str, files: dict[str, str]
 
 
 def check_item(kind: str, file_name: str, body: str, *, files: dict[str, str] | None = None,
-               options: dict[str, Any] | None = None) -> CheckedItem:
+               options: dict[str, Any] | None = None, emulated: bool = False) -> CheckedItem:
     """Load ``body`` as ``file_name`` of ``kind`` with the item's own ``files`` (name -> text), exactly as the command
     line would load that file, confined to those files (:func:`hil.config.confined_to`), and check ``options``;
     ItemError with the loader's one-line message (naming ``file_name`` and the field, never a path of the
-    service's, never a line of a file of the service's) if it does not load."""
+    service's, never a line of a file of the service's) if it does not load. ``emulated``: the service's lab is the
+    emulated one on the realtime clock; a session that cannot run on it is refused (:func:`require_realtime_grace`)."""
     if kind not in ITEM_KINDS:
         raise ItemError(f"kind={kind!r}: not {', '.join(ITEM_KINDS)}")
     file_name = _check_file_name(file_name)
@@ -204,5 +205,20 @@ def check_item(kind: str, file_name: str, body: str, *, files: dict[str, str] | 
             for where in (root, Path(tmp)):
                 message = message.replace(f"{where}/", "").replace(str(where), ".")
             raise ItemError(message if message.startswith(f"{file_name}:") else f"{file_name}: {message}") from None
+    if emulated and kind in ("session", "ident"):
+        require_realtime_grace(file_name, config)
     return CheckedItem(kind, str(config.name), config, chosen)
+
+
+def require_realtime_grace(file_name: str, config: Any) -> None:
+    """A session on the service's emulated lab runs in real time beside the service on the PC's shared CPUs: without
+    ``safety.emulator_stall_grace_ms`` its watchdog trips the first time the emulator is not scheduled within
+    ``safety.watchdog_ms``, so it would fault, not measure; refused with that reason (ItemError)."""
+    safety = config.safety
+    if safety.emulator_stall_grace_ms == 0:
+        raise ItemError(f"{file_name}: safety.emulator_stall_grace_ms: 0 cannot run on this service's emulated lab, "
+                        "which runs in real time on the PC's shared CPUs: its watchdog "
+                        f"({safety.watchdog_ms:g} ms) would trip the first time the emulator is not scheduled in "
+                        "time; give the session a grace (profiles/sessions/demo.yaml has 500 ms), or run it here "
+                        "with `hil run --loopback --clock lockstep`")
 

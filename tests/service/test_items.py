@@ -327,3 +327,15 @@ def test_a_bad_service_broker_file_is_one_line_and_exit_2(tmp_path: Path) -> Non
     assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
     assert "--mqtt" in run.stderr and "broker.yaml: port" in run.stderr
     assert not (tmp_path / "state").exists()
+
+
+def test_a_session_that_cannot_run_on_an_emulated_realtime_lab_is_refused_when_submitted() -> None:
+    """swing-1deg-1hz-eso.yaml has no emulator stall grace: on the service's emulated lab (real time, the PC's shared
+    CPUs) its 5 ms watchdog trips at the emulator's first scheduling stall, so it faulted every time it ran there."""
+    body = yaml.safe_dump(as_submitted())
+    message = refusal("session", body, "swing.yaml", emulated=True)
+    assert message.startswith("swing.yaml: safety.emulator_stall_grace_ms: 0 cannot run on this service's emulated")
+    assert "--clock lockstep" in message
+    assert check_item("session", "swing.yaml", body).name == "swing-1deg-1hz-eso"  # a lab's service runs it
+    graced = yaml.safe_dump(as_submitted(safety={"watchdog_ms": 5, "emulator_stall_grace_ms": 500}))
+    assert check_item("session", "swing.yaml", graced, emulated=True).config.safety.emulator_stall_grace_ms == 500
