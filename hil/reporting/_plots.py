@@ -21,8 +21,14 @@ def save_figure(fig: Any, path: Path) -> Path:
     return path
 
 
-def legend_below(fig: Any, ax: Any) -> None:
-    """The legend of ``ax``'s lines under the axes, outside them (constrained layout makes room): never over data."""
-    handles, labels = ax.get_legend_handles_labels()
+def legend_below(fig: Any, *axes: Any) -> None:
+    """The legend of the lines of ``axes`` (one, or twins sharing an x axis) under the axes, outside them
+    (constrained layout makes room): never over data."""
+    handles: list[Any] = []
+    labels: list[str] = []
+    for ax in axes:
+        h, lab = ax.get_legend_handles_labels()
+        handles += h
+        labels += lab
     if handles:
         fig.legend(handles, labels, loc="outside lower center", ncols=min(len(handles), 4), frameon=False)
