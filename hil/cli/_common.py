@@ -66,9 +66,13 @@ def no_progress(json_out: bool = False) -> bool:
 
 def print_json(data: Any) -> None:
     """Results as JSON on stdout (NaN and infinities as null, paths and other objects as strings)."""
-    from hil.analysis import json_safe  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    try:  # plain data (a service's answer) as it is, without loading the analysis for it
+        text = json.dumps(data, allow_nan=False)
+    except (TypeError, ValueError):
+        from hil.analysis import json_safe  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
-    console.print_json(json.dumps(json_safe(data), default=str))
+        text = json.dumps(json_safe(data), default=str)
+    console.print_json(text)
 
 
 # a library parameter as its errors write it: name=value, the value a repr, a number or a word

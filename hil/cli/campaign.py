@@ -13,8 +13,8 @@ from typing import Annotated, Any, Literal
 import typer
 from rich.table import Table
 
-from hil.cli._bench import call, client
-from hil.cli._common import app, console, err_console, fail, no_progress, note, print_json
+from hil.cli._bench import call, client, say, waiting_line
+from hil.cli._common import app, check_out_dir, console, err_console, fail, no_progress, note, print_json
 
 
 def campaign_json(run: Any) -> dict[str, Any]:
@@ -112,7 +112,9 @@ def stop_on_signals() -> Iterator[None]:
 def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     ctx: typer.Context,
     file: Annotated[Path, typer.Argument(help="Campaign YAML (see profiles/campaigns/).")],
-    out: Annotated[Path | None, typer.Option(help="Campaign directory (default: runs/campaigns/NAME).")] = None,
+    out: Annotated[Path | None, typer.Option(help=(
+        "Campaign directory (default: runs/campaigns/NAME); with --bench, where every file of the item comes back."
+    ))] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Finish a campaign in --out, skipping done cells.")] = False,
     jobs: Annotated[int, typer.Option(min=1, max=64, help=(
         "Cells run at once (loopback only); with --engine dask and no --scheduler, the worker processes "
@@ -151,7 +153,9 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     if bench is not None:
-        raise typer.Exit(campaign_on_bench(bench, file, json_out))
+        if out is not None:
+            check_out_dir(out, "--out")
+        raise typer.Exit(campaign_on_bench(bench, file, json_out, out))
     try:
         config, out_dir, _ = api.prepare_campaign(file, out=out, hardware=hardware, clock=clock, engine=engine,
                                                   scheduler=scheduler, workers=workers, shared_dir=shared_dir,
@@ -195,18 +199,26 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     raise typer.Exit(0 if run.passed else 1)
 
 
-def campaign_on_bench(url: str, file: Path, json_out: bool) -> int:
-    """Submit the campaign to the service, wait for it, print its outcome and where its report is; its exit code."""
+def campaign_on_bench(url: str, file: Path, json_out: bool, out: Path | None = None) -> int:
+    """Submit the campaign to the service, wait for it, bring every file it wrote back into ``out`` (when given:
+    its cells' logs, campaign.json, the report), print its outcome and where its report is; its exit code."""
     from rich.progress import Progress, TextColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     bench = client(url)
     item = call(bench.add, file, kind="campaign")
-    with Progress(TextColumn(f"[bold]{file.name}[/] on {bench.url}: {{task.fields[state]}}"), console=err_console,
-                  transient=True, disable=no_progress(json_out)) as bar:
-        task = bar.add_task("campaign", state="queued")
-        record = call(bench.wait, item["uid"], progress=lambda v: bar.update(task, state=v["state"]))
+    with Progress(TextColumn("{task.fields[what]}", markup=False), console=err_console, transient=True,
+                  disable=no_progress(json_out)) as bar:
+        task = bar.add_task("campaign", what=f"{file.name} on {bench.url}: queued")
+
+        def on_view(view: dict[str, Any]) -> None:
+            bar.update(task, what=waiting_line(file.name, bench.url, view) if view["state"] == "queued" else
+                       f"{file.name} on {bench.url}: {view['state']}")
+
+        # the client owns its item: Ctrl-C takes it off the queue or stops it, a second Ctrl-C aborts it
+        record = call(bench.follow, item["uid"], progress=on_view, say=say, label=file.name)
+    files = [] if out is None or not record.get("links") else call(bench.download_item, record["uid"], out)
     if json_out:
-        print_json(record)
+        print_json(record if out is None else {**record, "out": str(out), "files": [str(p) for p in files]})
     else:
         summary = record.get("summary") or {}
         colour = "green" if record["exit_code"] == 0 else "red"
@@ -215,9 +227,11 @@ def campaign_on_bench(url: str, file: Path, json_out: bool) -> int:
                       highlight=False)
         if record["links"].get("report"):
             note(f"report: {bench.url}{record['links']['report']}")
+        if out is not None:
+            local = next((p for p in files if p.name == "report.html"), None)
+            note(f"{len(files)} files in {out}" + (f"; the report: {local}" if local else ""))
         note(f"item {record['uid']} on {bench.url}")
-    code = record.get("exit_code")
-    return int(code) if code is not None else 1
+    return int(bench.exit_code(record))
 
 
 def print_campaign(result) -> None:  # type: ignore[no-untyped-def]

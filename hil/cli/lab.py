@@ -3,14 +3,12 @@ hardware check."""
 
 from __future__ import annotations
 
-import asyncio
 import os
 import sys
 from pathlib import Path
 from typing import Annotated, Literal
 
 import typer
-from pydantic import ValidationError
 
 from hil.cli._common import app, console, err_console, fail, finite, print_json
 
@@ -23,7 +21,9 @@ def watch(
     seconds: Annotated[float | None, typer.Option(help="Stop after this long (default: until Ctrl-C).")] = None,
 ) -> None:
     """Live telemetry from the broker: latest value, unit and trend of every channel, session state, events."""
+    import asyncio  # noqa: PLC0415  (loaded on first use: `hil --help` stays fast)
 
+    from pydantic import ValidationError  # noqa: PLC0415  (loaded on first use: `hil --help` stays fast)
 
     from hil.config import one_line  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
     from hil.telemetry import MqttConfig  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)

@@ -9,9 +9,10 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
-from hil.cli._bench import call, client
+from hil.cli._bench import call, client, duration
 from hil.cli._common import CONTEXT, app, console, err_console, fail, note, print_json
 
 queue_app = typer.Typer(help="The service's queue: list, add, remove, move, clear, start, stop.",
@@ -165,19 +166,23 @@ def queue_add(  # noqa: PLR0917 (typer maps parameters to options)
     show(item, json_out, f"queued {item['uid']} ({item['kind']} {item['name']}, user {item['user']})")
 
 
+UidArgument = Annotated[str, typer.Argument(
+    help="The item's uid, or its first characters (at least 6; `hil queue list` shows 12).")]
+
+
 @queue_app.command("remove")
-def queue_remove(uid: Annotated[str, typer.Argument(help="The item's uid.")], bench: BenchOption = None,
-                 json_out: JsonOption = False) -> None:
+def queue_remove(uid: UidArgument, bench: BenchOption = None, json_out: JsonOption = False) -> None:
     """Take a waiting item off the queue."""
-    show(call(client(bench).remove, uid), json_out, f"removed {uid}")
+    item = call(client(bench).remove, uid)
+    show(item, json_out, f"removed {item['uid'][:12]} ({item['kind']} {item['name']}, user {item['user']})")
 
 
 @queue_app.command("move")
-def queue_move(uid: Annotated[str, typer.Argument(help="The item's uid.")],
-               position: Annotated[int, typer.Argument(min=0, help="New place (0 first).")],
+def queue_move(uid: UidArgument, position: Annotated[int, typer.Argument(min=0, help="New place (0 first).")],
                bench: BenchOption = None, json_out: JsonOption = False) -> None:
     """Move a waiting item."""
-    show(call(client(bench).move, uid, position), json_out, f"moved {uid} to {position}")
+    item = call(client(bench).move, uid, position)
+    show(item, json_out, f"moved {item['uid'][:12]} ({item['name']}) to {position}")
 
 
 @queue_app.command("clear")
@@ -216,12 +221,22 @@ def bench_status(bench: BenchOption = None, json_out: JsonOption = False) -> Non
     w, q, lease, running = s["worker"], s["queue"], s["lease"], s["running"]
     console.print(f"[bold]{s['service']['lab']}[/]  worker {w['state']}" + (f": {w['error']}" if w.get("error")
                                                                            else ""), highlight=False)
-    for name, board in (w.get("boards") or {}).items():
-        console.print(f"  {name:8s} {board['port']}  connected {board['connected']}  armed {board['armed']}",
-                      highlight=False)
-    if w.get("safe"):
-        console.print(f"  between items: {w['safe']}", highlight=False)
     doctor = w.get("doctor")
+    for line in board_lines(w, running is not None):
+        console.print(f"  {line}", highlight=False, markup=False, soft_wrap=True)
+    rest = w.get("rest") or {}
+    if running is None and rest.get("at"):
+        ago = duration(max(0.0, time.time() - float(rest["at"])))
+        if rest.get("ok"):
+            console.print(f"  between items: at rest (measured {ago} ago, after {rest.get('waited_s', 0):.1f} s)",
+                          highlight=False, soft_wrap=True)
+        else:
+            console.print(f"  [bold red]between items: NOT AT REST[/] (measured {ago} ago): "
+                          f"{escape(str(rest.get('summary', '')))}", highlight=False, soft_wrap=True)
+        for sent in rest.get("made_safe") or []:
+            console.print(f"    made safe: {sent}", highlight=False, markup=False, soft_wrap=True)
+    elif running is None and w.get("state") == "ready":
+        console.print("  between items: measuring the boards' rest state (an item just ended)", highlight=False)
     if doctor:
         bad = [f for f in doctor["findings"] if not f["ok"]]
         console.print(f"  hardware checks: {len(doctor['findings']) - len(bad)} of {len(doctor['findings'])} passed"
@@ -235,6 +250,31 @@ def bench_status(bench: BenchOption = None, json_out: JsonOption = False) -> Non
                   f"{q['waiting']} waiting", highlight=False)
     console.print("lease: " + (f"{lease['holder']}, {lease['remaining_s']:.0f} s left" if lease else "none"),
                   highlight=False)
+
+
+def board_lines(worker: dict[str, Any], running: bool) -> list[str]:
+    """One line a board: its port, whether it was identified (its firmware and serial number from the hardware
+    checks), and its state: between items the rest state measured (``driver disabled``, ``hexapod IDLE at home``),
+    while an item runs ``armed`` or ``in use``."""
+    idents = {f["link"]: f for f in ((worker.get("doctor") or {}).get("findings") or []) if f["check"] == "ident"}
+    rest = ((worker.get("rest") or {}).get("boards") or {}) if not running else {}
+    boards = worker.get("boards") or {}
+    width = max((len(str(b.get("port", ""))) for b in boards.values()), default=0)
+    lines = []
+    for name, board in boards.items():
+        finding = idents.get(name)
+        values = (finding or {}).get("values") or {}
+        if board.get("identified"):
+            ident = "identified" + (f" (firmware {values['firmware_version']}, serial {values['serial_number']})"
+                                    if finding and finding["ok"] and "firmware_version" in values else "")
+        else:
+            ident = "NOT identified" + (": its check failed (below)" if finding and not finding["ok"] else "")
+        if running:
+            state = "armed" if board.get("armed") else "in use by the item" if board.get("connected") else ""
+        else:
+            state = f"at rest: {rest[name]}" if name in rest else ""
+        lines.append(f"{name:8s} {board.get('port', '')!s:{width}s}  {ident}" + (f"; {state}" if state else ""))
+    return lines
 
 
 @bench_app.command("doctor")
@@ -285,15 +325,21 @@ def bench_break(reason: Annotated[str, typer.Option(help="Why (it goes into the 
     show(data, json_out, f"broke {data['broken']['holder']}'s lease")
 
 
+ItemOption = Annotated[str | None, typer.Option(
+    "--item", help="Only if the running item is this one: its uid, or its first characters (at least 6).")]
+
+
 @bench_app.command("stop")
 def bench_stop(reason: Annotated[str, typer.Option(help="Why (it goes into the log).")] = "",
-               bench: BenchOption = None, json_out: JsonOption = False) -> None:
+               item: ItemOption = None, bench: BenchOption = None, json_out: JsonOption = False) -> None:
     """Stop the running item the normal way: the swing stopped while stabilizing, then the driver disabled."""
-    show(call(client(bench).stop, reason), json_out, "stopping the running item")
+    data = call(client(bench).stop, reason, uid=item)
+    show(data, json_out, f"stopping the running item ({data['uid'][:12]})")
 
 
 @bench_app.command("abort")
 def bench_abort(reason: Annotated[str, typer.Option(help="Why (it goes into the log).")] = "",
-                bench: BenchOption = None, json_out: JsonOption = False) -> None:
+                item: ItemOption = None, bench: BenchOption = None, json_out: JsonOption = False) -> None:
     """Abort the running item: the driver disabled first."""
-    show(call(client(bench).abort, reason), json_out, "aborting the running item")
+    data = call(client(bench).abort, reason, uid=item)
+    show(data, json_out, f"aborting the running item ({data['uid'][:12]})")

@@ -79,7 +79,17 @@ BODY_ERRORS = {"409": "not now (the lease, a running item)",
                "413": "the body is larger than 2 MiB",
                "415": "the body is not Content-Type: application/json",
                "422": "bad input: one line naming the field or the file"}
-FILE_TYPES = {"/api/history/{uid}/log": "application/x-hdf5", "/api/history/{uid}/report": "text/html"}
+# the files of an item's directory (GET /api/history/{uid}/files): by suffix, their kind and media type
+FILE_KINDS = {".h5": ("log", "application/x-hdf5"), ".png": ("plot", "image/png"), ".html": ("report", "text/html"),
+              ".md": ("report", "text/markdown"), ".json": ("data", "application/json"), ".csv": ("data", "text/csv"),
+              ".parquet": ("data", "application/vnd.apache.parquet"), ".yaml": ("config", "application/yaml"),
+              ".yml": ("config", "application/yaml"), ".txt": ("text", "text/plain"), ".log": ("text", "text/plain")}
+OTHER_FILE = ("file", "application/octet-stream")
+ITEM_FILE = "/api/history/{uid}/files/{path}"  # {path}: the rest of the URL, slashes and all
+FILE_TYPES = {"/api/history/{uid}/log": ("application/x-hdf5",), "/api/history/{uid}/report": ("text/html",),
+              ITEM_FILE: tuple(sorted({media for _kind, media in (*FILE_KINDS.values(), OTHER_FILE)}))}
+QUERY = {"/api/history": ("limit", "limit is not an integer"),
+         "/api/history/{uid}/series": ("max_points", "max_points is not an integer")}
 SUCCESS = {"/api/queue/items": "201", "/api/bench/doctor": "202"}
 
 
@@ -90,26 +100,28 @@ def openapi_document(routes: list[tuple[Any, ...]], version: str) -> dict[str, A
     paths: dict[str, dict[str, Any]] = {}
     schemas: dict[str, Any] = {"Error": ERROR_SCHEMA}
     error = {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}
+    binary = {"type": "string", "format": "binary"}
     for method, path, _handler, operator, model, summary in routes:
         ok = SUCCESS.get(path, "200") if method == "POST" else "200"
-        media = FILE_TYPES.get(path, "application/json")
-        ok_schema = {"type": "string", "format": "binary"} if media != "application/json" else {"type": "object"}
-        responses: dict[str, Any] = {ok: {"description": "the answer", "content": {media: {"schema": ok_schema}}}}
-        if media != "application/json":  # a file: a client may ask for a part of it (Range)
-            responses["206"] = {"description": "the part of the file asked for", "content": {media: {
-                "schema": ok_schema}}}
+        files = FILE_TYPES.get(path)
+        content = ({media: {"schema": {} if media == "application/json" else binary} for media in files} if files
+                   else {"application/json": {"schema": {"type": "object"}}})
+        responses: dict[str, Any] = {ok: {"description": "the answer", "content": content}}
+        if files:  # a file: a client may ask for a part of it (Range)
+            responses["206"] = {"description": "the part of the file asked for",
+                                "content": {media: {"schema": binary} for media in files}}
             responses["416"] = {"description": "a Range beyond the file"}
         responses.update({code: {"description": text, "content": error} for code, text in COMMON_ERRORS.items()})
         if method != "GET":
             responses.update({code: {"description": text, "content": error} for code, text in BODY_ERRORS.items()})
-        if path == "/api/history":
-            responses["422"] = {"description": "limit is not an integer", "content": error}
+        if path in QUERY:
+            responses["422"] = {"description": QUERY[path][1], "content": error}
         op: dict[str, Any] = {"summary": summary, "operationId": f"{method.lower()}_{_op_name(path)}",
                               "responses": responses}
         params = [{"name": p, "in": "path", "required": True, "schema": {"type": "string"}}
                   for p in _path_params(path)]
-        if path == "/api/history":
-            params.append({"name": "limit", "in": "query", "required": False, "schema": {"type": "integer"}})
+        if path in QUERY:
+            params.append({"name": QUERY[path][0], "in": "query", "required": False, "schema": {"type": "integer"}})
         if params:
             op["parameters"] = params
         if operator is not None:

@@ -219,6 +219,6 @@ def require_realtime_grace(file_name: str, config: Any) -> None:
         raise ItemError(f"{file_name}: safety.emulator_stall_grace_ms: 0 cannot run on this service's emulated lab, "
                         "which runs in real time on the PC's shared CPUs: its watchdog "
                         f"({safety.watchdog_ms:g} ms) would trip the first time the emulator is not scheduled in "
-                        "time; give the session a grace (profiles/sessions/demo.yaml has 500 ms), or run it here "
-                        "with `hil run --loopback --clock lockstep`")
+                        "time; give the session a grace (profiles/sessions/demo.yaml has 500 ms), or run it on your "
+                        "own emulated lab on the lockstep clock (loopback=True, clock='lockstep')")
 

@@ -28,8 +28,10 @@ import time
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from pathlib import Path
+from functools import lru_cache
+from pathlib import Path, PurePosixPath
 from typing import Any
+from urllib.parse import quote
 
 from pydantic import BaseModel, ValidationError
 from starlette.applications import Starlette
@@ -42,7 +44,13 @@ from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from hil._version import __version__
+from hil.analysis import summarize_log
+from hil.log import LogError, read_log
+from hil.reporting import metric_rows, session_series
 from hil.service._api_models import (
+    FILE_KINDS,
+    ITEM_FILE,
+    OTHER_FILE,
     BreakLease,
     EndItem,
     MoveItem,
@@ -64,6 +72,10 @@ WS_MAX_POINTS = 250  # a page that cannot keep up loses its oldest points beyond
 STATUS_EVERY_S = 1.0  # and the status at least this often (the lease's remaining time, the queue)
 WORKER_RESTART_S = 2.0
 MAX_BODY_BYTES = 2 << 20  # a request body beyond this is refused (413) before it is read whole
+SERIES_POINTS = (2, 20_000, 2000)  # GET /api/history/UID/series: max_points at least, at most, by default
+# an item's files are served as what they are, never as a page of the service's: no script runs, no type is guessed
+FILE_HEADERS = {"X-Content-Type-Options": "nosniff",
+                "Content-Security-Policy": "sandbox; default-src 'none'; img-src data:; style-src 'unsafe-inline'"}
 
 
 @dataclass
@@ -78,7 +90,7 @@ class ServiceOptions:
     seed: int = 0
     host: str = "127.0.0.1"
     port: int = 8765
-    allow_hosts: tuple[str, ...] = ()  # further names the service answers to (its Host check), --allow-host
+    allow_hosts: tuple[str, ...] = ()  # further names the service answers to (its Host check)
     mqtt: Path | None = None  # the service's own broker section (its password from the service's configuration)
 
 
@@ -285,6 +297,8 @@ class Manager:
             self.changed()
         elif ev == "done":
             uid = str(msg.get("uid"))
+            # the boards' state is unknown until the worker has measured it after the item (a stop ramp may run)
+            self.worker_info.update(rest=None, safe=None)
             if uid == self.running_uid:
                 self._finish(uid, msg)
 
@@ -411,14 +425,40 @@ class Manager:
         }
 
     def item_view(self, uid: str) -> dict[str, Any]:
+        """One item as ``GET /api/items/UID`` shows it: running (its progress), done (its record), or queued: its
+        ``place`` among the ``waiting`` items (1-based), how many items run before it as things stand (``ahead``:
+        the running one, the waiting ones before it that may run, and those of a lease's holder), the lease's
+        ``lease_holder`` and ``lease_remaining_s`` when a lease holds it back, and why the queue is stopped."""
         try:
             item = self.store.item(uid)
         except StoreError:
             record = self.store.record(uid)  # StoreError: in neither
             return {"state": "done", **record_view(record)}
-        state = "running" if item.started_at is not None else "queued"
-        extra = self.progress if state == "running" else {"queue_stopped": self.queue_stopped}
-        return {"state": state, **item.public(), **extra}
+        if item.started_at is not None:
+            return {"state": "running", **item.public(), **self.progress}
+        lease = self.lease.current()
+        queue = [(i.uid, i.user, i.started_at is not None) for i in self.store.items()]
+        if (item.uid, item.user, False) not in queue:  # it started, or left the queue, meanwhile
+            return self.item_view(uid)
+        place = queue_place(item.uid, queue, None if lease is None else lease.holder)
+        if place["lease_holder"] is not None and lease is not None:
+            place["lease_remaining_s"] = round(max(0.0, lease.expires_s - time.time()), 1)
+        return {"state": "queued", **item.public(), **place, "queue_stopped": self.queue_stopped}
+
+
+def queue_place(uid: str, queue: list[tuple[str, str, bool]], holder: str | None) -> dict[str, Any]:
+    """Where the waiting item ``uid`` stands in ``queue`` ((uid, user, running) in order) while ``holder`` (or
+    nobody) holds the lease: its ``place`` of ``waiting`` (1-based), how many items run before it (``ahead``), and
+    ``lease_holder`` when the lease holds it back (see Manager.item_view)."""
+    waiting = [(u, user) for u, user, running in queue if not running]
+    place = next(n for n, (u, _user) in enumerate(waiting) if u == uid)
+    held = holder is not None and waiting[place][1] != holder
+    ahead = len(queue) - len(waiting)  # the running item
+    ahead += sum(1 for _u, user in waiting[:place] if holder is None or held or user == holder)
+    if held:
+        ahead += sum(1 for _u, user in waiting[place + 1:] if user == holder)
+    return {"place": place + 1, "waiting": len(waiting), "ahead": ahead, "lease_holder": holder if held else None,
+            "lease_remaining_s": None}
 
 
 def record_view(record: HistoryRecord) -> dict[str, Any]:
@@ -428,7 +468,8 @@ def record_view(record: HistoryRecord) -> dict[str, Any]:
     out["exit_code"] = summary.get("exit_code")
     out["summary"] = summary.get("metrics", {})
     base = f"/api/history/{record.uid}"
-    out["links"] = {"record": base, **({"log": f"{base}/log"} if record.log_path else {}),
+    out["links"] = {"record": base, "files": f"{base}/files",
+                    **({"log": f"{base}/log", "series": f"{base}/series"} if record.log_path else {}),
                     **({"report": f"{base}/report"} if summary.get("report") else {})}
     out["report_path"] = summary.get("report")
     return out
@@ -438,10 +479,15 @@ def record_view(record: HistoryRecord) -> dict[str, Any]:
 
 
 def token_of(conn: HTTPConnection) -> str | None:
+    """The request's token: ``Authorization: Bearer`` or the ``hil_token`` cookie. Never the URL (a URL is kept in
+    browser histories, proxies' logs and screenshots): a token there is refused, 400."""
+    if "token" in conn.query_params:
+        raise AuthError(400, "a token goes in the Authorization header or the hil_token cookie, never in the URL; "
+                             "open the page without it and give it there")
     auth = conn.headers.get("authorization", "")
     if auth.lower().startswith("bearer "):
         return auth[7:].strip()
-    return conn.cookies.get("hil_token") or conn.query_params.get("token")
+    return conn.cookies.get("hil_token")
 
 
 def error(status: int, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
@@ -537,30 +583,52 @@ async def get_queue(request: Request, m: Manager, caller: Caller) -> Response:
 
 async def add_item(request: Request, m: Manager, caller: Caller) -> Response:
     sub: SubmitItem = await body_as(request, SubmitItem)
-    checked = check_item(sub.kind, sub.file_name, sub.body, files=sub.files, options=sub.options)
+    checked = check_item(sub.kind, sub.file_name, sub.body, files=sub.files, options=sub.options,
+                         emulated=m.options.loopback)
     item = m.store.add(sub.kind, checked.name, caller.user, Path(sub.file_name).name, sub.body,
                        options=sub.options, position=sub.position, files=sub.files)
     m.changed()
     return JSONResponse(item.public(), status_code=201)
 
 
+def require_owner(m: Manager, caller: Caller, owner: str, what: str) -> None:
+    """An item is changed (removed, moved, stopped) by the user who submitted it or by the lease holder; another
+    operator takes the lease first (breaking a held one with a reason, which the lease history keeps). 403 else."""
+    lease = m.lease.current()
+    if caller.user == owner or (lease is not None and lease.holder == caller.user):
+        return
+    how = (f"break {lease.holder}'s lease with a reason first" if lease is not None else
+           "take the lease first (hil bench lease), and it is yours to change")
+    raise AuthError(403, f"{what}: it is {owner}'s; only {owner} or the lease holder may; {how}")
+
+
 async def remove_item(request: Request, m: Manager, caller: Caller) -> Response:
-    item = m.store.remove(request.path_params["uid"])
+    uid = request.path_params["uid"]
+    require_owner(m, caller, m.store.item(uid).user, f"remove item {uid[:12]}")
+    item = m.store.remove(uid)
     m.changed()
     return JSONResponse(item.public())
 
 
 async def move_item(request: Request, m: Manager, caller: Caller) -> Response:
     move: MoveItem = await body_as(request, MoveItem)
-    item = m.store.move(request.path_params["uid"], move.position)
+    uid = request.path_params["uid"]
+    require_owner(m, caller, m.store.item(uid).user, f"move item {uid[:12]}")
+    item = m.store.move(uid, move.position)
     m.changed()
     return JSONResponse(item.public())
 
 
 async def clear_queue(request: Request, m: Manager, caller: Caller) -> Response:
-    n = m.store.clear()
+    """The lease holder clears every waiting item; another operator only their own (the others are said)."""
+    lease = m.lease.current()
+    holder = lease is not None and lease.holder == caller.user
+    n = m.store.clear(None if holder else caller.user)
+    kept = 0 if holder else m.store.waiting()
     m.changed()
-    return JSONResponse({"removed": n})
+    return JSONResponse({"removed": n, "kept": kept, "by": caller.user,
+                         **({"note": f"{kept} waiting items of other users kept: only their users or the lease "
+                                     "holder may remove them"} if kept else {})})
 
 
 async def start_queue(request: Request, m: Manager, caller: Caller) -> Response:
@@ -612,6 +680,92 @@ async def get_report(request: Request, m: Manager, caller: Caller) -> Response:
     return FileResponse(report, media_type="text/html")
 
 
+def item_dir(m: Manager, uid: str) -> tuple[HistoryRecord, Path]:
+    """An ended item's record and its directory (``STATE_DIR/runs/UID``); NotInStore (404) for no such item."""
+    record = m.store.record(uid)
+    return record, m.options.state_dir / "runs" / record.uid
+
+
+def file_kind(path: str) -> tuple[str, str]:
+    """A file's kind (log, report, plot, data, config, text, file) and media type, by its suffix."""
+    return FILE_KINDS.get(PurePosixPath(path).suffix.lower(), OTHER_FILE)
+
+
+def confined_file(root: Path, rel: str) -> Path | None:
+    """The regular file ``rel`` names inside ``root``, resolved, or None: an absolute path, a ``..``, a path that
+    a symlink leads out of ``root`` (checked once resolved), or no such file."""
+    if not rel or rel.startswith("/") or "\x00" in rel or ".." in PurePosixPath(rel).parts:
+        return None
+    try:
+        base, real = root.resolve(strict=True), (root / rel).resolve(strict=True)
+        return real if real.is_relative_to(base) and real.is_file() else None
+    except (OSError, RuntimeError, ValueError):  # no such file, a symlink loop, a name the file system refuses
+        return None
+
+
+def item_files(root: Path) -> list[dict[str, Any]]:
+    """Every file of an item's directory that :func:`confined_file` serves: its relative path, size, kind and
+    media type, in path order (a symlink to a directory is not walked into)."""
+    out = []
+    for folder, dirs, names in os.walk(root):
+        dirs.sort()
+        for name in sorted(names):
+            rel = (Path(folder) / name).relative_to(root).as_posix()
+            real = confined_file(root, rel)
+            if real is not None:
+                kind, media = file_kind(rel)
+                out.append({"path": rel, "size": real.stat().st_size, "kind": kind, "media_type": media})
+    return out
+
+
+async def get_files(request: Request, m: Manager, caller: Caller) -> Response:
+    record, root = item_dir(m, request.path_params["uid"])
+    files = await asyncio.to_thread(item_files, root)
+    base = f"/api/history/{record.uid}/files"
+    return JSONResponse({"uid": record.uid, "files": [{**f, "href": f"{base}/{quote(f['path'])}"} for f in files]})
+
+
+async def get_file(request: Request, m: Manager, caller: Caller) -> Response:
+    record, root = item_dir(m, request.path_params["uid"])
+    rel = request.path_params["path"]
+    path = await asyncio.to_thread(confined_file, root, rel)
+    if path is None:
+        raise NotInStore(f"item {record.uid!r}: no file {rel[:200]!r} in its directory "
+                         f"(GET /api/history/{record.uid}/files lists them)")
+    return FileResponse(path, media_type=file_kind(rel)[1], filename=PurePosixPath(rel).name,
+                        content_disposition_type="inline", headers=FILE_HEADERS)
+
+
+@lru_cache(maxsize=8)  # the page asks for the same few items again and again
+def log_series(path: str, mtime_ns: int, size: int, max_points: int) -> dict[str, Any]:
+    """A log's charts (hil.reporting.session_series) and metrics (hil.analysis.summarize_log), as plain data; a log
+    that is not rewritten (its time and size) is read once for each ``max_points``."""
+    data = read_log(path)
+    metrics = metric_rows(summarize_log(path, data=data))
+    return {"log": Path(path).name, "max_points": max_points,
+            "charts": [chart.as_json() for chart in session_series(data, max_points)],
+            "metrics": [{"metric": name, "value": value, "unit": unit} for name, value, unit in metrics]}
+
+
+async def get_series(request: Request, m: Manager, caller: Caller) -> Response:
+    record = m.store.record(request.path_params["uid"])
+    low, high, default = SERIES_POINTS
+    try:
+        max_points = max(low, min(int(request.query_params.get("max_points", default)), high))
+    except ValueError:
+        raise ItemError("max_points: not an integer") from None
+    log = Path(record.log_path) if record.log_path else None
+    if log is None or not log.is_file():
+        raise NotInStore(f"item {record.uid!r}: it left no log (status {record.status})")
+    try:
+        stat = log.stat()
+        series = await asyncio.to_thread(log_series, str(log), stat.st_mtime_ns, stat.st_size, max_points)
+    except (LogError, OSError, KeyError, ValueError) as exc:
+        raise NotInStore(f"item {record.uid!r}: its log cannot be read ({exc})") from None
+    return JSONResponse({"uid": record.uid, "name": record.name, "kind": record.kind, "status": record.status,
+                         **series})
+
+
 async def end_item(request: Request, m: Manager, caller: Caller) -> Response:
     how = "abort" if request.url.path.endswith("/abort") else "stop"
     end: EndItem = await body_as(request, EndItem)
@@ -619,6 +773,10 @@ async def end_item(request: Request, m: Manager, caller: Caller) -> Response:
         raise StoreError("no item is running")
     if end.uid is not None and end.uid != m.running_uid:
         raise StoreError(f"item {end.uid!r}: not the running item")
+    lease = m.lease.current()
+    if how == "stop" and lease is not None and lease.holder != caller.user:  # an abort is an alarm: anyone's
+        raise AuthError(403, f"stop item {m.running_uid[:12]}: the bench is leased to {lease.holder}; break the "
+                             "lease with a reason first (or abort, if something is wrong)")
     if m.ending != "abort":
         m.ending = how
     if how == "abort":  # an operator's alarm: nothing arms the boards again until someone starts the queue
@@ -734,7 +892,14 @@ API_ROUTES: list[tuple[str, str, Handler, str | None, type[BaseModel] | None, st
     ("GET", "/api/history/{uid}", get_record, None, None, "One history record with its summary metrics."),
     ("GET", "/api/history/{uid}/log", get_log, None, None, "The item's log file (HDF5)."),
     ("GET", "/api/history/{uid}/report", get_report, None, None,
-     "The item's campaign report (one HTML file, its plots inside)."),
+     "The item's report: a session's or an ident's, or a campaign's (one HTML file, its plots inside)."),
+    ("GET", "/api/history/{uid}/files", get_files, None, None,
+     "Every file the item wrote (its log, report, plots, fit, cells): relative path, size, kind, media type."),
+    ("GET", ITEM_FILE, get_file, None, None,
+     "One file of the item's directory, by its relative path (404 for a path that leads out of it)."),
+    ("GET", "/api/history/{uid}/series", get_series, None, None,
+     "The item's log as charts (rate error, drive, miss distance, gyro, pose: each channel with its unit, "
+     "decimated to ?max_points=N by its envelope) and its metrics."),
     ("POST", "/api/bench/stop", end_item, "stop the running item", EndItem,
      "Stop the running item the normal way (the swing stopped while stabilizing, then the driver disabled)."),
     ("POST", "/api/bench/abort", end_item, "abort the running item", EndItem,
@@ -766,8 +931,8 @@ def build_app(options: ServiceOptions, gate: Gate, *, on_ready: Callable[[Manage
             await manager.close()
 
     by_path: dict[str, dict[str, Callable[[Request], Awaitable[Response]]]] = {}
-    for method, path, handler, op, _model, _summary in API_ROUTES:
-        by_path.setdefault(path, {})[method] = endpoint(handler, operator=op)
+    for method, path, handler, op, _model, _summary in API_ROUTES:  # {path}: the rest of the URL, slashes and all
+        by_path.setdefault(path.replace("{path}", "{path:path}"), {})[method] = endpoint(handler, operator=op)
     routes: list[Any] = [Route(path, by_method(handlers), methods=list(handlers))  # one route: a right Allow
                          for path, handlers in by_path.items()]
     routes += [WebSocketRoute("/ws", live_socket), Route("/", index, methods=["GET"]),

@@ -4,7 +4,7 @@ the bench through a service on localhost.
 Three checks on every request, before any route runs, each refusal one line of JSON:
 
 * ``Host`` must name this service: ``localhost``, ``127.0.0.1``, ``::1``, the address it is bound to (with a
-  wildcard address, this machine's own names and addresses) or a name given with ``--allow-host``; 400 otherwise.
+  wildcard address, this machine's own names and addresses) or a name in its ``allow_hosts``; 400 otherwise.
   This is what defeats DNS rebinding: a rebound name reaches the service with the attacker's host name in ``Host``.
 * a request that changes state (any method but GET, HEAD, OPTIONS) and every WebSocket must not come from another
   origin: an ``Origin`` header, when sent (browsers always send it on these), must be this service's own
@@ -51,8 +51,8 @@ def split_host(host_header: str) -> tuple[str, str]:
 
 
 def served_names(bound: str, allow_hosts: Iterable[str] = ()) -> frozenset[str]:
-    """The host names a service bound to ``bound`` answers to: the loopback names, ``bound`` itself, the ones given
-    with ``--allow-host``, and, bound to every address, this machine's own names and addresses."""
+    """The host names a service bound to ``bound`` answers to: the loopback names, ``bound`` itself, the ones in
+    ``allow_hosts``, and, bound to every address, this machine's own names and addresses."""
     names = {*LOCAL_NAMES, *(h.strip().lower().strip("[]") for h in allow_hosts if h.strip())}
     if bound not in WILDCARD_ADDRESSES:
         names.add(bound.lower().strip("[]"))
@@ -103,7 +103,7 @@ class SameOrigin:
             return 400, "Host: missing; send the service's own address"
         if name not in self.names and not _is_loopback(name):
             return 400, (f"Host: {name[:80]!r} is not a name this service serves (it answers to "
-                         f"{', '.join(sorted(self.names))}); start it with --allow-host {name[:80]} if that name is "
+                         f"{', '.join(sorted(self.names))}); start it with allow_host={name[:80]!r} if that name is "
                          "its own")
         method = "WEBSOCKET" if scope["type"] == "websocket" else str(scope.get("method", "GET"))
         if method in SAFE_METHODS:

@@ -253,10 +253,11 @@ class Store:
                 "SELECT uid FROM queue ORDER BY position").fetchall()])
         return item
 
-    def clear(self) -> int:
-        """Take every waiting item off the queue; returns how many."""
+    def clear(self, user: str | None = None) -> int:
+        """Take every waiting item (of ``user``, when given) off the queue; returns how many."""
         with self._tx() as db:
-            n = db.execute("DELETE FROM queue WHERE started_at IS NULL").rowcount
+            n = db.execute("DELETE FROM queue WHERE started_at IS NULL AND (? IS NULL OR user = ?)",
+                           (user, user)).rowcount
             self._renumber(db, [r[0] for r in db.execute("SELECT uid FROM queue ORDER BY position").fetchall()])
         return n
 

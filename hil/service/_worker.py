@@ -58,8 +58,9 @@ from hil.config import (
 from hil.link import Holder as PortHolder
 from hil.link import LinkError, PortClaims, PortUnavailable, check_ports, claim_ports
 from hil.protocol import LINKS
+from hil.reporting import Figure, write_session_report
 from hil.service._items import IDENT_OPTIONS, ItemError, check_item, write_item
-from hil.session import BenchLab, EmulatorProcess, Session, serve_lab
+from hil.session import SERVICE_RT_PRIORITY, BenchLab, EmulatorProcess, Session, fifo_refusal, serve_lab
 
 LIVE_HZ = 50.0  # the running item's latest values, sent to the manager this often (the page wants >= 20 Hz)
 LIVE_CHANNELS = {
@@ -69,6 +70,7 @@ LIVE_CHANNELS = {
     "hexapod": ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"),
 }
 EXIT_INVALID = 2
+EXIT_ABORTED = 130  # as SIGINT's: what an operator's abort ends an item with (docs/service.md)
 CLAIM_WAIT_S = 15.0  # a previous worker of this lab (its manager killed) aborts its item and lets go within this
 
 
@@ -204,6 +206,9 @@ class Worker:
         self.lab_config: SessionConfig | None = None
         self.doctor_report: dict[str, Any] | None = None
         self.rest: dict[str, Any] | None = None  # the boards' rest state as last measured (wait_for_rest)
+        # the items' 1 kHz loop threads run SCHED_FIFO where this process may (watching the bench must not move it)
+        self.rt_refusal = fifo_refusal(SERVICE_RT_PRIORITY)
+        self.rt_priority = 0 if self.rt_refusal else SERVICE_RT_PRIORITY
         self.boards_lock = asyncio.Lock()  # one of: an item, the doctor, the rest check has the ports open
         self.rest_task: asyncio.Task[dict[str, Any]] | None = None
 
@@ -318,7 +323,7 @@ class Worker:
         files = item.get("files") or {}
         try:  # again, just before it runs: its own files, its options
             checked = check_item(kind, str(item["file_name"]), str(item["body"]), files=files,
-                                 options=item.get("options") or {})
+                                 options=item.get("options") or {}, emulated=self.loopback)
         except ItemError as exc:
             self.out.send("done", uid=uid, status="invalid", exit_code=EXIT_INVALID, message=str(exc), log=None,
                           summary={})
@@ -348,17 +353,23 @@ class Worker:
         except Exception as exc:  # a bug must end the item, not the worker: the lab stays served
             done = {"status": "fault", "exit_code": 1, "message": f"{type(exc).__name__}: {exc}", "log": None,
                     "summary": {}}
-        if running.end == "abort" and done["status"] in ("interrupted", "fault", "stopped"):
-            done["status"] = "aborted"  # what the operator asked for, whatever way the session ended
+        done["status"] = ended_as(running, done["status"])
+        if done["status"] == "aborted":  # an abort that overtook a stop (or a fault it caused) is an abort's exit
+            done["exit_code"] = EXIT_ABORTED
         self.running = None
+        self.rest = None  # unknown until measured after the item (_rest_between_items)
         self.out.send("done", uid=uid, **done)
 
     def _run_session(self, running: Running, config: Any, kind: str, out_dir: Path,
                      options: dict[str, Any]) -> dict[str, Any]:
-        """A session or an ident item, in this thread (its own event loop), on the lab."""
+        """A session or an ident item, in this thread (its own event loop), on the lab; then its report."""
         progress = self._progress(running)
         if self.mqtt is not None:
             config = config.model_copy(update={"mqtt": self.mqtt})
+        if self.rt_priority and not config.host.rt_priority:
+            host = config.host.model_copy(update={"rt_priority": self.rt_priority})
+            config = config.model_copy(update={"host": host})
+        figures: list[Figure] = []
         if kind == "ident":
             chosen = {k: v for k, v in options.items() if k in IDENT_OPTIONS}  # checked: IdentOptions
             try:
@@ -367,17 +378,22 @@ class Worker:
                 raise
             except ValueError as exc:  # it ran, and its log could not be fitted: the log still comes back
                 logs = sorted(out_dir.glob("*.h5"))
-                return {"status": "fault", "exit_code": 1, "message": " ".join(str(exc).split()),
+                done = {"status": "fault", "exit_code": 1, "message": " ".join(str(exc).split()),
                         "log": str(logs[-1]) if logs else None, "summary": {}, "report": None}
+                return with_report(running, done, logs[-1] if logs else None, {})
             result = ident.run
             extra = {"ident": ident.report} if ident.report else {}
+            if ident.bode_png is not None:
+                figures.append(Figure(ident.bode_png, f"{ident.bode_png.name}: the plant's frequency response and "
+                                                      "its fit (hil ident)"))
         else:
             result = api.run(config, out=out_dir, progress=progress)
             extra = {}
-        summary = result.summary() if result.log_path is not None else {}
-        return {"status": result.status, "exit_code": result.exit_code, "message": result.message,
-                "log": str(result.log_path) if result.log_path else None,
-                "summary": _json_safe({**summary, **extra}), "report": None}
+        summary = {**(result.summary() if result.log_path is not None else {}), **extra}
+        done = {"status": result.status, "exit_code": result.exit_code, "message": result.message,
+                "log": str(result.log_path) if result.log_path else None, "summary": _json_safe(summary),
+                "report": None}
+        return with_report(running, done, result.log_path, summary, figures)
 
     async def _run_campaign(self, running: Running, file_name: str, body: str, files: dict[str, str],
                             out_dir: Path) -> dict[str, Any]:
@@ -452,7 +468,7 @@ class Worker:
             return
         with contextlib.suppress(RuntimeError):  # its loop closed meanwhile: the session is over anyway
             if running.end == "abort":
-                loop.call_soon_threadsafe(session.interrupt, signal.SIGINT)
+                loop.call_soon_threadsafe(session.interrupt, signal.SIGINT, running.end_reason)
             else:
                 loop.call_soon_threadsafe(session.stop, running.end_reason or "stopped")
 
@@ -500,8 +516,39 @@ class Worker:
                          "armed": armed and name in ("driver", "servo")}
                   for name, port in (lab.ports.items() if lab else [])}
         return {"boards": boards, "emulated": self.loopback, "doctor": self.doctor_report, "rest": self.rest,
+                "rt_priority": self.rt_priority, "rt_refusal": self.rt_refusal,
                 "safe": None if running is not None or self.rest is None else
                 (self.rest["summary"] if self.rest["ok"] else f"NOT AT REST: {self.rest['summary']}")}
+
+
+def ended_as(running: Running, status: str) -> str:
+    """How an item ended: ``aborted`` when an operator aborted it, whatever way its session ended then."""
+    return "aborted" if running.end == "abort" and status in ("interrupted", "fault", "stopped") else status
+
+
+def report_dir(log: Path) -> Path:
+    """Where a session's report goes: beside its log, named after it (``NAME-DATE-report/``), so that the files of
+    several items brought back into one directory keep theirs apart."""
+    return log.with_name(f"{log.stem}-report")
+
+
+def with_report(running: Running, done: dict[str, Any], log: Path | None, summary: dict[str, Any],
+                figures: list[Figure] | None = None) -> dict[str, Any]:
+    """``done`` with the report of the session whose log is ``log`` (hil.reporting.write_session_report, its
+    metrics ``summary``, else the log's own), linked as the item's report. A report that cannot be written leaves
+    the item as it ended; its message says why."""
+    if log is None or not log.is_file():
+        return done
+    status = ended_as(running, str(done["status"]))
+    notes = [f"Service item {running.uid} ({running.kind}) ended {status}"
+             + (f": {done['message']}" if done.get("message") else ".")]
+    try:
+        files = write_session_report(log, report_dir(log), summary or api.report(log), notes=notes,
+                                     figures=figures or ())
+    except Exception as exc:  # the item ran: whatever its report met, the item ends as it ended
+        why = f"its report could not be written ({type(exc).__name__}: {' '.join(str(exc).split())})"
+        return {**done, "message": "; ".join(m for m in (str(done.get("message") or ""), why) if m)}
+    return {**done, "report": str(files.html)}
 
 
 def campaign_on_ports(body: str, ports: dict[str, Any]) -> str:

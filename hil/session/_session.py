@@ -565,13 +565,14 @@ class Session:
             finally:  # whatever recording it did, the session ends
                 self.finish("completed", reason)
 
-    def interrupt(self, signum: int = signal.SIGINT) -> None:
+    def interrupt(self, signum: int = signal.SIGINT, reason: str = "") -> None:
         """End the session as SIGINT (or ``signum``) would: the driver disabled first, then the usual wind-down.
-        For a caller that runs the session off the main thread (a notebook), where signals do not reach it; call
-        it on the session's event loop (``loop.call_soon_threadsafe(session.interrupt)``)."""
-        self._on_signal(signum)
+        For a caller that runs the session off the main thread (a notebook, the service), where signals do not reach
+        it; call it on the session's event loop (``loop.call_soon_threadsafe(session.interrupt)``). ``reason``: who
+        asked and why (the service's abort), in the log's ``signal`` event and the result's message."""
+        self._on_signal(signum, reason)
 
-    def _on_signal(self, signum: int) -> None:
+    def _on_signal(self, signum: int, reason: str = "") -> None:
         try:
             if self.driver is not None:  # the driver first, before anything else
                 with contextlib.suppress(LinkError, OSError):
@@ -579,9 +580,9 @@ class Session:
             if self.loop_ is not None:
                 self.loop_.armed = False
             self.exit_code = EXIT_SIGINT if signum == signal.SIGINT else EXIT_SIGTERM
-            self.event("signal", signal=signal.Signals(signum).name)
+            self.event("signal", signal=signal.Signals(signum).name, **({"reason": reason} if reason else {}))
         finally:  # whatever failed above, the session ends
-            self.finish("interrupted", signal.Signals(signum).name)
+            self.finish("interrupted", reason or signal.Signals(signum).name)
 
     async def _host_alive_task(self) -> None:
         """HOST_ALIVE on every open link every HOST_ALIVE_S, until the end of the shutdown: the boards' host

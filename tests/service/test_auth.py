@@ -75,13 +75,17 @@ def test_roles_viewers_watch_and_operators_act(guarded: Service, tmp_path: Path)
     assert viewer.history(limit=1)[0]["user"] == "olga"
 
 
-def test_a_websocket_authenticates_by_query_token_or_cookie(guarded: Service) -> None:
+def test_a_websocket_authenticates_by_header_or_cookie_never_the_url(guarded: Service) -> None:
     async def first_message(url: str, **kw: object) -> dict:
         async with websockets.connect(url, open_timeout=30, **kw) as ws:
             return json.loads(await asyncio.wait_for(ws.recv(), 30))
 
     base = guarded.url.replace("http", "ws") + "/ws"
-    status = asyncio.run(first_message(f"{base}?token={VIEWER}"))
+    with pytest.raises(websockets.exceptions.ConnectionClosed) as in_url:
+        asyncio.run(first_message(f"{base}?token={VIEWER}"))
+    assert in_url.value.rcvd is not None and in_url.value.rcvd.code == 4401
+    assert "never in the URL" in in_url.value.rcvd.reason
+    status = asyncio.run(first_message(base, additional_headers={"Authorization": f"Bearer {VIEWER}"}))
     assert status["type"] == "status" and status["you"]["role"] == "viewer"
     status = asyncio.run(first_message(base, additional_headers={"Cookie": f"hil_token={OPERATOR}"}))
     assert status["you"]["role"] == "operator"

@@ -306,8 +306,8 @@ def test_an_unknown_route_or_method_is_one_line_of_json(api_schema: schemathesis
 def test_an_item_ran_while_the_api_was_fuzzed_and_the_service_still_serves(api_schema: schemathesis.BaseSchema,
                                                                             http: requests.Session, service: Service,
                                                                             load: Load, tmp_path: Path) -> None:
-    """The load was there, and afterwards a session runs to its end; its record, its log and its missing report
-    are answered as the document says."""
+    """The load was there, and afterwards a session runs to its end; its record, its log, its report, its files and
+    its series are answered as the document says."""
     load.stop()
     assert load.looks > 0 and load.share_busy >= MIN_BUSY, (load.looks, load.busy, load.submitted, load.errors)
     bench = service.bench(user=LOCAL_USER)
@@ -321,9 +321,11 @@ def test_an_item_ran_while_the_api_was_fuzzed_and_the_service_still_serves(api_s
     assert record.status == "completed" and record.exit_code == 0, record.message
     assert bench.status()["worker"]["state"] == "ready"
     uid = bench.history(limit=1)[0]["uid"]
-    for path in ("/api/items/{uid}", "/api/history/{uid}", "/api/history/{uid}/log", "/api/history/{uid}/report"):
-        response = http.get(service.url + path.replace("{uid}", uid), timeout=60)
-        no_report = path.endswith("/report")  # a session has none: refused, with a status the document lists
-        assert 400 <= response.status_code < 500 if no_report else response.status_code == 200, (
-            path, response.status_code, response.text[:300])
-        answered_as_documented(api_schema, "GET", path, response, path_parameters={"uid": uid})
+    report = bench.call("GET", f"/api/history/{uid}")["report_path"].split(f"/{uid}/", 1)[1]
+    for path, params in (("/api/items/{uid}", {}), ("/api/history/{uid}", {}), ("/api/history/{uid}/log", {}),
+                         ("/api/history/{uid}/report", {}), ("/api/history/{uid}/files", {}),
+                         ("/api/history/{uid}/files/{path}", {"path": report}), ("/api/history/{uid}/series", {})):
+        response = http.get(service.url + path.replace("{uid}", uid).replace("{path}", params.get("path", "")),
+                            timeout=60)
+        assert response.status_code == 200, (path, response.status_code, response.text[:300])
+        answered_as_documented(api_schema, "GET", path, response, path_parameters={"uid": uid, **params})

@@ -335,7 +335,7 @@ def test_a_session_that_cannot_run_on_an_emulated_realtime_lab_is_refused_when_s
     body = yaml.safe_dump(as_submitted())
     message = refusal("session", body, "swing.yaml", emulated=True)
     assert message.startswith("swing.yaml: safety.emulator_stall_grace_ms: 0 cannot run on this service's emulated")
-    assert "--clock lockstep" in message
+    assert "clock='lockstep'" in message
     assert check_item("session", "swing.yaml", body).name == "swing-1deg-1hz-eso"  # a lab's service runs it
     graced = yaml.safe_dump(as_submitted(safety={"watchdog_ms": 5, "emulator_stall_grace_ms": 500}))
     assert check_item("session", "swing.yaml", graced, emulated=True).config.safety.emulator_stall_grace_ms == 500

@@ -29,7 +29,7 @@ from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
 
 START_S = 240.0  # the first session on a loaded VM may take 30 s and more to start; a browser, a few s
 END_S = 240.0
-SAFE = "driver disabled, stream idle, hexapod at home"
+SAFE = "driver disabled, servo stream idle, hexapod IDLE at home"  # the boards' rest state, measured
 AXES = {"rate": ["time of day (h:m:s)", "rate error (deg/s)"], "drive": ["time of day (h:m:s)", "drive (counts)"],
         "miss": ["time of day (h:m:s)", "miss distance (px)"],
         "pose": ["time of day (h:m:s)", "position (mm)", "rotation (deg)"]}

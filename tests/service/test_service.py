@@ -47,7 +47,7 @@ def test_a_session_runs_through_the_service_and_comes_back_as_a_run_result(servi
     assert record["summary"]["cycles"] == summary["cycles"]
     assert record["links"]["log"].endswith("/log")
     assert any(v["state"] == "running" for v in views)
-    status = bench.status()
+    status = wait_for(lambda: (s := bench.status())["worker"]["safe"] and s, timeout_s=60)  # measured after it
     assert status["running"] is None and status["worker"]["safe"].startswith("driver disabled")
 
 

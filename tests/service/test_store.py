@@ -64,7 +64,7 @@ def test_one_item_runs_at_a_time_and_a_lease_runs_only_its_holder_s(tmp_path: Pa
         "fault", "watchdog: no GYRO_SAMPLE", "/logs/b.h5", 1200)
     assert rec.user == "ben" and rec.started_at is not None and rec.ended_at >= rec.started_at >= rec.submitted_at
     assert store.items() == [] and [r.uid for r in store.history()] == [ben.uid]
-    with pytest.raises(StoreError, match=r"^status='done': not completed, fault"):
+    with pytest.raises(StoreError, match=r"^status='done': not completed, lost_target, fault"):
         store.finish(ana.uid, "done")
     with pytest.raises(StoreError, match="not in the queue"):
         store.finish(ana.uid, "completed")  # cleared

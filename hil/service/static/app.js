@@ -13,10 +13,15 @@
                  status: null, connected: false };
   window.hilPage = page;
 
-  const token = new URLSearchParams(location.search).get("token");
-  if (token) {
-    // plain links (the log, the record, the report) carry no header: the service also takes this cookie
-    document.cookie = "hil_token=" + encodeURIComponent(token) + "; path=/; SameSite=Strict";
+  // The token lives in the hil_token cookie, which the browser sends with every request and the WebSocket of this
+  // service only, never in the URL (kept in histories and logs). A page opened as /?token=... moves it there at once.
+  function useToken(value) {
+    document.cookie = "hil_token=" + encodeURIComponent(value) + "; path=/; SameSite=Strict";
+  }
+  const given = new URLSearchParams(location.search).get("token");
+  if (given) {
+    useToken(given);
+    history.replaceState(null, "", location.pathname + location.hash);
   }
 
   const $ = (id) => document.getElementById(id);
@@ -65,7 +70,6 @@
 
   async function api(method, path, body) {
     const headers = { Accept: "application/json" };
-    if (token) headers.Authorization = "Bearer " + token;
     if (body !== undefined) headers["Content-Type"] = "application/json";
     const res = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body),
                                     cache: "no-store" });
@@ -332,7 +336,8 @@
     }
     $("idle").hidden = !!r;
     $("running").hidden = !r;
-    $("safe").textContent = w.safe ? "Between items: " + w.safe + "." : "";
+    $("safe").textContent = w.safe ? "Between items: " + w.safe + "." :
+      (!st.running && w.state === "ready" ? "Between items: measuring the boards' rest state…" : "");
     if (r) {
       $("run-name").textContent = r.name || r.uid;
       $("run-kind").textContent = r.kind ? "(" + r.kind + ")" : "";
@@ -394,9 +399,15 @@
   const refreshHistory = single(async () => {
     const data = await api("GET", "/api/history?limit=50");
     const records = data.records || [];
+    for (const r of records) known.set(r.uid, r);
     const tbody = $("history").querySelector("tbody");
     tbody.replaceChildren(...records.map((r) => {
       const links = r.links || {};
+      const pick = el("input", { type: "checkbox", class: "pick", "data-uid": r.uid,
+                                 title: links.series ? "select it to compare it with others" : "it left no log to compare",
+                                 "aria-label": "compare " + r.name });
+      pick.checked = selected.has(r.uid);
+      pick.disabled = !links.series;
       const files = el("td", { class: "links" });
       files.append(el("a", { href: links.record || `/api/history/${r.uid}`, target: "_blank", rel: "noopener",
                              text: "record", title: "the record and its summary metrics (JSON)" }));
@@ -406,8 +417,9 @@
                                                     class: "report", text: "report" }));
       const took = r.started_at && r.ended_at ? (new Date(r.ended_at) - new Date(r.started_at)) / 1000 : null;
       const sigma = r.summary && r.summary.rate_error_el_dps ? r.summary.rate_error_el_dps.std : null;
-      return el("tr", { "data-uid": r.uid, "data-status": r.status },
-        el("td", { text: r.name }), el("td", { text: r.kind }), el("td", { text: r.user }),
+      return el("tr", { "data-uid": r.uid, "data-status": r.status, class: links.series ? "openable" : null,
+                        title: links.series ? "open its plots and metrics" : null },
+        el("td", {}, pick), el("td", { text: r.name }), el("td", { text: r.kind }), el("td", { text: r.user }),
         el("td", {}, badge(r.status, STATUS_CLASS[r.status] || "off")),
         el("td", { text: when(r.started_at) }), el("td", { text: when(r.ended_at) }), el("td", { text: span(took) }),
         el("td", { class: "num", text: r.exit_code === null || r.exit_code === undefined ? "" : String(r.exit_code) }),
@@ -419,7 +431,159 @@
       badge(last.status, STATUS_CLASS[last.status] || "off"), " at " + when(last.ended_at)] : []));
     $("history-empty").hidden = records.length > 0;
     $("history").hidden = records.length === 0;
+    showSelection();
   });
+
+  // --- results: an ended item's plots and metrics, or several side by side ------------------------
+
+  const RESULT_POINTS = 2000; // per channel, as the service decimates them (their envelope)
+  const RESULT_HEIGHT = 240;
+  const SERIES_KEEP = 20; // items whose series stay in memory
+  const DASHES = [undefined, [6, 3], [2, 3], [10, 3, 2, 3]]; // item 1, 2, ... of a comparison
+  const LINE_COLORS = Object.values(COLORS);
+  const known = new Map(); // uid -> its history record (also those scrolled out of the last 50)
+  const selected = new Set(); // uids ticked for a comparison
+  const seriesCache = new Map(); // uid -> its series (an ended item's log does not change)
+  page.results = { uids: [], charts: {}, metrics: null, ready: false };
+  let resultsAsked = 0;
+
+  function showSelection() {
+    const n = [...selected].filter((uid) => known.has(uid)).length;
+    const button = $("compare");
+    button.textContent = `Compare selected (${n})`;
+    button.disabled = n < 2;
+  }
+
+  $("history").querySelector("tbody").addEventListener("click", (ev) => {
+    const target = ev.target;
+    if (target.closest("a")) return; // a link does what links do
+    if (target.classList.contains("pick")) {
+      if (target.checked) selected.add(target.dataset.uid); else selected.delete(target.dataset.uid);
+      showSelection();
+      return;
+    }
+    const tr = target.closest("tr[data-uid]");
+    const record = tr && known.get(tr.dataset.uid);
+    if (record && record.links && record.links.series) showResults([record]);
+  });
+  $("compare").addEventListener("click", () => {
+    const records = [...selected].map((uid) => known.get(uid)).filter(Boolean);
+    if (records.length >= 2) showResults(records);
+  });
+  if (window.ResizeObserver) {
+    new ResizeObserver(() => {
+      for (const u of Object.values(page.results.charts)) {
+        const w = chartWidth(u.root.parentElement);
+        if (Math.abs(u.width - w) > 2) u.setSize({ width: w, height: RESULT_HEIGHT });
+      }
+    }).observe($("results-card"));
+  }
+  $("results-close").addEventListener("click", () => {
+    resultsAsked += 1;
+    clearResults();
+    $("results-card").hidden = true;
+  });
+
+  async function seriesOf(record) {
+    if (!seriesCache.has(record.uid)) {
+      const series = await api("GET", `${record.links.series}?max_points=${RESULT_POINTS}`);
+      seriesCache.set(record.uid, series);
+      if (seriesCache.size > SERIES_KEEP) seriesCache.delete(seriesCache.keys().next().value); // the oldest
+    }
+    return seriesCache.get(record.uid);
+  }
+
+  function clearResults() {
+    for (const u of Object.values(page.results.charts)) u.destroy();
+    page.results = { uids: [], charts: {}, metrics: null, ready: false };
+    $("results-charts").replaceChildren();
+    $("results-metrics").querySelector("thead").replaceChildren();
+    $("results-metrics").querySelector("tbody").replaceChildren();
+  }
+
+  async function showResults(records) {
+    const asked = ++resultsAsked;
+    const card = $("results-card");
+    card.hidden = false;
+    const many = records.length > 1;
+    const tags = records.map((r, i) => (many ? String.fromCharCode(65 + (i % 26)) : ""));
+    $("results-note").textContent = many ? `(${records.length} items side by side)` : `(${records[0].name})`;
+    $("results-msg").textContent = "reading " + (many ? "their logs…" : "its log…");
+    card.scrollIntoView({ block: "nearest" });
+    let all;
+    try {
+      all = await Promise.all(records.map(seriesOf));
+    } catch (e) {
+      if (asked !== resultsAsked) return;
+      $("results-msg").textContent = "cannot show it: " + (e.message || e);
+      noteError(e.message || e);
+      return;
+    }
+    if (asked !== resultsAsked) return; // another item was opened meanwhile
+    clearResults();
+    $("results-msg").textContent = many ? "Each item's lines are dashed differently (A solid, B dashed, …); "
+      + "the colours are the channels." : `${records[0].kind} ${records[0].status} · ${all[0].log}`;
+    showMetrics(records, tags, all);
+    showResultCharts(tags, all);
+    page.results.uids = records.map((r) => r.uid);
+    page.results.ready = true;
+  }
+
+  function itemTitle(record, tag) {
+    return (tag ? tag + ": " : "") + `${record.name} (${record.uid.slice(0, 8)}, ${record.status})`;
+  }
+
+  function showMetrics(records, tags, all) {
+    const rows = new Map(); // metric -> {unit, values per item}
+    all.forEach((series, i) => {
+      for (const m of series.metrics || []) {
+        if (!rows.has(m.metric)) rows.set(m.metric, { unit: m.unit, values: records.map(() => "") });
+        rows.get(m.metric).values[i] = m.value;
+      }
+    });
+    const table = $("results-metrics");
+    table.querySelector("thead").replaceChildren(el("tr", {}, el("th", { text: "metric" }), el("th", { text: "unit" }),
+      ...records.map((r, i) => el("th", { class: "num", "data-uid": r.uid, text: itemTitle(r, tags[i]) }))));
+    table.querySelector("tbody").replaceChildren(...[...rows].map(([metric, row]) => el("tr", {},
+      el("td", { text: metric }), el("td", { class: "muted", text: row.unit }),
+      ...row.values.map((v) => el("td", { class: "num", text: v })))));
+    page.results.metrics = { columns: records.map((r) => r.uid), rows: rows.size };
+  }
+
+  function showResultCharts(tags, all) {
+    const names = [];
+    for (const series of all) for (const c of series.charts || []) if (!names.includes(c.name)) names.push(c.name);
+    const box = $("results-charts");
+    for (const name of names) {
+      const charts = all.map((series) => (series.charts || []).find((c) => c.name === name) || null);
+      const first = charts.find(Boolean);
+      const scales = { x: { time: false } };
+      first.axes.forEach((a, k) => { scales["y" + k] = { auto: true, range: yRange }; });
+      const series = [{ label: `${first.x.label} (${first.x.unit})`, value: (u, v) => (v == null ? "" : v.toFixed(3)) }];
+      const tables = [];
+      charts.forEach((chart, i) => {
+        if (!chart) return;
+        tables.push([chart.t, ...chart.lines.map((ln) => chart.columns[ln.column])]);
+        chart.lines.forEach((ln, k) => {
+          const s = line(`${tags[i] ? tags[i] + " " : ""}${ln.label} (${ln.unit})`, LINE_COLORS[k % LINE_COLORS.length],
+                         "y" + ln.axis, DASHES[i % DASHES.length]);
+          series.push(s);
+        });
+      });
+      const data = tables.length > 1 ? uPlot.join(tables) : tables[0];
+      const node = el("div");
+      box.append(el("div", { class: "chart", "data-chart": name }, el("h3", { text: first.title }), node));
+      const opts = {
+        width: chartWidth(node), height: RESULT_HEIGHT, scales, series,
+        axes: [{ label: `${first.x.label} (${first.x.unit})`, labelSize: 18, space: 60,
+                 grid: { stroke: "#e6e8eb", width: 1 }, ticks: { stroke: "#d0d4d9", width: 1 } },
+               ...first.axes.map((a, k) => yAxis(`${a.label} (${a.unit})`, "y" + k, k ? 1 : 3))],
+        legend: { live: true },
+        cursor: { sync: { key: "hil-results" }, drag: { x: true, y: false } },
+      };
+      page.results.charts[name] = new uPlot(opts, data, node);
+    }
+  }
 
   setInterval(() => { if (page.connected) { refreshQueue(); refreshHistory(); } }, 15000);
 
@@ -468,8 +632,7 @@
 
   function connect() {
     retryTimer = null;
-    const url = (location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws" +
-      (token ? "?token=" + encodeURIComponent(token) : "");
+    const url = (location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws";
     let ws;
     try {
       ws = new WebSocket(url);
@@ -499,31 +662,54 @@
     };
     let opened = false;
     ws.addEventListener("open", () => { opened = true; });
-    ws.onclose = () => {
+    ws.onclose = (ev) => {
       if (socket !== ws) return;
       socket = null;
+      if (ev.code === 4401) { // refused: say why, and wait for a token instead of asking again and again
+        refused(ev.reason || "no valid token");
+        return;
+      }
       retry("disconnected");
       if (!opened) whyRefused();
     };
     ws.onerror = () => {}; // onclose follows
   }
 
-  // a socket the service refuses (no valid token) closes before it opens, without saying why: ask the API
+  // a socket refused before it opened says nothing: ask the API why
   async function whyRefused() {
     let res;
     try {
-      res = await fetch("/api/status", { headers: token ? { Authorization: "Bearer " + token } : {}, cache: "no-store" });
+      res = await fetch("/api/status", { cache: "no-store" });
     } catch (_) {
       return; // the service is not there: "disconnected" says it
     }
-    if (res.status === 401 || res.status === 403) {
+    if (res.status === 400 || res.status === 401 || res.status === 403) {
       let detail = "";
       try { detail = (await res.json()).detail || ""; } catch (_) { detail = ""; }
-      showNotice(`The service refused this page (HTTP ${res.status}${detail ? ": " + detail : ""}). ` +
-                 "Open it as http://HOST:PORT/?token=YOUR_TOKEN.");
-      $("conn").textContent = "not authorized: retrying";
+      refused(`HTTP ${res.status}${detail ? ": " + detail : ""}`);
     }
   }
+
+  // the service refused this page: say why, show the token form, and stop asking until a token is given
+  function refused(why) {
+    if (retryTimer) { clearTimeout(retryTimer); retryTimer = null; }
+    page.refused = why;
+    showNotice(`The service refused this page (${why}). Give your token below; it is kept in a cookie of this ` +
+               "service, never in the address.");
+    setConnected(false, "not authorized");
+    $("login").hidden = false;
+  }
+  $("login").addEventListener("submit", (e) => {
+    e.preventDefault();
+    const value = $("login-token").value.trim();
+    if (!value) return;
+    useToken(value);
+    $("login-token").value = "";
+    $("login").hidden = true;
+    page.refused = null;
+    attempt = 0;
+    connect();
+  });
 
   function retry(why) {
     const wait = BACKOFF_MS[Math.min(attempt, BACKOFF_MS.length - 1)];
