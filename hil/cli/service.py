@@ -48,6 +48,8 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
         help="The service's MQTT broker: a YAML file with a session's mqtt: section (host, port, username, and "
              "the password inline, or password_env / password_file read here). Every session and ident item "
              "publishes its telemetry there; a submitted item never carries the broker's secret.")] = None,
+    max_rate: Annotated[float, typer.Option(
+        min=1.0, help="Each client's requests a second (bursts of twice that); past it, 429 with Retry-After.")] = 50.0,
     allow_host: Annotated[list[str] | None, typer.Option(
         "--allow-host", help="A further host name the service answers to (its DNS name on the lab's network); "
                              "repeatable. Requests naming any other Host are refused (docs/service.md, \"Same "
@@ -89,7 +91,7 @@ def serve(  # noqa: PLR0917 (typer maps parameters to options)
     options = ServiceOptions(state_dir=state_dir.absolute(), loopback=loopback, lab=lab.absolute() if lab else None,
                              emulator=emulator.absolute() if emulator else None, seed=seed, host=host, port=port,
                              emulator_cpu=emulator_cpu, allow_hosts=tuple(allow_host or ()),
-                             mqtt=mqtt.absolute() if mqtt else None)
+                             mqtt=mqtt.absolute() if mqtt else None, max_rate_per_s=max_rate)
     shown = "localhost" if host in ("127.0.0.1", "::1") else host
     url = f"http://{shown}:{port}/"
 

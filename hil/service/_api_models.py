@@ -73,6 +73,7 @@ COMMON_ERRORS = {"400": "bad request: the Host is not this service's, the body i
                  "401": "no valid token (a service with tokens)",
                  "403": "another site's page (Origin), or an operator's action asked by a viewer",
                  "404": "no such item or record",
+                 "429": "too many requests from this client (Retry-After says when to ask again)",
                  "503": "the state store cannot be read or written now",
                  "507": "the state store's disk is full; nothing was changed"}
 BODY_ERRORS = {"409": "not now (the lease, a running item)",

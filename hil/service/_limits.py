@@ -12,8 +12,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-RATE_PER_S = 20.0  # each client's sustained requests a second (the page asks for far fewer: it gets a feed)
-BURST = 40.0  # and what it may ask at once
+RATE_PER_S = 50.0  # each client's sustained requests a second (a page asks for far fewer: it gets a feed)
+BURST = 100.0  # and what it may ask at once
 STATUS_TTL_S = 0.1  # the status is computed anew at most this often (it is published every 1 s and on changes)
 MAX_CLIENTS = 4096  # clients remembered; the longest idle are forgotten first
 

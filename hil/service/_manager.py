@@ -22,6 +22,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import os
 import sys
 import time
@@ -62,6 +63,7 @@ from hil.service._api_models import (
 from hil.service._auth import AuthError, Caller, Gate
 from hil.service._items import ItemError, check_item
 from hil.service._lease import LeaseBook, LeaseError
+from hil.service._limits import RATE_PER_S, STATUS_TTL_S, RateLimiter
 from hil.service._origin import SameOrigin, served_names
 from hil.service._store import HistoryRecord, NotInStore, Store, StoreError, StoreUnavailable
 
@@ -92,6 +94,7 @@ class ServiceOptions:
     port: int = 8765
     allow_hosts: tuple[str, ...] = ()  # further names the service answers to (its Host check)
     mqtt: Path | None = None  # the service's own broker section (its password from the service's configuration)
+    max_rate_per_s: float = RATE_PER_S  # each client's requests a second (bursts of twice that), then 429
 
 
 class Page:
@@ -117,6 +120,8 @@ class Manager:
         self.store_error: str | None = None  # the state store's last failure, until a write succeeds again
         self.unrecorded: dict[str, dict[str, Any]] = {}  # items that ended while the store took no writes
         self._last_status: dict[str, Any] = {}
+        self._status_at = -math.inf  # when _last_status was computed (time.monotonic)
+        self.limiter = RateLimiter(options.max_rate_per_s, 2 * options.max_rate_per_s)  # each client's requests
         self.worker: asyncio.subprocess.Process | None = None
         self.worker_state = "starting"  # starting | ready | down
         self.worker_info: dict[str, Any] = {}
@@ -369,6 +374,7 @@ class Manager:
 
     def changed(self) -> None:
         """Something pages show changed: wake the queue and send every page the status."""
+        self._status_at = -math.inf
         self.wake.set()
         for page in self.pages:
             page.status_due = True
@@ -391,12 +397,16 @@ class Manager:
     # --- what the API shows -------------------------------------------------------------------------
 
     def status(self, caller: Caller | None = None) -> dict[str, Any]:
-        """What the page and ``GET /api/status`` show. While the state store cannot be read or written, the last
-        status it could give, with the store's error."""
-        try:
-            self._last_status = self._status(caller)
-        except StoreUnavailable as exc:
-            self.store_failed("the status", exc)
+        """What the page and ``GET /api/status`` show, computed at most every STATUS_TTL_S however many ask (and
+        anew after every change). While the state store cannot be read or written, the last status it could give,
+        with the store's error."""
+        now = time.monotonic()
+        if now - self._status_at >= STATUS_TTL_S:
+            try:
+                self._last_status = self._status(caller)
+                self._status_at = now
+            except StoreUnavailable as exc:
+                self.store_failed("the status", exc)
         return {**self._last_status, "you": None if caller is None else {"user": caller.user, "role": caller.role},
                 "store": {"ok": self.store_error is None, "error": self.store_error,
                           "unrecorded": sorted(self.unrecorded)}}
@@ -513,6 +523,13 @@ def endpoint(handler: Handler, *, operator: str | None = None) -> Callable[[Requ
         manager: Manager = request.app.state.manager
         try:
             caller = manager.gate.caller(token_of(request), request.headers.get("x-hil-user"))
+            wait_s = manager.limiter.admit(f"{request.client.host if request.client else '-'} {caller.user}")
+            if wait_s is not None:
+                limiter = manager.limiter
+                return error(429, f"too many requests from {caller.user}: at most {limiter.rate_per_s:g} a "
+                                  f"second (bursts of {limiter.burst:g}); again in {wait_s:.2f} s (a page gets the "
+                                  "status over /ws)",
+                             headers={"Retry-After": str(max(1, math.ceil(wait_s)))})
             if operator is not None:
                 manager.gate.require_operator(caller, operator)
             return await handler(request, manager, caller)

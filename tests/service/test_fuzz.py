@@ -123,6 +123,15 @@ def local_session(service: Service) -> requests.Session:
 
 
 @pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
+    """The module's service, its per-client rate limit raised out of the fuzzer's way: one client sending as fast as
+    it can would be answered 429 (documented; tests/service/test_hostile.py checks the limit itself)."""
+    svc = Service(tmp_path_factory.mktemp("fuzz") / "state", args=("--loopback", "--max-rate", "100000")).start()
+    yield svc
+    svc.stop()
+
+
+@pytest.fixture(scope="module")
 def load(service: Service, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Load]:
     keeper = Load(service, tmp_path_factory.mktemp("load")).start()
     yield keeper

@@ -81,7 +81,7 @@ def test_another_sites_page_can_neither_submit_start_abort_nor_watch(svc: Servic
         assert status == 201, raw
         uid = json.loads(raw)["uid"]
         assert len(bench.queue()["items"]) == before + 1 and bench.queue()["running"] is False
-        bench.remove(uid)
+        svc.bench(user="local").remove(uid)  # it was submitted without X-Hil-User: the service's "local" user's
     finally:
         bench.start()
     with pytest.raises(InvalidStatus) as refused:
@@ -178,3 +178,24 @@ def test_nothing_the_hostile_calls_did_reached_the_queue_or_the_log(svc: Service
     assert bench.history() == []
     assert "Traceback" not in svc.output()
     assert os.path.exists(svc.state_dir / "service.sqlite3")
+
+
+def test_a_client_polling_in_a_tight_loop_is_told_to_wait_and_others_are_not(svc: Service) -> None:
+    """A token bucket per client (hil.service._limits: 50 a second, bursts of 100): a client asking 400 times as
+    fast as it can gets 429 with Retry-After and one line, another client is answered all the while."""
+    conn = http.client.HTTPConnection("127.0.0.1", svc.port, timeout=60)
+    codes: list[int] = []
+    try:
+        for _ in range(400):
+            conn.request("GET", "/api/status", headers={"X-Hil-User": "poller"})
+            response = conn.getresponse()
+            body = response.read()
+            codes.append(response.status)
+            if response.status == 429:
+                assert int(response.getheader("Retry-After") or "0") >= 1
+                assert "too many requests from poller" in json.loads(body)["detail"]
+    finally:
+        conn.close()
+    assert codes.count(200) >= 100 and codes.count(429) > 0 and set(codes) <= {200, 429}
+    status, _, _ = call(svc, "GET", "/api/status", None, {"X-Hil-User": "someone-else"})
+    assert status == 200
