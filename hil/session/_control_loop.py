@@ -40,8 +40,10 @@ class LoopStats:
 
 
 class TrackJudge:
-    """Was the target tracked? Counts the camera's frames, the valid ones, and the longest stretch without a valid
-    frame once the target was first acquired (board time, from the frames' exposure times)."""
+    """Was the target tracked? Counts the camera's frames while the loop is armed, the valid ones, and the longest
+    stretch without a valid frame once the target was first acquired (board time, from the frames' exposure times).
+    While the loop is disarmed (a recovery) nothing drives the gimbal: those frames are not judged, and a stretch
+    is counted anew from the first frame after the loop is armed again."""
 
     def __init__(self, max_lost_s: float) -> None:
         self.max_lost_s = max_lost_s
@@ -50,8 +52,15 @@ class TrackJudge:
         self.first_valid_s: float | None = None
         self.last_valid_s: float | None = None
         self.longest_lost_s = 0.0
+        self._paused = False
 
-    def on_frame(self, t_exposure_s: float, valid: bool) -> None:
+    def on_frame(self, t_exposure_s: float, valid: bool, armed: bool = True) -> None:
+        if not armed:
+            self._paused = True
+            return
+        if self._paused and self.last_valid_s is not None:
+            self.last_valid_s = t_exposure_s  # the loop is armed again: a lost stretch counts from here
+        self._paused = False
         self.frames += 1
         if valid:
             self.valid += 1
@@ -206,7 +215,7 @@ class ControlLoop:
         t_exp_us = m.t_exposure_us + (self.t_wraps << 32)
         self.log.append("image", (m.frame, t_exp_us / 1e6, time.monotonic_ns(), m.miss_x_px, m.miss_y_px,
                                   int(m.track_valid), self.last_tick or 0))
-        self.track_judge.on_frame(t_exp_us / 1e6, bool(m.track_valid))
+        self.track_judge.on_frame(t_exp_us / 1e6, bool(m.track_valid), self.armed)
         if self.telemetry is not None:
             self.telemetry.miss(m.miss_x_px, m.miss_y_px, m.track_valid)
         self.frames.append((t_exp_us + self.apply_after_us, m))

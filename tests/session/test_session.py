@@ -153,7 +153,11 @@ def test_disconnect_mid_session_is_recovered(tmp_path) -> None:
     config = session_config(duration_s=3.0, safety={"on_fault": "recover", "recover_after_ms": 100,
                                                     "watchdog_ms": 50, "max_recoveries": 20})
     run = run_session(config, tmp_path, clock="realtime", during=unplug)
-    assert run.result.status == "completed", run.result.message
+    # recovered to the end; with the loop disarmed for the recovery on a swinging table the line of sight may leave
+    # the camera's view for good, and the tracking verdict then says so (lost_target, exit 4) instead of completed
+    assert run.result.status in ("completed", "lost_target"), run.result.message
+    if run.result.status == "lost_target":
+        assert run.result.exit_code == 4 and run.result.message.startswith("tracking: the target was lost for ")
     faults = run.result.stats.faults
     # the disconnect is one fault; a loaded machine may add watchdog trips, each recovered too
     assert sum("servo link lost" in f for f in faults) == 1, faults

@@ -56,3 +56,15 @@ def test_the_judge_says_never_acquired_and_lost_apart() -> None:
         long.on_frame(i * 0.01, i < 200)
     verdict = long.verdict()
     assert verdict is not None and verdict.startswith("tracking: the target was lost for 2.00 s")
+
+
+def test_frames_while_the_loop_is_disarmed_are_not_judged() -> None:
+    """A recovery disarms the loop for a while: the target drifts off with nothing driving the gimbal; the stretch
+    is counted anew once the loop is armed again."""
+    judge = TrackJudge(max_lost_s=1.0)
+    for i in range(600):  # 6 s: valid, 3 s disarmed (lost), then 0.5 s to reacquire, then valid
+        t = i * 0.01
+        armed = not 200 <= i < 500
+        judge.on_frame(t, valid=i < 200 or i >= 550, armed=armed)
+    assert judge.verdict() is None and abs(judge.longest_lost_s - 0.49) < 1e-9
+    assert judge.frames == 300 and judge.valid == 250
