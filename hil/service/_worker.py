@@ -60,7 +60,7 @@ from hil.link import LinkError, PortClaims, PortUnavailable, check_ports, claim_
 from hil.protocol import LINKS
 from hil.reporting import Figure, write_session_report
 from hil.service._items import IDENT_OPTIONS, ItemError, check_item, write_item
-from hil.session import SERVICE_RT_PRIORITY, BenchLab, EmulatorProcess, Session, fifo_refusal, serve_lab
+from hil.session import EXIT_STOPPED, SERVICE_RT_PRIORITY, BenchLab, EmulatorProcess, Session, fifo_refusal, serve_lab
 
 LIVE_HZ = 50.0  # the running item's latest values, sent to the manager this often (the page wants >= 20 Hz)
 LIVE_CHANNELS = {
@@ -100,6 +100,10 @@ def predecessor(holder: PortHolder | None) -> bool:
 
 class BoardsNotAtRest(RuntimeError):
     """The boards did not come to their rest state before an item: it is not started."""
+
+
+class EndedBeforeStart(RuntimeError):
+    """The item was stopped or aborted while it waited for the boards' rest state: it is not started."""
 
 
 class Outbox:
@@ -308,17 +312,18 @@ class Worker:
             self.out.send("done", uid=item.get("uid"), status="invalid", exit_code=EXIT_INVALID,
                           message="an item is already running", log=None, summary={})
             return
-        self.item_task = asyncio.get_running_loop().create_task(self._run_item(item))
+        # running from now on, also while it waits for the boards (a stop or an abort meanwhile is kept, not lost)
+        self.running = running = Running(str(item["uid"]), str(item["kind"]))
+        self.item_task = asyncio.get_running_loop().create_task(self._run_item(running, item))
 
-    async def _run_item(self, item: dict[str, Any]) -> None:
+    async def _run_item(self, running: Running, item: dict[str, Any]) -> None:
         async with self.boards_lock:
-            await self._run_item_at_rest(item)
+            await self._run_item_at_rest(running, item)
         self.rest_task = asyncio.get_running_loop().create_task(self._rest_between_items())
 
-    async def _run_item_at_rest(self, item: dict[str, Any]) -> None:
+    async def _run_item_at_rest(self, running: Running, item: dict[str, Any]) -> None:
         """One item, from the boards' rest state measured just before it (a fault if they do not come to rest)."""
-        uid, kind = str(item["uid"]), str(item["kind"])
-        self.running = running = Running(uid, kind)
+        uid, kind = running.uid, running.kind
         out_dir = self.state_dir / "runs" / uid
         files = item.get("files") or {}
         try:  # again, just before it runs: its own files, its options
@@ -338,12 +343,17 @@ class Worker:
                 raise BoardsNotAtRest(f"the boards did not come to rest within {REST_TIMEOUT_S:g} s before it "
                                       f"started: {rest['summary']}; nothing was armed (hil bench doctor, and check "
                                       "the lab)")
+            if running.end is not None:  # stopped or aborted while it waited for the boards: nothing was armed
+                raise EndedBeforeStart(f"{running.end_reason or running.end}, before it started; nothing was armed")
             self.out.send("started", uid=uid, out_dir=str(out_dir), rest=rest)
             if kind == "campaign":
                 done = await self._run_campaign(running, str(item["file_name"]), str(item["body"]), files, out_dir)
             else:
                 done = await asyncio.to_thread(self._run_session, running, checked.config, kind, out_dir,
                                                checked.options)
+        except EndedBeforeStart as exc:
+            done = {"status": "stopped" if running.end == "stop" else "aborted", "exit_code": EXIT_STOPPED,
+                    "message": str(exc), "log": None, "summary": {}}
         except BoardsNotAtRest as exc:
             done = {"status": "fault", "exit_code": 1, "message": str(exc), "log": None, "summary": {}}
         except (ConfigError, ValueError) as exc:  # refused before anything reached a board, or not fitted

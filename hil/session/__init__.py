@@ -36,6 +36,7 @@ from hil.session._run import (
 )
 from hil.session._session import (
     EXIT_LOST_TARGET,
+    EXIT_STOPPED,
     HOST_ALIVE_S,
     LINKS,
     Session,
@@ -50,6 +51,7 @@ __all__ = [
     "CLOCKS",
     "DEFAULT_EMULATOR",
     "EXIT_LOST_TARGET",
+    "EXIT_STOPPED",
     "HOST_ALIVE_S",
     "LATE_NS",
     "LINKS",

@@ -4,8 +4,13 @@ boards reported, not what they should be."""
 
 from __future__ import annotations
 
+import asyncio
+import json
 from pathlib import Path
 
+import pytest
+
+from hil.service._worker import Outbox, Worker
 from tests.service.conftest import Service, short_session, wait_for
 
 
@@ -30,3 +35,52 @@ def test_the_item_after_an_abort_waits_for_the_stop_ramp_and_runs(service: Servi
     assert rest["ok"] is True and rest["boards"] == {"servo": "stream idle", "driver": "disabled",
                                                      "hexapod": "LOADED at home"}  # its profile still loaded
     assert status["worker"]["safe"] == rest["summary"]
+
+
+class _Lines:
+    """The worker's outbox stream, kept as parsed lines."""
+
+    def __init__(self) -> None:
+        self.lines: list[dict[str, object]] = []
+
+    def write(self, text: str) -> None:
+        self.lines.extend(json.loads(line) for line in text.splitlines() if line)
+
+    def flush(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("how", ["stop", "abort"])
+def test_an_end_asked_while_the_item_waits_for_the_boards_is_kept_and_nothing_runs(tmp_path: Path,
+                                                                                  how: str) -> None:
+    """A stop or an abort that reaches the worker after the item did but before its boards were at rest (the rest
+    check of the item before still running) ends the item there: it used to be dropped, and the item ran whole."""
+    stream = _Lines()
+    outbox = Outbox(stream)
+    worker = Worker(state_dir=tmp_path, loopback=True, lab_session=None, emulator=None, seed=0, outbox=outbox)
+    sessions_run: list[str] = []
+    worker._run_session = lambda running, *args: sessions_run.append(running.uid) or {}  # type: ignore[method-assign]
+
+    async def scenario() -> None:
+        at_rest = asyncio.Event()
+
+        async def check_rest(timeout_s: float = 0.0) -> dict[str, object]:
+            await at_rest.wait()
+            return {"ok": True, "boards": {}, "summary": "at rest", "at": 0.0}
+
+        worker.check_rest = check_rest  # type: ignore[method-assign]
+        path = short_session(tmp_path, 1.0, name="waits")
+        worker.run({"uid": "u1", "kind": "session", "file_name": path.name, "body": path.read_text()})
+        await asyncio.sleep(0.05)  # the item waits for the boards
+        worker.end(how, f"{how} by kim: changed my mind")
+        at_rest.set()
+        assert worker.item_task is not None
+        await worker.item_task
+
+    asyncio.run(scenario())
+    outbox.close()
+    done = [line for line in stream.lines if line["ev"] == "done"]
+    assert sessions_run == [] and [line["ev"] for line in stream.lines].count("started") == 0
+    assert len(done) == 1 and done[0]["status"] == ("stopped" if how == "stop" else "aborted"), done
+    assert done[0]["exit_code"] == (3 if how == "stop" else 130)
+    assert "changed my mind" in str(done[0]["message"]) and "nothing was armed" in str(done[0]["message"])
