@@ -3,9 +3,10 @@
 The paper's figures of merit (seed 000 Tables 1-3): the rate error's range (+-, half the
 peak-to-peak) and standard deviation, the miss distance's range and standard deviation in pixels,
 and the drive ripple (standard deviation of the drive, counts). Plus the loop's own health: latency
-p50/p99 (bench side and as the board measured it), late and missed cycles, link errors. The first
-``settle_s`` seconds of the run are left out of the control metrics (the swing ramps in, the
-controllers converge).
+p50/p99 (bench side and as the board measured it), late and missed cycles, link errors. The run
+starts where the session's start pose phase ended (its ``phase`` event; the first sample in logs without
+one), and its first ``settle_s`` seconds are left out of the control metrics (the swing ramps in, the
+controllers converge), as is the start pose phase itself.
 
 On the ``lockstep`` and ``sim`` clocks the emulator waits for the bench, so the board measures no latency:
 ``board_latency_us`` then holds ``None`` and an ``na_reason``. Empty figures are NaN; ``json_safe``
@@ -91,13 +92,21 @@ def summarize_log(path: str | Path, settle_s: float = 1.0, *, data: LogData | No
     out: dict[str, Any] = {"log": str(path), "session": data.attrs.get("session_name", ""),
                            "controller": data.attrs.get("controller", ""), "settle_s": settle_s}
     t = loop.get("t_s", np.zeros(0))
-    t0 = t[0] if t.size else 0.0
     config = data.attrs.get("config") or {}
     run_s = float(config.get("duration_s", np.inf)) if isinstance(config, dict) else np.inf
-    keep = ((t - t0) >= settle_s) & ((t - t0) < run_s)  # the run itself, not the swing's wind-down
     events = data.groups.get("events", {})
     kinds = [k.decode() if isinstance(k, bytes) else str(k) for k in events.get("kind", [])]
     details = list(events.get("detail", []))
+    phases = [_detail(d) for k, d in zip(kinds, details, strict=True) if k == "phase"]
+    pose = next((p for p in phases if p.get("phase") == "start_pose"), None)
+    if pose is not None:
+        out["start_pose"] = {key: pose.get(key) for key in ("outcome", "took_s", "from_az_deg", "from_el_deg",
+                                                            "error_deg")}
+    # the run starts where the start pose phase ended (the first loop row without one)
+    t0 = float(pose["to_t_s"]) if pose is not None and isinstance(pose.get("to_t_s"), int | float) else (
+        float(t[0]) if t.size else 0.0)
+    keep = ((t - t0) >= settle_s) & ((t - t0) < run_s)  # the run itself, not the start pose or the wind-down
+    out["run_from_t_s"] = t0  # board time of the run's first sample
     gaps = [_detail(d) for k, d in zip(kinds, details, strict=True) if k == "swing_gap"]
     in_gap = swing_gap_mask(t, gaps)
     keep &= ~in_gap  # spans where the table did not swing (the hexapod had parked itself) are not the swing's
@@ -106,7 +115,7 @@ def summarize_log(path: str | Path, settle_s: float = 1.0, *, data: LogData | No
                               "reason": g.get("reason")} for g in gaps]
         out["swing_gap_s"] = float(np.count_nonzero(in_gap) / 1000.0)
     out["cycles"] = int(t.size)
-    out["duration_s"] = float(t[-1] - t0) if t.size else 0.0
+    out["duration_s"] = float(t[-1] - t[0]) if t.size else 0.0
     for axis in ("el", "az"):
         err = loop.get(f"rate_err_{axis}_dps", np.zeros(0))[keep]
         out[f"rate_error_{axis}_dps"] = _spread(err)

@@ -37,6 +37,7 @@ from hil.protocol import (
     HostAlive,
     Ident,
     IdentRequest,
+    Nack,
     Pose,
     ServoConfig,
     ServoMode,
@@ -173,6 +174,7 @@ class ImageBoard(BoardClient):
 
 
 _STOP_ID = CATALOGUE.spec(HexapodStop()).msg_id
+_START_ID = CATALOGUE.spec(HexapodStart()).msg_id
 HEXAPOD_DRIVERS = "hil.hexapod_drivers"  # the entry-point group a hexapod driver registers in (docs/hexapod-drivers.md)
 
 PoseCallback = Callable[[float, tuple[float, ...]], None]  # (t_profile_s, pose6: x y z mm, roll pitch yaw deg)
@@ -295,7 +297,8 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
         super().__init__(link, interlock)
         self.hex_state: int = HexapodState.IDLE  # the last HEXAPOD_STATUS
         self._changed = asyncio.Event()
-        self._confirm: tuple[int, Callable[[], None]] | None = None  # stop_now: (its frame's seq, what to call)
+        # stop_now, start_now: (the frame's seq, its message id, what its ACK calls, what its NACK calls)
+        self._confirm: tuple[int, int, Callable[[], None], Callable[[str], None] | None] | None = None
 
     @classmethod
     def create(cls, options: HexapodOptions, link: Link | None, interlock: Interlock) -> ProtocolHexapod:
@@ -311,9 +314,14 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
             self._changed.set()
         elif kind is Pose and self.on_pose is not None:
             self.on_pose(msg.t_ms / 1000, msg[1:])
-        elif kind is Ack and self._confirm is not None and msg.seq == self._confirm[0] and msg.msg_id == _STOP_ID:
-            confirmed, self._confirm = self._confirm[1], None
-            confirmed()
+        elif kind in (Ack, Nack) and self._confirm is not None and msg.seq == self._confirm[0] \
+                and msg.msg_id == self._confirm[1]:
+            _, _, confirmed, refused = self._confirm
+            self._confirm = None
+            if kind is Ack:
+                confirmed()
+            elif refused is not None:
+                refused(f"{getattr(msg.error, 'name', msg.error)} (value {msg.value:g}, limit {msg.limit:g})")
 
     @property
     def running(self) -> bool:
@@ -362,7 +370,15 @@ class ProtocolHexapod(BoardClient, HexapodDriver):
         GYRO_SAMPLE and its DRIVE_CMD: hil.session.TickWindDown); ``confirmed()`` is called from :meth:`handle` with its
         ACK. The ACK follows every frame the controller sent before the STOP, so :attr:`running` is then its state
         as of the STOP. A later call replaces the callback of one still unanswered. LinkError if the link is closed."""
-        self._confirm = (self.link.send(HexapodStop(), self.board_id), confirmed)
+        self._confirm = (self.link.send(HexapodStop(), self.board_id), _STOP_ID, confirmed, None)
+
+    def start_now(self, confirmed: Callable[[], None], refused: Callable[[str], None]) -> None:
+        """HEXAPOD_START written at once through the interlock, from code that cannot wait (a lockstep or sim session
+        starts its swing between the GYRO_SAMPLE that ended its start pose phase and that sample's DRIVE_CMD:
+        hil.session.TickSwingStart); ``confirmed()`` is called from :meth:`handle` with its ACK, ``refused(why)``
+        with its NACK. InterlockClosed once the session has disarmed; LinkError if the link is closed."""
+        self.interlock.check("HEXAPOD_START")
+        self._confirm = (self.link.send(HexapodStart(), self.board_id), _START_ID, confirmed, refused)
 
 
 class GuardedHexapod(HexapodDriver):

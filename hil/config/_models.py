@@ -241,6 +241,22 @@ class TrackingConfig(Strict):
         "session uses each frame at the same tick")
 
 
+class StartPoseConfig(Strict):
+    """Before the swing and the tracking start, the gimbal is brought to its start pose: a position hold on the
+    encoders (rate command = ``kp_per_s`` x the angle error, at most ``max_rate_dps``), the platform at rest, until
+    both axes have stayed within ``tolerance_deg`` for ``hold_ms``. Not there within ``timeout_s``: the session
+    ends ``fault``, unarmed, before anything swings (docs/control.md, "The start pose")."""
+
+    enabled: bool = Field(True, description="false: the swing starts with the stream, wherever the gimbal is")
+    az_deg: float = Field(0.0, ge=-180, le=180, description="azimuth encoder angle to start from")
+    el_deg: float = Field(0.0, ge=-90, le=90, description="elevation encoder angle to start from")
+    tolerance_deg: float = Field(0.05, gt=0, le=10, description="both axes this close to the pose ...")
+    hold_ms: float = Field(50.0, ge=1, le=10_000, description="... for this long (board time) ends the phase")
+    kp_per_s: float = Field(5.0, gt=0, le=100, description="position gain: deg/s of rate command per deg of error")
+    max_rate_dps: float = Field(20.0, gt=0, le=200, description="the largest rate the phase commands")
+    timeout_s: float = Field(10.0, gt=0, le=120, description="not at the pose within this: the session faults")
+
+
 class SafetyConfig(Strict):
     watchdog_ms: float = Field(5.0, gt=0, le=10_000, description="no GYRO_SAMPLE for this long -> zero drive, DISABLE")
     on_fault: Literal["stop", "recover"] = Field("stop", description="after a watchdog/link/driver fault")
@@ -346,6 +362,7 @@ class SessionConfig(Strict):
                                       "their baud rates set the emulated links' when given)")
     controller: ControllerConfig = ControllerConfig()
     tracking: TrackingConfig = TrackingConfig()
+    start_pose: StartPoseConfig = StartPoseConfig()
     profile: SwingProfile = SwingProfile()
     hexapod_limits: HexapodLimits
     hexapod: HexapodConfig = Field(default_factory=HexapodConfig,

@@ -35,6 +35,7 @@ from hil.config import (
     ControllerConfig,
     Excitation,
     SafetyConfig,
+    StartPoseConfig,
     SwingProfile,
     TrackingConfig,
     load_model,
@@ -45,6 +46,7 @@ from hil.control.cycle import DriveStep
 from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
 from hil.control.loops import TrackingLoop
 from hil.control.registry import build_controller, controller_params
+from hil.control.start_pose import REACHED, StartPose
 from hil.log import read_log
 
 AXES = ("el", "az")
@@ -152,6 +154,7 @@ class _Inputs:
     frames: list[tuple[int, int, int, float, float, float, bool]]  # row, apply_us, frame, t_exp_s, miss_x, miss_y, ok
     poses: list[tuple[int, float]]  # row before which it arrived, t_profile_s
     tracking: Any
+    start_pose: Any
     safety: Any
     excitation: Any
     segments: list[Any]
@@ -224,6 +227,8 @@ def _load(path: Path) -> _Inputs:
     config = data.attrs.get("config") if isinstance(data.attrs.get("config"), dict) else {}
     notes: list[str] = []
     tracking = _section(TrackingConfig, config.get("tracking"), notes, "tracking")
+    # a log written before sessions had a start pose phase had none
+    start_pose = _section(StartPoseConfig, config.get("start_pose", {"enabled": False}), notes, "start_pose")
     safety = _section(SafetyConfig, config.get("safety"), notes, "safety")
     profile = _section(SwingProfile, config.get("profile"), notes, "profile")
     excitation = None
@@ -279,7 +284,7 @@ def _load(path: Path) -> _Inputs:
                     "el": np.asarray(loop["rate_cmd_el_dps"][:n], dtype=np.float32)},
         drive={axis: [int(v) for v in loop[f"drive_{axis}_counts"][:n]] for axis in ("az", "el")},
         ff_logged=np.asarray(loop["ff_el_counts"][:n], dtype=np.float32),
-        frames=frames, poses=poses, tracking=tracking, safety=safety, excitation=excitation,
+        frames=frames, poses=poses, tracking=tracking, start_pose=start_pose, safety=safety, excitation=excitation,
         segments=profile.protocol_segments(), duration_s=float(config.get("duration_s") or math.inf),
         logged=ControllerSpec(name, params), gyro_inexact=inexact)
 
@@ -310,6 +315,8 @@ def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dic
     t_list = inp.t_s.tolist()
     t0 = t_list[0]
     t_rel = 0.0
+    pose = StartPose(inp.start_pose) if inp.start_pose.enabled else None
+    run_t0 = 0.0
     gy, gz = inp.gyro["y"], inp.gyro["z"]
     logged_az, logged_el = inp.drive["az"], inp.drive["el"]
     cmd32_az, cmd32_el = inp.cmd_logged["az"].tolist(), inp.cmd_logged["el"].tolist()
@@ -333,13 +340,21 @@ def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dic
                 now_s = t_rel + t0
                 track_az.on_frame(frame=frame, miss_px=mx, track_valid=ok, t_exposure_s=t_exp, now_s=now_s)
                 track_el.on_frame(frame=frame, miss_px=my, track_valid=ok, t_exposure_s=t_exp, now_s=now_s)
-        cmd_az = track_az.rate_cmd_dps(t_abs) if tracking else 0.0
-        cmd_el = track_el.rate_cmd_dps(t_abs) if tracking else 0.0
-        if exc is not None:
-            if excite_el:
-                cmd_el += exc.rate_dps(t_rel)
-            else:
-                cmd_az += exc.rate_dps(t_rel)
+        if pose is not None and pose.judge(t_abs, inp.az_deg[k], inp.el_deg[k]) == REACHED:
+            pose, run_t0 = None, t_rel  # the run starts at this sample, its tracking from fresh loops
+            checks["start_pose_rows"] = k
+            track_az.reset()
+            track_el.reset()
+        if pose is not None:  # the start pose phase's position hold
+            cmd_az, cmd_el = pose.rate_cmds_dps(inp.az_deg[k], inp.el_deg[k])
+        else:
+            cmd_az = track_az.rate_cmd_dps(t_abs) if tracking else 0.0
+            cmd_el = track_el.rate_cmd_dps(t_abs) if tracking else 0.0
+            if exc is not None:
+                if excite_el:
+                    cmd_el += exc.rate_dps(t_rel - run_t0)
+                else:
+                    cmd_az += exc.rate_dps(t_rel - run_t0)
         if f32(cmd_az) != cmd32_az[k]:  # the rebuilt command is not the one the session used: take the logged one
             checks["command_mismatches_az"] += 1
             cmd_az = cmd32_az[k]
@@ -454,7 +469,8 @@ def replay_log(log: Path | str, controller: str | None = None,
     """Replay the session log ``log`` through ``controller`` (default: the logged one, or the YAML's) with
     ``params``: a dict over the registry defaults, a ``"k=v,k=v"`` string, or a controller YAML (name and params)
     (:func:`controller_choice`); None with the logged controller: the logged parameters, with another: the registry
-    defaults. Metrics over [``settle_s``, the session's duration) from the first sample. ReplayError (one line) for
+    defaults. Metrics over [``settle_s``, the session's duration) from the run's first sample (the first after the
+    start pose phase). ReplayError (one line) for
     input that cannot be replayed; ControllerConfigError (also a ValueError) for an unknown controller or
     parameter. :func:`write_outputs` writes the plot and JSON."""
 
@@ -473,7 +489,8 @@ def replay_log(log: Path | str, controller: str | None = None,
     spec = ControllerSpec(name, dict(params))
     out, checks = _run(inp, spec)
     t = inp.t_s - inp.t_s[0]
-    keep = (t >= settle_s) & (t < inp.duration_s)
+    t_run = t - t[checks.get("start_pose_rows", 0)]  # the run starts where the start pose phase ended
+    keep = (t_run >= settle_s) & (t_run < inp.duration_s)
     if not keep.any():  # a run shorter than the settling time: the whole of it
         keep = np.ones(inp.n, dtype=bool)
     window = (float(t[keep][0]), float(t[keep][-1]))

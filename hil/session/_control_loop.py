@@ -18,6 +18,7 @@ from hil.control.imbalance_feed import ImbalanceFeed, ProfileClock
 from hil.control.loops import TrackingLoop
 from hil.control.oracle import TruthSource, bind_truth
 from hil.control.registry import build_controller
+from hil.control.start_pose import StartPose
 from hil.log import SessionLog
 from hil.log.schema import LATE_US, LINK_COUNTERS
 from hil.protocol import LINKS, NO_LATENCY_US, DriveStatus, GyroSample, LoopTiming, MissDistance
@@ -89,9 +90,13 @@ class ControlLoop:
 
     def __init__(self, config: SessionConfig, drive: Callable[[int, int, int], None], log: SessionLog, *,
                  telemetry: Telemetry | None, duration_ticks: int, on_done: Callable[[], None],
-                 truth: TruthSource | None = None, record_truth: Callable[[int], None] | None = None) -> None:
+                 truth: TruthSource | None = None, record_truth: Callable[[int], None] | None = None,
+                 on_start_pose: Callable[[StartPose], None] | None = None) -> None:
         """``drive(tick, az_counts, el_counts)`` sends DRIVE_CMD; ``on_done`` is called once, at the last tick of
-        the run (from the loop's own thread: it must hand over to the event loop itself if it needs it). ``truth``:
+        the run (from the loop's own thread: it must hand over to the event loop itself if it needs it), which is
+        ``duration_ticks`` samples after the start pose phase ended. ``on_start_pose(phase)``: called once, from the
+        same thread, at the sample that ended the start pose phase (``phase.outcome``), before that sample's drive is
+        computed: the sample is the run's first when the pose was reached. ``truth``:
         the plant's true state (the sim clock's hil.session.PlantTruth), which only the ``oracle`` controller reads.
         ``record_truth(tick)``: called with each loop row's sample counter (the sim clock's hil.session.TruthLog)."""
         self.config = config
@@ -116,6 +121,11 @@ class ControlLoop:
         self.excitation = config.excitation
         self.excite_el = config.excitation is None or config.excitation.axis == "el"
         self.track_judge = TrackJudge(config.tracking.max_lost_s)
+        # the start pose phase (hil.control.start_pose), while not None; the run's time and cycles count from its end
+        self.start_pose = StartPose(config.start_pose) if config.start_pose.enabled else None
+        self.on_start_pose = on_start_pose
+        self.run_t0_s = 0.0  # self.t_s at the run's first sample
+        self.run_cycles0 = 0  # cycles before it
         self.reset_controllers()
 
     def reset_controllers(self) -> None:
@@ -157,15 +167,22 @@ class ControlLoop:
         st.missed += gap
         while self.frames and self.frames[0][0] < g.t_us + (self.t_wraps << 32):
             self._use_frame(self.frames.popleft()[1])
-        tracking = self.config.tracking.enabled
-        cmd_az = self.track_az.rate_cmd_dps(t_s) if tracking else 0.0
-        cmd_el = self.track_el.rate_cmd_dps(t_s) if tracking else 0.0
-        exc = self.excitation
-        if exc is not None:
-            if self.excite_el:
-                cmd_el += exc.rate_dps(self.t_s)
-            else:
-                cmd_az += exc.rate_dps(self.t_s)
+        pose = self.start_pose
+        if pose is not None and self.armed and pose.judge(t_s, g.az_deg, g.el_deg) is not None:
+            self._end_start_pose(pose, st.cycles)
+            pose = self.start_pose
+        if pose is not None:  # the position hold: no tracking, no excitation
+            cmd_az, cmd_el = pose.rate_cmds_dps(g.az_deg, g.el_deg)
+        else:
+            tracking = self.config.tracking.enabled
+            cmd_az = self.track_az.rate_cmd_dps(t_s) if tracking else 0.0
+            cmd_el = self.track_el.rate_cmd_dps(t_s) if tracking else 0.0
+            exc = self.excitation
+            if exc is not None:
+                if self.excite_el:
+                    cmd_el += exc.rate_dps(self.t_s - self.run_t0_s)
+                else:
+                    cmd_az += exc.rate_dps(self.t_s - self.run_t0_s)
         step = self.drive_step
         if self.armed:
             u_az, u_el = step.step(cmd_az, cmd_el, g.rate_y_dps, g.rate_z_dps, az_deg=g.az_deg, el_deg=g.el_deg,
@@ -194,8 +211,22 @@ class ControlLoop:
                 "az_deg": g.az_deg, "el_deg": g.el_deg, "latency_us": latency_ns / 1000})
         if st.cycles % 100 == 0:
             self._log_links(t_rx)
-        if st.cycles == self.duration_ticks:
+        if st.cycles - self.run_cycles0 == self.duration_ticks and self.start_pose is None:
             self.on_done()
+
+    def _end_start_pose(self, pose: StartPose, cycles: int) -> None:
+        """The start pose phase decided at this sample: reached, the run starts here (tracking from fresh loops, the
+        excitation's and the duration's clocks from 0); the session hears of it either way."""
+        if pose.outcome == "reached":
+            self.start_pose = None
+            self.run_t0_s, self.run_cycles0 = self.t_s, cycles
+            self.track_az.reset()
+            self.track_el.reset()
+        if self.on_start_pose is not None:
+            self.on_start_pose(pose)
+        if pose.outcome != "reached":  # reported once; the session disarms
+            pose.outcome = None
+            self.on_start_pose = None
 
     def _log_links(self, t_ns: int) -> None:
 
@@ -215,7 +246,7 @@ class ControlLoop:
         t_exp_us = m.t_exposure_us + (self.t_wraps << 32)
         self.log.append("image", (m.frame, t_exp_us / 1e6, time.monotonic_ns(), m.miss_x_px, m.miss_y_px,
                                   int(m.track_valid), self.last_tick or 0))
-        self.track_judge.on_frame(t_exp_us / 1e6, bool(m.track_valid), self.armed)
+        self.track_judge.on_frame(t_exp_us / 1e6, bool(m.track_valid), self.armed and self.start_pose is None)
         if self.telemetry is not None:
             self.telemetry.miss(m.miss_x_px, m.miss_y_px, m.track_valid)
         self.frames.append((t_exp_us + self.apply_after_us, m))

@@ -39,6 +39,7 @@ from hil.boards import DriverBoard, GuardedHexapod, ImageBoard, Interlock, Inter
 from hil.config import ConfigError, PortConfig, SessionConfig
 from hil.control.oracle import TruthSource, truth_refusal
 from hil.control.registry import needs_truth
+from hil.control.start_pose import REACHED, StartPose
 from hil.link import Capture, Link, LinkError, PortClaims, SerialLink, claim_ports
 from hil.log import SessionLog, free_path
 from hil.log.provenance import collect_provenance
@@ -67,7 +68,7 @@ from hil.session._host import (
 )
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._watchdog import EventLoopWatchdog, Watchdog
-from hil.session._wind_down import HEXAPOD_HOME_S, TickWindDown
+from hil.session._wind_down import HEXAPOD_HOME_S, TickSwingStart, TickWindDown
 from hil.telemetry import Telemetry, TelemetryProcess, schema_units
 
 _log = logging.getLogger("hil.session")
@@ -173,6 +174,7 @@ class Session:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._recovery: asyncio.Task[Any] | None = None
         self._swing_started = False
+        self._aloop: asyncio.AbstractEventLoop | None = None  # the session's event loop, once it runs
         self._t0 = time.monotonic()
         if capture_dir is not None and open_link is not None:
             raise ValueError("capture: these links pass messages, not bytes (the sim clock): nothing to capture; "
@@ -538,6 +540,49 @@ class Session:
         self.event("swing_gap", from_t_s=fault_t_s, to_t_s=loop.t_s + (loop.t0_s or 0.0),
                    profile_s=round(t_profile_s, 3), reason=f"{parked}; resumed at the profile's time")
 
+    # --- the start pose, then the swing -----------------------------------------------------------------
+
+    def _start_pose_from_loop(self, pose: StartPose) -> None:
+        """The loop's start pose phase decided, at a sample: from the loop's thread (realtime), or from the event
+        loop inside the sample's handler (lockstep and sim)."""
+        detail, failure = pose.describe(), (pose.failure() if pose.outcome != REACHED else None)
+        if self.use_thread:
+            assert self._aloop is not None
+            self._aloop.call_soon_threadsafe(self._start_pose_decided, detail, failure, False)
+        else:
+            self._start_pose_decided(detail, failure, True)
+
+    def _start_pose_decided(self, detail: dict[str, Any], failure: str | None, in_sample: bool) -> None:
+        """The phase is logged; the pose reached, the swing starts (lockstep and sim with the emulated hexapod: at
+        this very sample, :class:`TickSwingStart`); not reached, the session ends as a fault, nothing swung."""
+        self.event("phase", **detail)
+        if failure is not None:
+            self.fault(failure, recoverable=False)
+            return
+        if not self.config.profile.protocol_segments() or self.hexapod is None or self.loop_ is None:
+            return
+        table = self.hexapod.driver
+        if in_sample and self.lockstep and isinstance(table, ProtocolHexapod):
+            self._swing_started = True  # from here on the shutdown always sends HEXAPOD_STOP
+            TickSwingStart(self, self.loop_, table)
+        else:
+            self._spawn(self._start_swing(), "swing start")
+
+    async def _start_swing(self) -> None:
+        """HEXAPOD_START through the interlock, then :meth:`swing_began`."""
+        assert self.hexapod is not None
+        self.interlock.check("HEXAPOD_START")
+        self._swing_started = True  # from here on the shutdown always sends HEXAPOD_STOP
+        await self.hexapod.start()
+        self.swing_began()
+
+    def swing_began(self) -> None:
+        """The hexapod acknowledged HEXAPOD_START: the profile's t = 0 is now, near enough."""
+        assert self.loop_ is not None
+        self._swing_started = True
+        self._swing_t0_s = self.loop_.t_s
+        self.event("state", state="swing started", segments=len(self.config.profile.protocol_segments()))
+
     def _on_pose(self, t_profile_s: float, pose: tuple[float, ...]) -> None:
         """A POSE, its time on the session's profile clock (a resumed profile's clock starts again at 0)."""
         if self.loop_ is not None:
@@ -621,7 +666,7 @@ class Session:
                 self.claims = None
 
     async def _run(self) -> SessionResult:
-        aloop = asyncio.get_running_loop()
+        aloop = self._aloop = asyncio.get_running_loop()
         self._finished = aloop.create_future()
         # Signals reach only the main thread's loop; a session run from a worker thread (hil.run inside a
         # notebook's loop) ends on its caller's terms instead.
@@ -649,7 +694,7 @@ class Session:
                                      duration_ticks=round(self.config.duration_s * 1000),
                                      on_done=(lambda: aloop_.call_soon_threadsafe(self.finish, "completed"))
                                      if self.use_thread else self._duration_done, truth=self.truth,
-                                     record_truth=self.record_truth)
+                                     record_truth=self.record_truth, on_start_pose=self._start_pose_from_loop)
             self.loop_.decoders = {name: link.decoder for name, link in self.links.items()}
             self.hexapod.on_pose = self._on_pose
             self.event("state", state="configured")
@@ -663,12 +708,8 @@ class Session:
             self.interlock.check("arming")  # a signal may have come while the ACK was on its way
             self.loop_.armed = True  # it drives from the first sample; the watchdog watches once the stream is on
             self.event("state", state="armed")
-            if segments:
-                self.interlock.check("HEXAPOD_START")
-                self._swing_started = True  # from here on the shutdown always sends HEXAPOD_STOP
-                await self.hexapod.start()
-                self._swing_t0_s = self.loop_.t_s  # the profile's t = 0, near enough: the stream starts below
-                self.event("state", state="swing started", segments=len(segments))
+            if segments and self.loop_.start_pose is None:  # no start pose phase: the swing starts with the stream
+                await self._start_swing()  # the profile's t = 0, near enough: the stream starts below
             if self.telemetry:
                 self.telemetry.state("running", controller=self.config.controller.name)
             if self.use_thread:

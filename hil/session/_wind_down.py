@@ -146,3 +146,57 @@ class TickWindDown:
                 break
             await asyncio.wait((self.done,), timeout=0.1)
         return self.done.result()
+
+
+class TickSwingStart:
+    """The swing's start in a lockstep or sim session with the emulated hexapod, at the sample that ended the start
+    pose phase: reproducible, as :class:`TickWindDown` is, for the same reason. HEXAPOD_START goes out from the
+    sample's handler and that sample's DRIVE_CMD is held until the hexapod's ACK is back (the lockstep world waits
+    for it; the sim world answers within the tick), so the table starts at that tick on every run and on both
+    clocks. A NACK ends the session as a fault; an ACK that has not come by the next sample (a lockstep timeout) too.
+    """
+
+    def __init__(self, session: Session, loop: ControlLoop, hexapod: ProtocolHexapod) -> None:
+        self.session = session
+        self.loop = loop
+        self.held: tuple[int, int, int] | None = None
+        self.waiting = True
+        self._drive = loop.drive
+        loop.drive = self.drive
+        try:
+            hexapod.start_now(self._confirmed, self._refused)
+        except (LinkError, OSError) as exc:
+            self._end(f"HEXAPOD_START not sent: {exc}")
+
+    def drive(self, tick: int, az_counts: int, el_counts: int) -> None:
+        if not self.waiting:
+            self._drive(tick, az_counts, el_counts)
+        elif self.held is None:
+            self.held = (tick, az_counts, el_counts)
+        else:  # the world moved on without the ACK
+            self._end(f"HEXAPOD_START: no ACK by tick {tick}")
+
+    def _confirmed(self) -> None:
+        if not self.waiting:
+            return
+        self._release()
+        self.session.swing_began()
+        held, self.held = self.held, None
+        if held is not None and self.loop.armed:
+            try:
+                self._drive(*held)
+            except (LinkError, OSError) as exc:
+                self.session.fault(f"DRIVE_CMD not sent: {exc}")
+
+    def _refused(self, why: str) -> None:
+        self._end(f"HEXAPOD_START refused: {why}")
+
+    def _release(self) -> None:
+        self.waiting = False
+        self.loop.drive = self._drive
+
+    def _end(self, reason: str) -> None:
+        if self.waiting:
+            self._release()
+            self.held = None
+            self.session.fault(reason, recoverable=False)

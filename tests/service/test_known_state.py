@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from hil.log import read_log
 from hil.service._worker import Outbox, Worker
 from tests.service.conftest import Service, short_session, wait_for
 
@@ -84,3 +85,27 @@ def test_an_end_asked_while_the_item_waits_for_the_boards_is_kept_and_nothing_ru
     assert len(done) == 1 and done[0]["status"] == ("stopped" if how == "stop" else "aborted"), done
     assert done[0]["exit_code"] == (3 if how == "stop" else 130)
     assert "changed my mind" in str(done[0]["message"]) and "nothing was armed" in str(done[0]["message"])
+
+
+def _last_el_deg(log: Path) -> float:
+    return float(read_log(log).groups["loop"]["el_deg"][-1])
+
+
+def test_a_tracked_session_after_an_ident_starts_from_its_start_pose_and_tracks(service: Service,
+                                                                               tmp_path: Path) -> None:
+    """The ident's sweep turns the elevation well away from the target (27 deg by default) and leaves it there; the
+    next item, a tracked session, used to start there and track 0 frames, recorded completed. Its start pose phase
+    now brings the gimbal back to the pose first (logged as a phase), and it tracks."""
+    bench = service.bench(user="kim")
+    ident, _ = bench.run_item(short_session(tmp_path, 2.0, name="ident"), out=tmp_path / "ident", kind="ident",
+                              options={"sweep_s": 4.0, "f_start_hz": 2.0, "f_stop_hz": 40.0})
+    assert ident.log_path is not None, ident.message
+    left_el_deg = _last_el_deg(ident.log_path)
+    assert abs(left_el_deg) > 5.0, left_el_deg  # far outside the camera's field (+-1.0 deg in elevation)
+    tracked = bench.run(short_session(tmp_path, 3.0, name="tracked"), out=tmp_path / "tracked")
+    assert tracked.status == "completed" and tracked.exit_code == 0, tracked.message
+    summary = tracked.summary()
+    pose = summary["start_pose"]
+    assert pose["outcome"] == "reached" and abs(pose["from_el_deg"] - left_el_deg) < 1.0, (pose, left_el_deg)
+    assert pose["error_deg"] <= 0.05
+    assert summary["frames_valid"] > 0.9 * 3.0 * 100 * (1 - 1.0 / 3.0), summary  # 100 Hz, after the 1 s settle

@@ -44,7 +44,7 @@ def test_the_logged_currents_are_those_the_logged_drive_makes(tmp_path: Path) ->
         assert float(np.sqrt(np.mean((made[rows[ok] + 1] - measured) ** 2))) > 0.02 * rms, axis
     # the session's summary: the currents over the run (the first settle_s and the wind-down left out)
     summary = summarize_log(result.log_path)
-    t_s = np.asarray(loop["t_s"]) - float(loop["t_s"][0])
+    t_s = np.asarray(loop["t_s"]) - summary["run_from_t_s"]  # from the start pose phase's end
     in_run = (t_s >= summary["settle_s"]) & (t_s < 3.0)
     reports = in_run[np.searchsorted(np.asarray(loop["tick"]), np.asarray(drive["loop_tick"]))] & enabled
     assert 190 <= reports.sum() <= 201  # 100 Hz over the 2 s after the settle

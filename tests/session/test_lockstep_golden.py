@@ -1,8 +1,9 @@
 """Lockstep runs of the shipped sessions give the same logged values as the recorded digests: a change to how the
 bench runs its loop (threads, encoders, decoders) must not change what a lockstep run computes.
 
-Each session is run with the wire's time (the default) and without it (``links.wire_time: false``): the digests
-without it are those recorded before the wire was modelled, so turning it off restores that lab exactly.
+Each session is run as shipped, with the wire's time and the start pose phase (the defaults), and without both
+(``links.wire_time: false``, ``start_pose.enabled: false``): the digests without them are those recorded before
+the wire was modelled and before sessions had a start pose phase, so turning both off restores that bench exactly.
 
 The digests were recorded with ``python -m tests.session.test_lockstep_golden --update``; run that again only for
 a change that is meant to change the results (a new controller default, a new plant), and say so in its commit.
@@ -39,7 +40,7 @@ def lockstep_digests(session: str, wire: str, out: Path) -> dict[str, str]:
 
 def _shipped(session: str, wire: str, out: Path) -> dict[str, object]:
     """The shipped session's own controller, profile and tracking (paths resolved), over the test base; ``no_wire``:
-    the base's emulated lab with ``links.wire_time: false``."""
+    the base's emulated lab with ``links.wire_time: false``, and no start pose phase."""
     data = load_session(PROFILES / "sessions" / f"{session}.yaml").model_dump()
     shipped = {k: data[k] for k in ("controller", "profile", "tracking", "excitation", "name")}
     if wire == "no_wire":
@@ -47,6 +48,7 @@ def _shipped(session: str, wire: str, out: Path) -> dict[str, object]:
         lab = Path(base["config"])
         plant = lab.parent / read_yaml_mapping(lab)["plant"]
         shipped["emulator"] = {**base, "config": emulator_for_plant(plant, out, base=lab, wire_time=False)}
+        shipped["start_pose"] = {"enabled": False}
     return shipped
 
 

@@ -90,7 +90,8 @@ def test_two_lockstep_runs_give_the_same_whole_log_wind_down_included(tmp_path: 
 def test_two_lockstep_runs_without_a_swing_end_on_the_same_row(tmp_path: Path) -> None:
     a, b = _lockstep(tmp_path / "a", "static"), _lockstep(tmp_path / "b", "static")
     rows = assert_same_logs(a.result.log_path, b.result.log_path)
-    assert rows["loop"] == TICKS + 1  # the session's samples, then one unanswered
+    hold = 50  # the start pose phase at the pose from its first sample: its 50 ms hold (the 51st runs)
+    assert rows["loop"] == hold + TICKS + 1  # the phase, the session's samples, then one unanswered
 
 
 @pytest.mark.parametrize("profile", ["swing-1deg-1hz", "static"])

@@ -22,11 +22,16 @@ def test_the_bench_follows_the_documented_session_sequence(tmp_path: Path) -> No
             steps.append(kind)
         elif kind == "servo_stream":
             steps.append("stream on" if detail["streaming"] else "stream off")
-    # 4. profile upload (LOADED) before 5. enable; 6. START, then STREAM; 7. wind-down: STOP while the loop runs,
-    # the bench waits for the ramp; 8. disarm: DRIVE_DISABLE at once and again acknowledged, then (the swing
-    # already home) the stream
-    assert steps == ["hexapod LOADED", "drive_enable", "hexapod RUNNING", "stream on", "hexapod STOPPING",
+    # 4. profile upload (LOADED) before 5. enable; 6. STREAM, the start pose phase, then START; 7. wind-down: STOP
+    # while the loop runs, the bench waits for the ramp; 8. disarm: DRIVE_DISABLE at once and again acknowledged,
+    # then (the swing already home) the stream
+    assert steps == ["hexapod LOADED", "drive_enable", "stream on", "hexapod RUNNING", "hexapod STOPPING",
                      "hexapod LOADED", "drive_disable", "drive_disable", "stream off"], steps
+    (tmp_path / "unposed").mkdir()
+    unposed = run_session(session_config(duration_s=0.5, seed=2, start_pose={"enabled": False}), tmp_path / "unposed")
+    assert [f"hexapod {r['detail']['state']}" if r["kind"] == "hexapod_state" else r["kind"]
+            for r in unposed.records if r["kind"] in ("hexapod_state", "servo_stream")][:3] == [
+        "hexapod LOADED", "hexapod RUNNING", "servo_stream"]  # without the phase: START, then STREAM
     disable = next(r for r in run.records if r["kind"] == "drive_disable")
     assert disable["detail"]["cause"] == "host"
 
