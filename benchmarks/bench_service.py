@@ -72,10 +72,11 @@ import numpy as np
 import psutil
 import yaml
 
-from hil.config import PROFILES, load_session
-from hil.service import Bench, BenchError, session_yaml
+from hil.config import PROFILES, load_session, session_yaml
+from hil.service import Bench, BenchError
 
 CHROMIUM = "/usr/bin/chromium"
+PARTS = ("pages", "overhead", "pollers", "watching", "restart")
 CHROMEDRIVER = "/usr/bin/chromedriver"
 READY_S = 240.0
 
@@ -591,6 +592,47 @@ def part_pollers(svc: Service, args: argparse.Namespace, work: Path) -> dict[str
     return {"rounds": rounds}
 
 
+# --- part 6 --------------------------------------------------------------------------------------------------------
+
+
+def part_watching(svc: Service, args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    """``--pages`` live pages and ``--pollers`` status pollers on the service while a session runs, alternating with
+    the same session by a plain ``hil run`` (the pages on about:blank, no poller): what watching costs the loop."""
+    path = session_file(work, args.session_s, "svc-watched")
+    warm = session_file(work, 2.0, "warmup-watched")
+    rounds: list[dict[str, Any]] = []
+    cpu_pin = None if args.watch_pages_cpu == "none" else int(args.watch_pages_cpu)
+    watched = f"service, {args.pages} pages + {args.pollers} pollers"
+    with browsers(svc.url, args.pages, work / "watching", cpu_pin) as drivers:
+        assert svc.proc is not None
+        meter_pids = {"service": [svc.proc.pid], "pages": [d.service.process.pid for d in drivers]}
+        run_on_service(svc, warm)
+        run_local(warm, work / "local")
+        for r in range(args.watch_rounds):
+            for driver in drivers:
+                driver.get("about:blank")
+            with CpuMeter(**meter_pids) as cpu:
+                summary, wall = run_local(path, work / "local")
+            local_row = {"side": "hil run", "round": r, "status": summary["status"], **figures(summary),
+                         "wall_s": wall, **cpu.cores}
+            rounds.append(local_row)
+            print(f"  round {r} hil run: {fmt_row(local_row)}", flush=True)
+            for driver in drivers:
+                driver.get(svc.url + "/")
+            wait_connected(drivers)
+            with CpuMeter(**meter_pids) as cpu, Pollers(svc.port, args.pollers, args.poll_hz) as pollers:
+                record = run_on_service(svc, path)
+            frames = [driver.execute_script("return window.hilPage.frames") for driver in drivers]
+            row = {"side": watched, "round": r, "status": record["status"], **figures(record["summary"]),
+                   "wall_s": iso_s(record["ended_at"]) - iso_s(record["started_at"]), **cpu.cores,
+                   **pollers.figures(), "page_cores": cpu.cores["pages_cores"] / max(1, len(drivers)),
+                   "page_frames": min(frames)}
+            rounds.append(row)
+            print(f"  round {r} watched: {fmt_row(row)}; {row['page_cores']:.3f} core a page, "
+                  f"{row['per_s']:.0f} status/s answered", flush=True)
+    return {"rounds": rounds, "watched": watched}
+
+
 # --- part 5 --------------------------------------------------------------------------------------------------------
 
 
@@ -655,6 +697,20 @@ def side_medians(rows: list[dict[str, Any]], side: str, keys: list[str]) -> dict
 
 
 def report(results: dict[str, Any], args: argparse.Namespace) -> None:
+    """Each part's tables, for those that ran."""
+    if "pages" in results:
+        report_pages(results, args)
+    if "overhead" in results:
+        report_overhead(results, args)
+    if "pollers" in results:
+        report_pollers(results, args)
+    if "watching" in results:
+        report_watching(results, args)
+    if "restart" in results:
+        report_restart(results, args)
+
+
+def report_pages(results: dict[str, Any], args: argparse.Namespace) -> None:
     keys = ["board_p50_us", "board_p99_us", "missed", "late", "host_p50_us", "host_p99_us", "wall_s", "service_cores",
             "pages_cores", "hil_run_cores", "load1"]
     p1 = results["pages"]["rounds"]
@@ -682,6 +738,9 @@ def report(results: dict[str, Any], args: argparse.Namespace) -> None:
     per_page = [n for r in p1 if r["side"] == "service" for n in r["points_per_page"]]
     print(f"| {svc['lag_p50_ms']:.0f} / {svc['lag_p95_ms']:.0f} | {svc['e2e_p50_ms']:.0f} / {svc['e2e_p95_ms']:.0f} | "
           f"{svc['age_at_manager_p50_ms']:.0f} / {svc['age_at_manager_p95_ms']:.0f} | {med(per_page):.0f} |")
+
+
+def report_overhead(results: dict[str, Any], args: argparse.Namespace) -> None:
     p3 = results["overhead"]["rounds"]
     print(f"\n### 3. Overhead per queued item ({args.items} items of {args.item_s:g} s in {args.item_rounds} rounds)\n")
     print("| round | service s an item (span / items) | local s an item (mean) | overhead s | end-to-start gap median "
@@ -691,6 +750,9 @@ def report(results: dict[str, Any], args: argparse.Namespace) -> None:
         print(f"| {r['round']} | {r['service_item_s']:.2f} | {r['local_item_s']:.2f} | {r['overhead_s']:.2f} | "
               f"{r['gap_median_s'] * 1000:.0f} | {max(r['missed'])} |")
     print(f"| median | | | {med([r['overhead_s'] for r in p3]):.2f} | | |")
+
+
+def report_pollers(results: dict[str, Any], args: argparse.Namespace) -> None:
     p4 = results["pollers"]["rounds"]
     print(f"\n### 4. A {args.poll_s:g} s session with {args.pollers} clients polling /api/status at "
           f"{args.poll_hz:g} Hz ({args.poll_rounds} rounds, medians)\n")
@@ -705,6 +767,32 @@ def report(results: dict[str, Any], args: argparse.Namespace) -> None:
               f"{m['board_p99_us']:.0f} | {m['status_p50_ms']:.1f} | {m['status_p99_ms']:.1f} | {m['per_s']:.0f} | "
               f"{m['errors']:.0f} | {m['manager_cores']:.2f} / {m['service_cores']:.2f} / {m['bench_cores']:.2f} | "
               f"{m['load1']:.1f} |")
+
+
+def report_watching(results: dict[str, Any], args: argparse.Namespace) -> None:
+    rows, watched = results["watching"]["rounds"], results["watching"]["watched"]
+    keys = ["board_p50_us", "board_p99_us", "missed", "late", "wall_s", "service_cores", "pages_cores", "hil_run_cores",
+            "load1"]
+    loc = side_medians(rows, "hil run", keys)
+    seen = side_medians(rows, watched, [*keys, "page_cores", "per_s", "status_p99_ms", "page_frames"])
+    print(f"\n### 6. A {args.session_s:g} s session watched by {args.pages} pages and {args.pollers} pollers at "
+          f"{args.poll_hz:g} Hz vs a plain `hil run` ({args.watch_rounds} rounds, medians)\n")
+    print("| | board latency p50 / p99 us | late cycles | missed | cores: service / pages / hil run | load average |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for name, m in ((watched, seen), ("`hil run`", loc)):
+        print(f"| {name} | {m['board_p50_us']:.0f} / {m['board_p99_us']:.0f} | {m['late']:.0f} | {m['missed']:.0f} | "
+              f"{m['service_cores']:.2f} / {m['pages_cores']:.2f} / {m['hil_run_cores']:.2f} | {m['load1']:.1f} |")
+    ratio_p99 = seen["board_p99_us"] / loc["board_p99_us"]
+    ratio_late = (seen["late"] + 1) / (loc["late"] + 1)
+    print(f"| watched / `hil run` | p99 **{ratio_p99:.2f}x** | **{ratio_late:.2f}x** (+1 each) | | | |")
+    print(f"\nOne page: **{seen['page_cores']:.3f}** of a core ({seen['page_frames']:.0f} redraws in the session); "
+          f"status answered {seen['per_s']:.0f}/s, p99 {seen['status_p99_ms']:.0f} ms. Per round:\n")
+    for r in rows:
+        print(f"- round {r['round']} {r['side']}: p99 {r['board_p99_us']:.0f} us, late {r['late']}, missed "
+              f"{r['missed']}" + (f", {r['page_cores']:.3f} core a page" if "page_cores" in r else ""))
+
+
+def report_restart(results: dict[str, Any], args: argparse.Namespace) -> None:
     p5 = results["restart"]
     print(f"\n### 5. {args.queued} queued items, SIGKILL, start again ({args.restarts} times)\n")
     print("| restart | queue before / after | history before / after | lost | same order | queue still stopped | "
@@ -737,6 +825,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--poll-rounds", type=int, default=2)
     ap.add_argument("--queued", type=int, default=100)
     ap.add_argument("--restarts", type=int, default=2)
+    ap.add_argument("--watch-rounds", type=int, default=3)
+    ap.add_argument("--watch-pages-cpu", default="none",
+                    help="part 6: pin its browsers to this CPU, or none (default: anywhere, as on the bench's own PC)")
+    ap.add_argument("--parts", default=",".join(PARTS), help=f"which parts, comma-separated (default all: "
+                    f"{','.join(PARTS)})")
     ap.add_argument("--json", type=str, default=None)
     ap.add_argument("--keep", type=Path, default=None, help="keep the service's state and logs in this directory")
     args = ap.parse_args(argv)
@@ -760,14 +853,22 @@ def main(argv: list[str] | None = None) -> int:
         results["first_start"] = svc.start()
         print(f"hil serve at {svc.url}: API after {results['first_start']['api_s']:.1f} s, worker ready after "
               f"{results['first_start']['ready_s']:.1f} s", flush=True)
-        print("1-2. sessions with live pages, against hil run", flush=True)
-        results["pages"] = part_pages(svc, args, work)
-        print("3. overhead per queued item", flush=True)
-        results["overhead"] = part_overhead(svc, args, work)
-        print("4. status pollers", flush=True)
-        results["pollers"] = part_pollers(svc, args, work)
-        print("5. SIGKILL and restart", flush=True)
-        results["restart"] = part_restart(svc, args, work)
+        parts = set(args.parts.split(","))
+        if "pages" in parts:
+            print("1-2. sessions with live pages, against hil run", flush=True)
+            results["pages"] = part_pages(svc, args, work)
+        if "overhead" in parts:
+            print("3. overhead per queued item", flush=True)
+            results["overhead"] = part_overhead(svc, args, work)
+        if "pollers" in parts:
+            print("4. status pollers", flush=True)
+            results["pollers"] = part_pollers(svc, args, work)
+        if "watching" in parts:
+            print("6. watching: pages and pollers together, against hil run", flush=True)
+            results["watching"] = part_watching(svc, args, work)
+        if "restart" in parts:  # last: it kills the service
+            print("5. SIGKILL and restart", flush=True)
+            results["restart"] = part_restart(svc, args, work)
     finally:
         svc.stop()
         if tmp is not None:
@@ -779,7 +880,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, **results},
                                               indent=2, default=str))
-    lost = sum(r["lost_items"] + r["lost_records"] for r in results["restart"]["rounds"])
+    lost = sum(r["lost_items"] + r["lost_records"] for r in results.get("restart", {}).get("rounds", []))
     return 1 if lost else 0
 
 

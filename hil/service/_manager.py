@@ -69,7 +69,8 @@ from hil.service._store import HistoryRecord, NotInStore, Store, StoreError, Sto
 
 _log = logging.getLogger("hil.service")
 STATIC = Path(__file__).parent / "static"
-WS_SEND_HZ = 25.0  # pages get the live values this often (each message carries every point since the last)
+WS_SEND_HZ = 2.0  # pages get the live values this often (each message carries every point since the last): a page
+# draws them once a second, what a person follows on a 10 s window at a few percent of a core (docs/service.md)
 WS_MAX_POINTS = 250  # a page that cannot keep up loses its oldest points beyond this
 STATUS_EVERY_S = 1.0  # and the status at least this often (the lease's remaining time, the queue)
 WORKER_RESTART_S = 2.0

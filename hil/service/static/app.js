@@ -5,11 +5,14 @@
 
 (function () {
   const WINDOW_S = 10; // the charts' sliding window
+  // one redraw of the four charts a second: a 10 s window moves a tenth of its width, and a page costs ~4 % of a
+  // core in software rendering (docs/performance.md, "Watching the bench"; 2 a second cost ~6 %, 5 a second ~11 %)
+  const DRAW_HZ = 1;
   const LAG_KEEP = 2000;
   const STALE_MS = 5000; // the service sends its status every second: silence this long is a dead socket
   const BACKOFF_MS = [500, 1000, 2000, 4000, 8000, 10000];
 
-  const page = { points: 0, lastCycles: 0, lagMs: [], errors: [], frames: 0, last: null, charts: {},
+  const page = { drawHz: DRAW_HZ, points: 0, lastCycles: 0, lagMs: [], errors: [], frames: 0, last: null, charts: {},
                  status: null, connected: false };
   window.hilPage = page;
 
@@ -79,6 +82,12 @@
     return data;
   }
 
+  // a text set only when it changed: an unchanged assignment still makes the browser lay out and paint again
+  function setText(id, text) {
+    const node = $(id);
+    if (node.textContent !== text) node.textContent = text;
+  }
+
   function showNotice(text) {
     const n = $("notice");
     n.textContent = text || "";
@@ -96,7 +105,7 @@
   }
 
   function line(label, color, scale, dash) {
-    return { label, stroke: color, width: 1.5, scale: scale || "y", dash, spanGaps: false,
+    return { label, stroke: color, width: 1, scale: scale || "y", dash, spanGaps: false,
              value: (u, v) => (v === null || v === undefined ? "–" : v.toFixed(Math.abs(v) >= 100 ? 0 : 2)) };
   }
 
@@ -185,31 +194,34 @@
 
   const finiteOrNull = (v) => (typeof v === "number" && isFinite(v) ? v : null);
 
-  let frameRequested = false, fallbackTimer = null;
+  // At most page.drawHz (DRAW_HZ) redraws a second, each of the whole 10 s window; points are kept as they arrive
+  // and drawn in batches.
+  // A hidden tab draws nothing: its window is kept up to date and drawn once when it shows again.
+  let drawTimer = null, lastDrawMs = 0;
 
   function schedule() {
-    if (frameRequested) return;
-    frameRequested = true;
-    requestAnimationFrame(flush);
-    // a hidden tab gets no animation frames: still keep the window (and the counts) up to date
-    fallbackTimer = setTimeout(flush, 250);
+    if (drawTimer !== null) return;
+    const wait = document.hidden ? 1000 : Math.max(0, lastDrawMs + 1000 / page.drawHz - Date.now());
+    drawTimer = setTimeout(flush, wait);
   }
 
   function flush() {
-    if (!frameRequested) return;
-    frameRequested = false;
-    clearTimeout(fallbackTimer);
+    drawTimer = null;
     const batch = pending;
     pending = [];
-    if (!batch.length) return;
     try {
-      plot(batch);
+      const last = ingest(batch);
+      if (document.hidden) return;
+      if (last || page.stale) draw(last);
     } catch (e) {
       noteError("plot: " + (e && e.message || e));
     }
   }
 
-  function plot(batch) {
+  document.addEventListener("visibilitychange", () => { if (!document.hidden) { page.stale = true; schedule(); } });
+
+  // the points into the sliding window; the last one taken (null: none)
+  function ingest(batch) {
     const now = Date.now();
     let last = null;
     for (const p of batch) {
@@ -227,7 +239,8 @@
       last = p;
     }
     if (page.lagMs.length > LAG_KEEP) page.lagMs.splice(0, page.lagMs.length - LAG_KEEP);
-    if (!last) return;
+    if (!last) return null;
+    page.stale = true;
     // the sliding window: drop what is older than WINDOW_S (plus a margin, so the left edge stays drawn)
     const oldest = buffers.x[buffers.x.length - 1] - WINDOW_S - 1;
     let cut = 0;
@@ -236,6 +249,16 @@
       buffers.x.splice(0, cut);
       for (const cols of Object.values(buffers.cols)) for (const c of cols) c.splice(0, cut);
     }
+    page.last = { uid: last.uid, cycles: last.cycles, wall_ms: last.wall_ms, armed: last.armed };
+    for (const [name, spec] of Object.entries(CHARTS)) {
+      spec.series.forEach((s, i) => { page.last[name + ":" + s.label] = buffers.cols[name][i][buffers.x.length - 1]; });
+    }
+    return last;
+  }
+
+  function draw(last) {
+    page.stale = false;
+    lastDrawMs = Date.now();
     for (const name of Object.keys(CHARTS)) {
       const u = page.charts[name];
       u.setData([buffers.x, ...buffers.cols[name]]);
@@ -243,11 +266,7 @@
       if (!(u.cursor.left >= 0)) u.setLegend({ idx: buffers.x.length - 1 });
     }
     page.frames += 1;
-    page.last = { uid: last.uid, cycles: last.cycles, wall_ms: last.wall_ms, armed: last.armed };
-    for (const [name, spec] of Object.entries(CHARTS)) {
-      spec.series.forEach((s, i) => { page.last[name + ":" + s.label] = buffers.cols[name][i][buffers.x.length - 1]; });
-    }
-    showLoopState(last);
+    if (last) showLoopState(last);
   }
 
   function showLoopState(p) {
@@ -257,7 +276,7 @@
     const total = running.total || p.total || 0;
     showProgress(p.cycles || 0, total);
     const armed = p.armed === undefined ? "" : p.armed ? "loop armed" : "loop not armed";
-    $("run-state").textContent = [armed, endingText(running.ending)].filter(Boolean).join(" · ");
+    setText("run-state", [armed, endingText(running.ending)].filter(Boolean).join(" · "));
   }
 
   // --- the status -------------------------------------------------------------------------------
@@ -285,26 +304,7 @@
     return badge("?", "off");
   }
 
-  let lastSig = { queue: null, history: null };
-
-  function onStatus(st) {
-    page.status = st;
-    const svc = st.service || {};
-    $("service").textContent = [svc.lab, svc.version ? "hil " + svc.version : "", svc.auth].filter(Boolean).join(" · ");
-    const you = st.you;
-    $("you").textContent = you ? `you: ${you.user} (${you.role})` : "";
-    const operator = !!(you && you.role === "operator");
-
-    // the worker
-    const w = st.worker || {};
-    const ws = $("worker-state");
-    ws.textContent = w.state || "?";
-    ws.className = "badge " + (w.state === "ready" ? "ok" : w.state === "starting" ? "warn" : "bad");
-    $("worker-error").hidden = !w.error;
-    $("worker-error").textContent = w.error ? "cannot serve: " + w.error : "";
-    $("worker-holder").textContent = w.holder ? "holds the ports: " + w.holder : "";
-
-    // the boards
+  function showBoards(w) {
     const tbody = $("boards").querySelector("tbody");
     tbody.replaceChildren();
     for (const [name, b] of Object.entries(w.boards || {})) {
@@ -319,13 +319,40 @@
       tbody.append(el("tr", {}, el("td", { colspan: "5", class: "muted",
                                            text: w.state === "ready" ? "no boards" : "the worker is " + (w.state || "?") })));
     }
+  }
 
-    // the lease
+  let lastSig = { queue: null, history: null, boards: null, lease: null };
+
+  function onStatus(st) {
+    page.status = st;
+    const svc = st.service || {};
+    setText("service", [svc.lab, svc.version ? "hil " + svc.version : "", svc.auth].filter(Boolean).join(" · "));
+    const you = st.you;
+    setText("you", you ? `you: ${you.user} (${you.role})` : "");
+    const operator = !!(you && you.role === "operator");
+
+    // the worker
+    const w = st.worker || {};
+    const ws = $("worker-state");
+    setText("worker-state", w.state || "?");
+    const wsClass = "badge " + (w.state === "ready" ? "ok" : w.state === "starting" ? "warn" : "bad");
+    if (ws.className !== wsClass) ws.className = wsClass;
+    $("worker-error").hidden = !w.error;
+    setText("worker-error", w.error ? "cannot serve: " + w.error : "");
+    setText("worker-holder", w.holder ? "holds the ports: " + w.holder : "");
+
+    // the boards, the lease: redrawn only when they changed (the status comes every second)
+    const bsig = JSON.stringify([w.state, w.boards || {}]);
+    if (bsig !== lastSig.boards) { lastSig.boards = bsig; showBoards(w); }
     const lease = st.lease;
-    $("lease").replaceChildren(lease
-      ? el("span", {}, "held by ", el("strong", { text: lease.holder }), ` · ${span(lease.remaining_s)} left` +
-          (lease.ttl_s ? ` (TTL ${span(lease.ttl_s)})` : "") + ": only the holder's items start")
-      : "none: every user's items run in queue order");
+    const lsig = lease ? `${lease.holder}|${Math.round(lease.remaining_s)}|${lease.ttl_s}` : "";
+    if (lsig !== lastSig.lease) {
+      lastSig.lease = lsig;
+      $("lease").replaceChildren(lease
+        ? el("span", {}, "held by ", el("strong", { text: lease.holder }), ` · ${span(lease.remaining_s)} left` +
+            (lease.ttl_s ? ` (TTL ${span(lease.ttl_s)})` : "") + ": only the holder's items start")
+        : "none: every user's items run in queue order");
+    }
 
     // the running item
     const r = st.running;
@@ -336,29 +363,29 @@
     }
     $("idle").hidden = !!r;
     $("running").hidden = !r;
-    $("safe").textContent = w.safe ? "Between items: " + w.safe + "." :
-      (!st.running && w.state === "ready" ? "Between items: measuring the boards' rest state…" : "");
+    setText("safe", w.safe ? "Between items: " + w.safe + "." :
+      (!st.running && w.state === "ready" ? "Between items: measuring the boards' rest state…" : ""));
     if (r) {
-      $("run-name").textContent = r.name || r.uid;
-      $("run-kind").textContent = r.kind ? "(" + r.kind + ")" : "";
-      $("run-user").textContent = r.user || "";
-      $("run-started").textContent = when(r.started_at);
-      $("run-uid").textContent = r.uid;
+      setText("run-name", r.name || r.uid);
+      setText("run-kind", r.kind ? "(" + r.kind + ")" : "");
+      setText("run-user", r.user || "");
+      setText("run-started", when(r.started_at));
+      setText("run-uid", r.uid);
       if (!(page.last && page.last.uid === r.uid)) showProgress(r.cycles || 0, r.total || 0);
-      if (!(page.last && page.last.uid === r.uid)) $("run-state").textContent = endingText(r.ending);
+      if (!(page.last && page.last.uid === r.uid)) setText("run-state", endingText(r.ending));
       $("controls").hidden = !operator;
       $("stop").disabled = !!r.ending;
       $("abort").disabled = r.ending === "abort";
-      $("live-note").textContent = "(last 10 s of " + (r.name || r.uid) + ")";
+      setText("live-note", "(last 10 s of " + (r.name || r.uid) + ")");
     } else {
       $("controls").hidden = true;
-      if (buffers.uid) $("live-note").textContent = "(the last item's final 10 s; nothing running)";
+      if (buffers.uid) setText("live-note", "(the last item's final 10 s; nothing running)");
     }
 
     // the queue and the history, when they changed
     const q = st.queue || {};
-    $("queue-state").textContent = (q.running ? "started" : `stopped (${q.stopped || "stopped"}): nothing starts`) +
-      (q.stop_on_failure ? " · stops on a failure" : "") + ` · ${q.waiting || 0} waiting`;
+    setText("queue-state", (q.running ? "started" : `stopped (${q.stopped || "stopped"}): nothing starts`) +
+      (q.stop_on_failure ? " · stops on a failure" : "") + ` · ${q.waiting || 0} waiting`);
     $("queue-start").hidden = !operator || !!q.running;
     const store = st.store || {};
     if (store.error) showNotice(`The service's state store: ${store.error}`);
@@ -507,15 +534,15 @@
     card.hidden = false;
     const many = records.length > 1;
     const tags = records.map((r, i) => (many ? String.fromCharCode(65 + (i % 26)) : ""));
-    $("results-note").textContent = many ? `(${records.length} items side by side)` : `(${records[0].name})`;
-    $("results-msg").textContent = "reading " + (many ? "their logs…" : "its log…");
+    setText("results-note", many ? `(${records.length} items side by side)` : `(${records[0].name})`);
+    setText("results-msg", "reading " + (many ? "their logs…" : "its log…"));
     card.scrollIntoView({ block: "nearest" });
     let all;
     try {
       all = await Promise.all(records.map(seriesOf));
     } catch (e) {
       if (asked !== resultsAsked) return;
-      $("results-msg").textContent = "cannot show it: " + (e.message || e);
+      setText("results-msg", "cannot show it: " + (e.message || e));
       noteError(e.message || e);
       return;
     }
@@ -613,7 +640,7 @@
     try {
       await api("POST", "/api/queue/start", { stop_on_failure: false });
     } catch (e) {
-      $("action-msg").textContent = `start: ${e.message || e}`;
+      setText("action-msg", `start: ${e.message || e}`);
     }
   });
   $("abort").addEventListener("click", () => end("abort"));
@@ -647,7 +674,7 @@
       lastMessage = Date.now();
       setConnected(true, "connected");
       showNotice("");
-      lastSig = { queue: null, history: null };
+      lastSig = { queue: null, history: null, boards: null, lease: null };
     };
     ws.onmessage = (ev) => {
       lastMessage = Date.now();
