@@ -37,11 +37,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hil.campaign import load_campaign, run_campaign
 from hil.config import PROFILES, SessionConfig, load_session, read_yaml_mapping
+from hil.protocol import LINE_RATE_BAUD
 from hil.session import emulator_for_plant, run
 
 PLANTS = {"default": ("swing-1deg-1hz-eso.yaml", "default.yaml"),
           "paper-000": ("swing-1deg-1hz-eso-paper-000.yaml", "paper-000.yaml")}
-LABS = {"off": (False, 921_600), "921600": (True, 921_600), "2000000": (True, 2_000_000)}
 U_MAX = 32767
 
 
@@ -134,8 +134,14 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--campaigns", action="store_true", help="the shipped campaigns' verdicts, wire on and off")
     ap.add_argument("--jobs", type=int, default=2, help="--campaigns: cells at once")
+    ap.add_argument("--bauds", default="921600,2000000",
+                    help="the labs with the wire on, by line rate, comma-separated (the wire off is always one)")
+    ap.add_argument("--controllers", default="", help="only these shipped controllers (file stems, comma-separated)")
+    ap.add_argument("--plants", default=",".join(PLANTS), help="only these plants")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
+    labs = {"off": (False, LINE_RATE_BAUD), **{b: (True, int(b)) for b in args.bauds.split(",") if b}}
+    chosen = {c for c in args.controllers.split(",") if c}
     if args.campaigns:
         with tempfile.TemporaryDirectory() as tmp_dir:
             found = campaigns(Path(tmp_dir), args.jobs)
@@ -146,8 +152,12 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp_dir:
         tmp = Path(tmp_dir)
         for plant, (session, emulator) in PLANTS.items():
+            if plant not in args.plants.split(","):
+                continue
             for controller in sorted((PROFILES / "controllers").glob("*.yaml")):
-                for lab, (wire, baud) in LABS.items():
+                if chosen and controller.stem not in chosen:
+                    continue
+                for lab, (wire, baud) in labs.items():
                     path = lab_file(tmp, emulator, wire)
                     out = tmp / f"{plant}-{controller.stem}-{lab}"
                     row = {"plant": plant, "controller": controller.stem, "wire": lab}

@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from hil.protocol import CATALOGUE, DriveCmd, GyroSample, wire_time_s
+from hil.protocol import CATALOGUE, LINE_RATE_BAUD, DriveCmd, GyroSample, wire_time_s
 from hil.protocol.docgen import periodic_load_bits_per_s
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,7 +62,7 @@ class LinkFaults(Strict):
     garbage_max_bytes: int = Field(32, ge=1, le=4096, description="longest garbage burst, bytes")
 
 
-DEFAULT_BAUD = 921_600  # the protocol's line rate (docs/protocol.md, "Link budget")
+DEFAULT_BAUD = LINE_RATE_BAUD  # the protocol's default line rate (docs/protocol.md, "Link budget")
 HOST_COMPUTE_US = 37.0  # the bench's sample in -> DRIVE_CMD out, p50 (docs/performance.md, the default placement)
 
 

@@ -32,7 +32,7 @@ from hil.config import (
     require_writable_dir,
 )
 from hil.control.registry import K_M_DEFAULT, ControllerConfigError, require_sim_clock
-from hil.link import Finding, check_ports
+from hil.link import Finding, check_ports, wire_delay
 from hil.log import LogError
 from hil.log.reader import NotASessionLog
 from hil.session import (
@@ -369,8 +369,9 @@ def check_file(path: str | Path, kind: str | None = None) -> dict[str, Any]:
 def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Path = "/sys", boards: bool = True,
            listen_s: float = 2.0) -> list[Finding]:
     """Is the hardware ready (`hil doctor`, docs/service.md)? Every check of every port: ``session``'s ports, or
-    with none every serial adapter in /dev/serial/by-id/ at the default 921 600 baud. ConfigError for a session
-    without ports.
+    with none every serial adapter in /dev/serial/by-id/ at the default line rate (hil.protocol.LINE_RATE_BAUD).
+    ConfigError for a session without ports. With a session, also what the wire adds to every cycle at its rates
+    (hil.link.wire_delay: a warning over ``ports.wire_delay_budget_us``).
 
     With a session and ``boards`` (the default), the boards are asked too (hil.boards.check_boards), on each port
     whose own checks passed: an ``ident`` finding per link the session opens (the board's IDENT and its catalogue
@@ -395,6 +396,7 @@ def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Pa
     ports = {n: c.port for n, c in links.items() if c is not None}
     bauds = {n: c.baudrate for n, c in links.items() if c is not None}
     findings = check_ports(ports, bauds, sysfs=Path(sysfs))
+    findings.append(wire_delay(bauds["servo"], bauds["driver"], config.ports.wire_delay_budget_us))
     if not boards:
         return [*findings, host]
     # the links a session opens: the hexapod's only for a driver that talks over it

@@ -42,7 +42,7 @@ from hil.config._files import ConfigError, confinement, read_yaml_mapping, resol
 from hil.config._mqtt import MqttConfig
 from hil.control.registry import ControllerConfigError, controller_params
 from hil.link import baud_budget
-from hil.protocol import HexAxis
+from hil.protocol import LINE_RATE_BAUD, HexAxis
 from hil.protocol.swing import Envelope, Segment, check_envelope
 
 M = TypeVar("M", bound=BaseModel)
@@ -67,7 +67,7 @@ class Strict(BaseModel):
 class PortConfig(Strict):
     port: str = Field(min_length=1, max_length=4096,
                       description="serial device, e.g. /dev/ttyUSB0 or /dev/serial/by-id/...")
-    baudrate: int = Field(921600, gt=0, le=12_000_000)
+    baudrate: int = Field(LINE_RATE_BAUD, gt=0, le=12_000_000, description="the line's rate, bit/s (8N1)")
 
 
 class PortsConfig(Strict):
@@ -77,6 +77,10 @@ class PortsConfig(Strict):
     hexapod: PortConfig | None = Field(
         None, description="the hexapod controller's link; needed only by a hexapod driver that uses the bench's "
         "link (the protocol driver, the default), never opened otherwise")
+    wire_delay_budget_us: float = Field(
+        100.0, gt=0, le=1000,
+        description="what the wire may add to every 1 kHz cycle (GYRO_SAMPLE in, DRIVE_CMD out) before `hil doctor` "
+        "warns: 10 % of the period, which the default line rate keeps (docs/emulator.md)")
 
     @model_validator(mode="after")
     def _carries_the_link_budget(self) -> PortsConfig:

@@ -22,7 +22,7 @@ from hil.link._capture import (
     link_decoder,
     time_ordered,
 )
-from hil.link._doctor import Finding, baud_budget, check_port, check_ports
+from hil.link._doctor import Finding, baud_budget, check_port, check_ports, wire_delay
 from hil.link._ports import Holder, PortClaims, PortUnavailable, claim_ports, is_exclusive, set_exclusive
 from hil.link._selftest import main_sync
 from hil.link._transport import Link, LinkError, SerialLink, board_of
@@ -58,4 +58,5 @@ __all__ = [
     "main_sync",
     "set_exclusive",
     "time_ordered",
+    "wire_delay",
 ]

@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from hil.link._ports import Holder, PortClaim, PortUnavailable, check_serial_port
-from hil.protocol.docgen import periodic_load_bits_per_s
+from hil.protocol import LINE_RATE_BAUD
+from hil.protocol.docgen import loop_wire_delay_s, periodic_load_bits_per_s
 
 SYSFS = Path("/sys")
 LATENCY_TIMER_MAX_MS = 1  # FTDI adapters default to 16 ms: a 1 kHz loop needs 1
@@ -33,6 +34,7 @@ class Finding:
     ok: bool
     detail: str
     values: Mapping[str, Any] = field(default_factory=dict)
+    warning: bool = False  # passed, but worth knowing: nothing is refused for it (`hil doctor` shows "warn")
 
 
 def check_port(name: str, port: str, *, baud: int, sysfs: Path = SYSFS) -> list[Finding]:
@@ -109,6 +111,23 @@ def baud_budget(name: str, baud: int) -> Finding:
                        f"budget); use at least {_enough(need)} baud on both ends")
     return Finding(name, "baud rate", True,
                    f"{baud} baud; the periodic load {busiest} is {need / baud:.0%} of it")
+
+
+def wire_delay(servo_baud: int, driver_baud: int, budget_us: float) -> Finding:
+    """What the wire adds to every cycle of the 1 kHz loop at these rates (GYRO_SAMPLE in, DRIVE_CMD out), against
+    the session's budget (``ports.wire_delay_budget_us``): over it is a warning, not a failure."""
+    delay_us = loop_wire_delay_s(servo_baud, driver_baud) * 1e6
+    default_us = loop_wire_delay_s(LINE_RATE_BAUD, LINE_RATE_BAUD) * 1e6
+    values = {"wire_delay_us": round(delay_us, 1), "budget_us": budget_us}
+    if delay_us > budget_us:
+        return Finding("loop", "wire delay", True,
+                       f"the wire adds {delay_us:.0f} us to every cycle (servo {servo_baud} baud, driver {driver_baud} "
+                       f"baud), over the {budget_us:g} us budget (ports.wire_delay_budget_us): the fastest loops "
+                       f"lose their phase margin (docs/emulator.md, \"The default lab's line rate\"); "
+                       f"{LINE_RATE_BAUD} baud on both ends adds {default_us:.0f} us",
+                       values, warning=True)
+    return Finding("loop", "wire delay", True, f"the wire adds {delay_us:.0f} us to every cycle, within the "
+                   f"{budget_us:g} us budget", values)
 
 
 def _enough(need_bps: float) -> int:

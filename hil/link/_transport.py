@@ -22,13 +22,13 @@ import serial
 import serial_asyncio_fast
 
 from hil.link._ports import open_refusal, set_exclusive
-from hil.protocol import CATALOGUE, Ack, Board, Decoder, Encoder, Frame, LockstepAck, Nack
+from hil.protocol import CATALOGUE, LINE_RATE_BAUD, Ack, Board, Decoder, Encoder, Frame, LockstepAck, Nack
 from hil.protocol.framing import frame_seq
 
 if TYPE_CHECKING:
     from hil.link._capture import Capture, LinkCapture
 
-DEFAULT_BAUD = 921_600
+DEFAULT_BAUD = LINE_RATE_BAUD
 RETRY_INTERVAL_S = 0.05  # docs/protocol.md section 6: resend after 50 ms without a reply ...
 MAX_RESENDS = 3  # ... at most 3 times
 

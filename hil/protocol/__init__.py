@@ -10,6 +10,7 @@ from hil.protocol.framing import (
     BITS_PER_BYTE,
     CRC_INIT,
     HEADER_SIZE,
+    LINE_RATE_BAUD,
     MAX_FRAME,
     MAX_PAYLOAD,
     SYNC,
@@ -43,5 +44,6 @@ __all__ = [  # noqa: PLE0604
     "crc16",
     "encode_frame",
     "frame_size",
+    "LINE_RATE_BAUD",
     "wire_time_s",
 ]

@@ -18,6 +18,7 @@ from hil.protocol.framing import (
     BITS_PER_BYTE,
     CRC_SIZE,
     HEADER_SIZE,
+    LINE_RATE_BAUD,
     MAX_PAYLOAD,
     encode_frame,
     frame_size,
@@ -220,18 +221,24 @@ def render_layout(cat: Catalogue) -> str:
     return "```\n" + cat.layout_text() + "\n```"
 
 
+def _baud(rate: int) -> str:
+    """A line rate as the docs write it: 921 600, 6 000 000."""
+    return f"{rate:,}".replace(",", " ")
+
+
 def render_limits(cat: Catalogue) -> str:
     longest = max(cat, key=lambda s: s.payload_size)
     frame = HEADER_SIZE + longest.payload_size + CRC_SIZE
     return (
         f"`MAX_PAYLOAD` = {MAX_PAYLOAD} bytes (a frame of at most {HEADER_SIZE + MAX_PAYLOAD + CRC_SIZE} bytes). "
         f"The longest message of this catalogue is {longest.name}: a **{frame}-byte frame**, "
-        f"{frame * 10 / 921_600 * 1e6:.0f} us at 921 600 baud."
+        f"{frame * 10 / LINE_RATE_BAUD * 1e6:.0f} us at {_baud(LINE_RATE_BAUD)} baud (the default line rate), "
+        f"{frame * 10 / 921_600 * 1e6:.0f} us at {_baud(921_600)} baud."
     )
 
 
 _RATE = re.compile(r"(\d+(?:\.\d+)?) (k?Hz)")
-BAUDS = (921_600, 2_000_000)
+BAUDS = (921_600, LINE_RATE_BAUD)  # the slow lab's and the default
 
 
 def periodic_rate_hz(spec: MessageSpec) -> float | None:
@@ -267,7 +274,15 @@ def render_link_budget(cat: Catalogue) -> str:
     for link, bits in sorted(load.items()):
         share = ", ".join(f"{100 * bits / b:.0f} % of {b / 1e6:g} Mbaud" for b in BAUDS)
         out.append(f"- {link}: {bits / 10 / 1e3:.1f} kB/s ({share})")
+    delays = ", ".join(f"{loop_wire_delay_s(b, b, cat) * 1e6:.0f} us at {b / 1e6:g} Mbaud" for b in BAUDS)
+    out += ["", f"The 1 kHz loop's wire delay, a GYRO_SAMPLE's wire time plus its DRIVE_CMD's: {delays}."]
     return "\n".join(out)
+
+
+def loop_wire_delay_s(servo_baud: float, driver_baud: float, cat: Catalogue = m.CATALOGUE) -> float:
+    """What the wire adds to every cycle of the 1 kHz loop: GYRO_SAMPLE's wire time on the servo link plus
+    DRIVE_CMD's on the driver link (s)."""
+    return wire_time_s(cat.by_type[m.GyroSample], servo_baud) + wire_time_s(cat.by_type[m.DriveCmd], driver_baud)
 
 
 def render_blocks(cat: Catalogue = m.CATALOGUE) -> dict[str, str]:

@@ -33,6 +33,7 @@ CRC_SIZE = 2
 MAX_PAYLOAD = 240
 MAX_FRAME = HEADER_SIZE + MAX_PAYLOAD + CRC_SIZE
 BITS_PER_BYTE = 10  # 8N1 on the wire: a start bit, 8 data bits, a stop bit
+LINE_RATE_BAUD = 6_000_000  # every link's default line rate (docs/protocol.md, "Link budget"; docs/emulator.md)
 
 
 def frame_size(spec: MessageSpec) -> int:

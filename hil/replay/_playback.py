@@ -52,6 +52,7 @@ from hil.link import (
 )
 from hil.protocol import (
     CATALOGUE,
+    LINE_RATE_BAUD,
     NO_LATENCY_US,
     Ack,
     AxisMask,
@@ -348,7 +349,7 @@ def _sample_key(g: GyroSample) -> int:
 class CapturePlayer:
     """Plays one capture's host-side frames to ``ports`` (link name -> device path); see :func:`play_capture`."""
 
-    def __init__(self, capture: Path, ports: Mapping[str, str], *, baudrate: int = 921_600,
+    def __init__(self, capture: Path, ports: Mapping[str, str], *, baudrate: int = LINE_RATE_BAUD,
                  timing: Timing = "samples", watchdog_s: float = WATCHDOG_S, linger_s: float = LINGER_S,
                  record_dir: Path | None = None, links: set[str] | None = None) -> None:
 

@@ -19,6 +19,7 @@ from tests.firmware_stub.host import Host, running_emulator
 from tests.firmware_stub.test_emulator import start_session, stream
 from tests.session.helpers import session_config
 
+SLOW_WIRE = dict.fromkeys(("servo", "driver", "image", "hexapod"), 921_600)  # profiles/emulator/slow-wire.yaml's
 SAMPLE_WIRE_US = wire_time_s(CATALOGUE.by_type[GyroSample], 921_600) * 1e6  # 423 us
 COMMAND_WIRE_US = wire_time_s(CATALOGUE.by_type[DriveCmd], 921_600) * 1e6  # 206 us
 
@@ -32,14 +33,14 @@ def latencies_us(host: Host) -> list[int]:
 
 
 def test_realtime_commands_arrive_no_sooner_than_the_two_wire_times() -> None:
-    with running_emulator(clock="realtime") as emu:
+    slow = load_emulator_config(clock="realtime", baudrates=SLOW_WIRE)  # wire times a pty alone never takes
+    with running_emulator(slow) as emu:
         host = Host(emu.ports(), host_alive_period_s=0.1)
         start_session(host)
         stream(host, 400)
         host.close()
         with_wire = latencies_us(host)
-    with running_emulator(load_emulator_config(clock="realtime").model_copy(
-            update={"links": load_emulator_config().links.model_copy(update={"wire_time": False})})) as emu:
+    with running_emulator(slow.model_copy(update={"links": slow.links.model_copy(update={"wire_time": False})})) as emu:
         host = Host(emu.ports(), host_alive_period_s=0.1)
         start_session(host)
         stream(host, 400)
@@ -52,7 +53,7 @@ def test_realtime_commands_arrive_no_sooner_than_the_two_wire_times() -> None:
 
 
 @pytest.mark.parametrize(("baud", "wire", "expected_us"), [
-    (921_600, True, 666), (2_000_000, True, 327), (921_600, False, 0)])
+    (921_600, True, 666), (2_000_000, True, 327), (6_000_000, True, 134), (921_600, False, 0)])
 def test_lockstep_loop_timing_reports_the_modelled_delay(baud: int, wire: bool, expected_us: int) -> None:
     config = load_emulator_config(clock="lockstep", baudrates={"servo": baud, "driver": baud})
     config = config.model_copy(update={"links": config.links.model_copy(update={"wire_time": wire})})

@@ -17,10 +17,12 @@ import pytest
 
 from hil import api
 from hil.boards import check_boards
-from hil.link import check_port, claim_ports
+from hil.config import SessionConfig
+from hil.link import check_port, claim_ports, wire_delay
 from hil.protocol import CATALOGUE, Decoder, IdentRequest
 from hil.session import EmulatorProcess
 from tests.reliability.helpers import session_data, write_yaml
+from tests.session.helpers import session_config
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -248,3 +250,24 @@ def test_the_host_row_says_how_to_grant_realtime_scheduling_where_it_is_refused(
     assert "`USER - rtprio 80` in /etc/security/limits.d/hil.conf" in row.detail and "cap_sys_nice+ep" in row.detail
     monkeypatch.undo()
     assert api.doctor(None, sysfs=tmp_path)[-1].ok == (os.geteuid() == 0 or host.fifo_refusal() is None)
+
+
+def test_the_wire_delay_is_a_warning_over_the_budget_and_never_a_failure() -> None:
+    slow = wire_delay(921_600, 921_600, 100.0)
+    assert slow.ok and slow.warning and slow.link == "loop" and slow.check == "wire delay"
+    assert slow.values == {"wire_delay_us": 629.3, "budget_us": 100.0}  # GYRO_SAMPLE 423 us + DRIVE_CMD 206 us
+    assert "adds 629 us to every cycle" in slow.detail and "ports.wire_delay_budget_us" in slow.detail
+    assert "6000000 baud on both ends adds 97 us" in slow.detail
+    default = wire_delay(6_000_000, 6_000_000, 100.0)
+    assert default.ok and not default.warning and default.values["wire_delay_us"] == 96.7
+    assert not wire_delay(921_600, 921_600, 700.0).warning  # a session may allow its slow wire
+
+
+def test_doctor_on_a_session_reports_its_wire_delay(tmp_path: Path) -> None:
+    session = session_config(ports={n: {"port": f"/dev/nonexistent-{n}", "baudrate": 921_600}
+                                    for n in ("servo", "driver", "image", "hexapod")},
+                             ).model_dump(mode="json")
+    session["ports"]["wire_delay_budget_us"] = 50
+    findings = api.doctor(SessionConfig.model_validate(session), boards=False, sysfs=tmp_path)
+    delay = next(f for f in findings if f.check == "wire delay")
+    assert delay.ok and delay.warning and delay.values["budget_us"] == 50

@@ -166,7 +166,7 @@ def test_read_provenance_of_a_log_written_before_it_existed(tmp_path: Path) -> N
 def test_board_latency_is_not_applicable_in_sim_and_gives_null_in_json(sim_log: Path) -> None:
     timing = read_log(sim_log).groups["timing"]["board_latency_us"]
     # what the emulated board sends when it waits for the bench: the modelled delay (docs/emulator.md, "The wire")
-    assert timing.size > 500 and set(np.unique(timing[~np.isnan(timing)])) == {666}
+    assert timing.size > 500 and set(np.unique(timing[~np.isnan(timing)])) == {134}  # at 6 Mbaud
     s = summarize_log(sim_log)
     assert s["board_latency_us"] == {"p50": None, "p99": None, "na_reason": NO_BOARD_LATENCY["sim"]}
     assert s["latency_us"]["p50"] > 0  # the bench's own latency is measured on every clock
