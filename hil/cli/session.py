@@ -86,10 +86,14 @@ def _fmt(x: float | None, digits: int = 3) -> str:
 
 def print_summary(s: dict[str, Any]) -> None:
     t = Table(title=f"{s.get('session', '')}  ({s.get('controller', '')}, {s['duration_s']:.1f} s, "
-                    f"first {s['settle_s']:g} s left out)")
+                    f"first {s['settle_s']:g} s of the run left out)")
     t.add_column("metric")
     t.add_column("value", justify="right")
     t.add_column("unit")
+    if isinstance(pose := s.get("start_pose"), dict):
+        t.add_row("start pose", f"{pose.get('outcome')} in {_fmt(pose.get('took_s'), 2)} s from az "
+                  f"{_fmt(pose.get('from_az_deg'), 2)}, el {_fmt(pose.get('from_el_deg'), 2)}",
+                  "s, deg; the run starts there")
     for axis in ("el", "az"):
         e = s[f"rate_error_{axis}_dps"]
         t.add_row(f"rate error {axis}: range +- / std", f"{_fmt(e['range_pm'])} / {_fmt(e['std'])}", "deg/s")

@@ -233,6 +233,11 @@ def metric_rows(summary: Mapping[str, Any]) -> list[tuple[str, str, str]]:
                      (f"miss distance {axis}: std", _num(miss.get("std")), "px")]
     if "miss_radial_px_rms" in s:
         rows.append(("miss distance: radial rms", _num(s["miss_radial_px_rms"]), "px"))
+    pose = s.get("start_pose")
+    if isinstance(pose, Mapping):
+        rows += [("start pose: took", _num(pose.get("took_s")), "s"),
+                 ("start pose: from el", _num(pose.get("from_el_deg")), "deg"),
+                 ("start pose: from az", _num(pose.get("from_az_deg")), "deg")]
     if "frames" in s:
         rows.append(("frames tracked", f"{s.get('frames_valid', 0)} / {s['frames']}", "frames"))
     lat = s.get("latency_us")
