@@ -569,11 +569,16 @@ class Session:
             self._spawn(self._start_swing(), "swing start")
 
     async def _start_swing(self) -> None:
-        """HEXAPOD_START through the interlock, then :meth:`swing_began`."""
+        """HEXAPOD_START through the interlock, then :meth:`swing_began`. A session that began to end meanwhile (a
+        signal, a fault: the interlock is closed) starts no swing, and that is no fault of its own."""
         assert self.hexapod is not None
-        self.interlock.check("HEXAPOD_START")
-        self._swing_started = True  # from here on the shutdown always sends HEXAPOD_STOP
-        await self.hexapod.start()
+        try:
+            self.interlock.check("HEXAPOD_START")
+            self._swing_started = True  # from here on the shutdown always sends HEXAPOD_STOP
+            await self.hexapod.start()
+        except InterlockClosed as exc:
+            self.event("info", swing=f"not started: {exc}")
+            return
         self.swing_began()
 
     def swing_began(self) -> None:
