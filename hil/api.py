@@ -396,9 +396,9 @@ def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Pa
     ports = {n: c.port for n, c in links.items() if c is not None}
     bauds = {n: c.baudrate for n, c in links.items() if c is not None}
     findings = check_ports(ports, bauds, sysfs=Path(sysfs))
-    findings.append(wire_delay(bauds["servo"], bauds["driver"], config.ports.wire_delay_budget_us))
+    loop = wire_delay(bauds["servo"], bauds["driver"], config.ports.wire_delay_budget_us)
     if not boards:
-        return [*findings, host]
+        return [*findings, loop, host]
     # the links a session opens: the hexapod's only for a driver that talks over it
     opened = [n for n in ports if n != "hexapod" or config.hexapod.driver_class.uses_link]
     free = {n: ports[n] for n in opened
@@ -412,4 +412,5 @@ def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Pa
         findings += run_coroutine(check_boards, free, bauds, listen_s=listen_s,
                                   watchdog_ms=config.safety.watchdog_ms)
     order = list(ports)
-    return [*sorted(findings, key=lambda f: order.index(f.link)), host]  # each link's rows together, then the host
+    # each link's rows together, then the loop's wire delay, then the host
+    return [*sorted(findings, key=lambda f: order.index(f.link)), loop, host]

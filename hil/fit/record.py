@@ -20,6 +20,7 @@ from hil.campaign import load_campaign, run_campaign
 from hil.config import PROFILES, ControllerConfig, SessionConfig, load_session, session_yaml
 from hil.fit.logs import load_fit_log
 from hil.fit.twin import UnusableSweep, linear_frf
+from hil.protocol import LINKS
 from hil.session import emulator_for_plant, ident_sweeps, run
 
 SWING_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
@@ -27,8 +28,10 @@ SWING_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
 
 def session_on_plant(plant: str | Path, work_dir: str | Path, *, name: str, swing: str | None,
                      controller: str = "eso", seconds: float = 20.0, seed: int = 1,
-                     tracking: bool = False) -> SessionConfig:
-    """The shipped swing session with another swing (``None``: static), controller, duration and the given plant."""
+                     tracking: bool = False, baudrate: int | None = None) -> SessionConfig:
+    """The shipped swing session with another swing (``None``: static), controller, duration and the given plant;
+    ``baudrate``: every link's line rate (default the lab's, hil.protocol.LINE_RATE_BAUD; 921 600 is the slow-wire
+    lab's, docs/emulator.md "The default lab's line rate")."""
     base = load_session(SWING_SESSION)
     data = base.model_dump(mode="json", exclude_none=True)
     data.update(
@@ -40,6 +43,8 @@ def session_on_plant(plant: str | Path, work_dir: str | Path, *, name: str, swin
         logging={**data.get("logging", {}), "dir": str(Path(work_dir) / "runs")},
         mqtt=base.mqtt, hexapod=base.hexapod,
     )
+    if baudrate is not None:  # a loopback session's links run at its ports' rates (the paths are not opened)
+        data["ports"] = {link: {"port": f"/dev/emulated-{link}", "baudrate": baudrate} for link in LINKS}
     return SessionConfig.model_validate(data)
 
 
@@ -158,10 +163,11 @@ def _passes_linearly(log: Path | None) -> bool:
 
 
 def record_platform_logs(plant: str | Path, out_dir: str | Path, *, seed: int = 1, progress: Callable[[str], Any]
-                         | None = None, level: bool = True, **plan: Any) -> list[Path]:
-    """Record a fit's logs on ``plant`` (sim clock, ``seed``): :func:`recording_plan` on the shipped swing session
-    with the emulator pointed at ``plant``, the sweeps as planned (levelled with ``level``). Their paths."""
-    base = session_on_plant(plant, out_dir, name="fit", swing=None, seed=seed)
+                         | None = None, level: bool = True, baudrate: int | None = None, **plan: Any) -> list[Path]:
+    """Record a fit's logs on ``plant`` (sim clock, ``seed``; ``baudrate`` as :func:`session_on_plant`'s):
+    :func:`recording_plan` on the shipped swing session with the emulator pointed at ``plant``, the sweeps as planned
+    (levelled with ``level``). Their paths."""
+    base = session_on_plant(plant, out_dir, name="fit", swing=None, seed=seed, baudrate=baudrate)
     return record(recording_plan(base, **plan), loopback=True, progress=progress, level=level)
 
 

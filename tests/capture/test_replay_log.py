@@ -76,7 +76,9 @@ def test_another_controller_gives_finite_figures_against_the_logged_one(lockstep
     result = replay_log(lockstep_run.log, "pi_lpf", {"cutoff_hz": 50.0}, settle_s=0.5)
     assert result.logged.name == "eso" and result.replayed.name == "pi_lpf"
     assert result.replayed.params == {"cutoff_hz": 50.0}
-    assert result.window_s[0] == pytest.approx(0.5, abs=1e-3) and result.window_s[1] == pytest.approx(1.499, abs=1e-3)
+    # the window from the run's first sample, after the start pose phase's 50 ms hold, settle_s in, to duration_s
+    assert result.inputs["start_pose_rows"] == 50
+    assert result.window_s[0] == pytest.approx(0.55, abs=1e-3) and result.window_s[1] == pytest.approx(1.549, abs=1e-3)
     for axis, a in result.axes.items():
         values = vars(a)
         assert all(np.isfinite(v) for v in values.values()), (axis, values)

@@ -23,3 +23,5 @@ def recorded(config: SessionConfig) -> FitLog:
     log = run(config, clock="sim").log_path
     assert log is not None
     return load_fit_log(log)
+
+SLOW_WIRE_BAUD = 921_600  # the slow-wire lab's line rate (profiles/emulator/slow-wire.yaml)

@@ -27,7 +27,7 @@ from hil.fit.twin import (
     lab_wire_delay_s,
     sweep_spring_q,
 )
-from tests.fit.helpers import drawn_plant, recorded
+from tests.fit.helpers import SLOW_WIRE_BAUD, drawn_plant, recorded
 
 SEED = 41
 
@@ -37,7 +37,9 @@ def swing(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The fit's high-gain swing (3 deg / 1 Hz, 20 s, sim clock) on the hidden plant."""
     work = tmp_path_factory.mktemp("limit")
     hidden, path = drawn_plant(SEED, work)
+    # on the slow-wire lab (921 600 baud), where this loop rings into its current limit
     cfg = session_on_plant(path, work, name="fit-swing-hg", swing="swing-3deg-1hz", controller="eso_kf_high_gain",
+                           baudrate=SLOW_WIRE_BAUD,
                            seconds=20.0, tracking=True)
     return {"hidden": hidden, "log": recorded(cfg)}
 
@@ -78,10 +80,10 @@ def test_an_ident_sweep_that_met_the_current_limit_is_read_with_the_drive_the_pl
     """Hidden plant 54: the default levelled azimuth sweep holds the current at its 1.88 A limit on ~1200 of its ticks
     (15 %). Read with the commanded drive, k_m is -0.9 % off and the 262 Hz gyro pole reads 156 +- 15 Hz, the total
     loop delay +126 us; read with the drive the plant received, k_m is within 0.1 %, the pole within 3 % and the
-    total delay within a few us (docs/fit.md). The prior is the hidden plant itself, so only the reading of the
-    drive differs between the two fits."""
+    total delay within a few us (docs/fit.md; on the slow-wire lab, 921 600 baud, where those figures were measured).
+    The prior is the hidden plant itself, so only the reading of the drive differs between the two fits."""
     hidden, path = drawn_plant(54, tmp_path)
-    base = session_on_plant(path, tmp_path, name="p54", swing=None)
+    base = session_on_plant(path, tmp_path, name="p54", swing=None, baudrate=SLOW_WIRE_BAUD)  # as docs/fit.md measured
     log = load_fit_log(record([r for r in recording_plan(base) if r.name == "fit-ident-az"], loopback=True)[0])
     wire_s = lab_wire_delay_s([log])
     limit_a = get_param(hidden, "drive.az.current_limit_a")

@@ -27,6 +27,7 @@ from hil.fit.ranges import (
 )
 from hil.fit.record import campaign_on_plant, record, record_platform_logs, recording_plan, session_on_plant
 from hil.fit.twin import fit_frequency_response, fit_logs, lab_wire_delay_s
+from tests.fit.helpers import SLOW_WIRE_BAUD
 
 HIDDEN_SEED = 12  # a draw of hil.fit.ranges.draw_plant; benchmarks/fit_hidden_plants.py runs others
 SEEDS_1_3 = (1, 2, 3)  # the acceptance campaign's seeds: a limit-cycling cell's single seed is noisy
@@ -37,7 +38,7 @@ def platform(tmp_path_factory: pytest.TempPathFactory) -> dict:
     work = tmp_path_factory.mktemp("hidden")
     hidden, drawn = draw_plant(HIDDEN_SEED, load_plant_dict(DEFAULT_PLANT_CONFIG))
     path = dump_plant(hidden, work / "hidden.yaml", "a hidden plant")
-    logs = record_platform_logs(path, work / "logs")
+    logs = record_platform_logs(path, work / "logs")  # on the default lab
     return {"work": work, "hidden": hidden, "drawn": drawn, "path": path, "logs": logs}
 
 
@@ -98,7 +99,7 @@ def test_the_total_loop_delay_is_recovered_within_a_tenth_of_a_millisecond(platf
     delay and the wire's together, and leaves the wire's to the twin's lab."""
     hidden, fit = platform["hidden"], twin["fit"]
     wire_s = load_emulator_config().drive_delay_s()
-    assert fit.wire_s == pytest.approx(wire_s) and wire_s > 6e-4
+    assert fit.wire_s == pytest.approx(wire_s) and wire_s == pytest.approx(134e-6, abs=1e-6)  # 65 + 37 + 32 us
     true_s = 1.0 / (2.0 * math.pi * get_param(hidden, "gyro.bandwidth_hz")) + get_param(hidden, "gyro.delay_s")
     assert fit.total_delay_s == pytest.approx(true_s + wire_s, abs=1e-4), (fit.total_delay_s, true_s + wire_s)
     assert any(n.startswith("total loop delay") for n in fit.notes)
@@ -120,7 +121,7 @@ def test_the_kernel_fit_puts_the_wire_on_the_drive_where_the_lab_has_it(tmp_path
                       "quantisation_lsb_dps": 0.0}
     plant = apply_params(plant, {"gyro.bandwidth_hz": 160.0, "gyro.delay_s": 0.34e-3, "structure.el.mode_hz": 229.0})
     path = dump_plant(plant, tmp_path / "linear.yaml", "a noise-free linear plant")
-    base = session_on_plant(path, tmp_path, name="lin", swing=None)
+    base = session_on_plant(path, tmp_path, name="lin", swing=None, baudrate=SLOW_WIRE_BAUD)  # a wire of 0.67 ms
     logs = record([r for r in recording_plan(base) if r.name == "fit-ident-el"], loopback=True)
     log = load_fit_logs(logs)[0]
     wire_s = lab_wire_delay_s([log])
@@ -134,16 +135,20 @@ def test_the_kernel_fit_puts_the_wire_on_the_drive_where_the_lab_has_it(tmp_path
 
 
 def test_a_breakaway_inside_the_stick_band_is_matched_on_the_swing_logs(platform: dict, twin: dict) -> None:
-    """Plant 12's elevation breakaway (T_s / T_c 1.04, v_s 0.62 deg/s: an excess impulse of 0.023 deg/s) is too
-    small for the torque balance; the swing logs re-run on the twin set it instead. Only the impulse is determined:
-    one factor is fitted from the re-run, the other keeps its value with a note, and the impulse is within 0.05 deg/s
-    of the hidden one where the prior's (1.28, 0.5 deg/s) was 0.14."""
+    """Plant 12's elevation breakaway (T_s / T_c 1.04, v_s 0.62 deg/s: an excess impulse of 0.023 deg/s). Through
+    the slow wire's 0.67 ms it was too small for the torque balance and the swing logs re-run on the twin set it; on
+    the default lab's 0.13 ms the torque balance fits it. Only the impulse is determined: one factor is fitted, the
+    other keeps its value (with a note, after a re-run), and the impulse is within 0.05 deg/s of the hidden one where
+    the prior's (1.28, 0.5 deg/s) was 0.14."""
     hidden, fit = platform["hidden"], twin["fit"]
     ratio, rate = fit.estimate("friction.el.stiction_ratio"), fit.estimate("friction.el.stribeck_rate_dps")
     assert ratio is not None and rate is not None
     moved, held = (ratio, rate) if ratio.status == "fitted" else (rate, ratio)
-    assert moved.status == "fitted" and moved.source.startswith("swing logs re-run on the twin"), moved
-    assert "impulse" in held.note, held
+    assert moved.status == "fitted", moved
+    if moved.source.startswith("swing logs re-run on the twin"):  # the torque balance could not resolve it
+        assert "impulse" in held.note, held
+    else:  # the default lab's 0.13 ms of wire blur the breakaway less than the slow wire's 0.67 ms did
+        assert moved.source.startswith("torque balance"), moved
 
     def impulse(plant: dict) -> float:
         return ((get_param(plant, "friction.el.stiction_ratio") - 1.0)

@@ -16,6 +16,7 @@ from hil.fit.logs import load_fit_log
 from hil.fit.ranges import draw_plant, dump_plant, get_param, load_plant_dict
 from hil.fit.record import record, recording_plan, session_on_plant
 from hil.fit.twin import LINEAR_LOW_HZ, fit_frequency_response, fit_logs, lab_wire_delay_s, nonlinear_bins
+from tests.fit.helpers import SLOW_WIRE_BAUD
 
 DT_S = 1e-3
 SWEEP = SweptSine(f_start_hz=1.0, f_stop_hz=450.0, duration_s=8.0, amplitude_dps=1.5, axis="el", offset_dps=3.0)
@@ -75,7 +76,7 @@ def test_an_ident_sweep_the_eso_cannot_pass_linearly_is_recorded_again_with_pi_l
     so `hil fit --record` records that sweep again with PI + LPF, and the log it keeps gives k_m within 5 %."""
     plant, _ = draw_plant(15, load_plant_dict(DEFAULT_PLANT_CONFIG))
     path = dump_plant(plant, tmp_path / "hidden-15.yaml", "hidden plant 15")
-    base = session_on_plant(path, tmp_path, name="p15", swing=None)
+    base = session_on_plant(path, tmp_path, name="p15", swing=None, baudrate=SLOW_WIRE_BAUD)  # the slow-wire lab
     said: list[str] = []
     log = record([r for r in recording_plan(base) if r.name == "fit-ident-az"], loopback=True, level=False,
                  progress=said.append)[0]

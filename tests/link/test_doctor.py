@@ -104,8 +104,9 @@ def test_the_command_checks_a_session_s_ports(tmp_path: Path) -> None:
                              env={**os.environ, "COLUMNS": "250"})
     assert ok.returncode == 0, ok.stdout + ok.stderr
     report = json.loads(ok.stdout)
-    assert report["ok"] and {f["link"] for f in report["findings"]} == {"servo", "driver", "image", "hexapod", "host"}
-    assert len(report["findings"]) == 17 and report["findings"][-1]["check"] == "realtime scheduling"
+    links = {"servo", "driver", "image", "hexapod", "loop", "host"}
+    assert report["ok"] and {f["link"] for f in report["findings"]} == links
+    assert len(report["findings"]) == 18 and report["findings"][-1]["check"] == "realtime scheduling"
     # a session whose line cannot carry the link budget does not load (hil.config): the same check, bad input
     line = " ".join(bad.stderr.split())
     assert bad.returncode == 2 and "ports: servo.baudrate: 115200 baud carries 115.2 kbit/s" in line, bad.stderr
@@ -136,7 +137,7 @@ def test_every_board_answers_with_the_bench_s_fingerprint_and_the_stream_runs_ne
         with claim_ports({n: p for n, p in emulator.ports.items() if n != "control"}, "the next session"):
             pass  # the doctor let go of every port
     rows = {(f["link"], f["check"]): f for f in report["findings"]}
-    assert len(rows) == len(report["findings"]) == 22  # 4 checks of each port, 4 idents, the stream, the host
+    assert len(rows) == len(report["findings"]) == 23  # 4 checks of each port, 4 idents, the stream, the wire, the host
     assert [f["check"] for f in report["findings"] if f["link"] == "servo"] == [
         "port", "holder", "latency timer", "baud rate", "ident", "servo stream"]
     fingerprint = f"{CATALOGUE.fingerprint:#010x}"
