@@ -115,6 +115,8 @@ def cell_score(cell: CellResult, out_dir: Path, metric: str | None, *, settle_s:
     sat at its limit; the fraction of valid tracking frames). ValueError (one line) when the cell did not complete,
     is unstable (:func:`unstable_reason`) or lacks the metric. ``metric`` None: a cell outside the objective's
     cells (its value NaN). ``u_max`` None: the log is not read."""
+    if cell.status == "lost_target":  # the session's own verdict (hil.session.TrackJudge): the rule's words
+        raise ValueError(f"cell {cell.cell_id}: lost the target: {cell.message}")
     if cell.status != "completed":
         raise ValueError(f"cell {cell.cell_id}: session {cell.status}: {cell.message}".rstrip(": "))
     sat = valid = None
