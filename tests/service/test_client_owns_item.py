@@ -91,6 +91,19 @@ def queued(bench: Bench, name: str) -> dict:
     return wait_for(lambda: next((i for i in bench.queue()["items"] if i["name"] == name), None), timeout_s=60)
 
 
+def running_client(service: Service, tmp_path: Path, clients: list[Client], name: str,
+                   *extra: str) -> tuple[Client, str]:
+    """`hil run --bench` of a 20 s session named ``name`` (its log into ``tmp_path/out``), and its item's uid, once
+    that item has run 1000 cycles."""
+    run = Client("run", str(short_session(tmp_path, 20.0, name=name)), "--bench", service.url,
+                 "--out", str(tmp_path / "out"), *extra)
+    clients.append(run)
+    bench = service.bench()
+    uid = queued(bench, name)["uid"]
+    wait_for(lambda: bench.item(uid).get("cycles", 0) > 1000, timeout_s=180)
+    return run, uid
+
+
 def lines_with(text: str, output: str) -> list[str]:
     return [line for line in output.splitlines() if text in line]
 
@@ -185,10 +198,7 @@ def test_ctrl_c_while_it_runs_stops_it_and_the_log_comes_back(service: Service, 
                                                               clients: list[Client]) -> None:
     bench = service.bench()
     out = tmp_path / "out"
-    run = Client("run", str(short_session(tmp_path, 20.0, name="stop-me")), "--bench", service.url, "--out", str(out))
-    clients.append(run)
-    uid = queued(bench, "stop-me")["uid"]
-    wait_for(lambda: bench.item(uid).get("cycles", 0) > 1000, timeout_s=180)
+    run, uid = running_client(service, tmp_path, clients, "stop-me")
     # while it runs, the boards its loop drives are armed, and the status says so in words
     wait_for(lambda: bench.status()["worker"]["boards"]["driver"]["armed"], timeout_s=30)
     status = subprocess.run([sys.executable, "-m", "hil", "bench", "status", "--bench", service.url],
@@ -227,12 +237,8 @@ def test_a_second_ctrl_c_aborts_it_and_the_client_still_brings_the_log_back(serv
                                                                            clients: list[Client]) -> None:
     bench = service.bench()
     out = tmp_path / "out"
-    run = Client("run", str(short_session(tmp_path, 20.0, name="abort-me")), "--bench", service.url,
-                 "--out", str(out), "--json")
-    clients.append(run)
-    uid = queued(bench, "abort-me")["uid"]
+    run, uid = running_client(service, tmp_path, clients, "abort-me", "--json")
     try:
-        wait_for(lambda: bench.item(uid).get("cycles", 0) > 1000, timeout_s=180)
         run.ctrl_c()
         run.wait_for_err("Ctrl-C again aborts it")
         run.ctrl_c()
@@ -259,11 +265,8 @@ def test_a_third_ctrl_c_leaves_at_once_and_the_item_goes_on_without_it(service: 
                                                                        clients: list[Client]) -> None:
     bench = service.bench()
     out = tmp_path / "out"
-    run = Client("run", str(short_session(tmp_path, 20.0, name="leave-it")), "--bench", service.url, "--out", str(out))
-    clients.append(run)
-    uid = queued(bench, "leave-it")["uid"]
+    run, uid = running_client(service, tmp_path, clients, "leave-it")
     try:
-        wait_for(lambda: bench.item(uid).get("cycles", 0) > 1000, timeout_s=180)
         run.ctrl_c()
         run.wait_for_err("Ctrl-C again aborts it")
         run.ctrl_c()
