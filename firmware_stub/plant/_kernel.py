@@ -5,9 +5,10 @@ every clock: the emulator, the in-process sim clock and offline runs all call it
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Literal, TypedDict, cast
 
-import llvmlite.ir as llvm_ir
+import llvmlite.ir as llvm_ir  # type: ignore[import-untyped]  # llvmlite ships no type information
 import numba
 import numpy as np
 from numba import types as nbt
@@ -144,8 +145,18 @@ def pack_params(cfg: PlantConfig) -> np.ndarray:
 
 
 _HALF = 0.5 * TICK_S
-_JIT = {"cache": True, "error_model": "numpy"}  # (no nogil: releasing the GIL costs ~0.2 us per call)
-_INLINE = {**_JIT, "inline": "always"}  # small helpers, inlined into their callers at numba's IR level
+
+
+class _JitOptions(TypedDict, total=False):
+    """The keyword options given to ``numba.njit`` here (the subset of its options this module uses)."""
+
+    cache: bool
+    error_model: Literal["python", "numpy"]
+    inline: Literal["never", "always"]
+
+
+_JIT: _JitOptions = {"cache": True, "error_model": "numpy"}  # (no nogil: releasing the GIL costs ~0.2 us per call)
+_INLINE: _JitOptions = {**_JIT, "inline": "always"}  # small helpers, inlined into their callers at numba's IR level
 
 
 @numba.njit(**_INLINE)
@@ -197,7 +208,7 @@ def _imbalance(p, fbx, fby, fbz, sa, ca, se, ce):  # noqa: PLR0917
 
 
 @intrinsic
-def _vdiv(typingctx, num, den):
+def _vdiv_lanes(typingctx, num, den):
     """``num[j] / den[j]`` for two tuples of n float64 as one LLVM vector division: IEEE division in each lane (the
     same quotient as ``num[j] / den[j]``, bit for bit), but the CPU divides 2 or 4 lanes in about the time of one
     (division is the slowest arithmetic and the Taylor series below need six per angle)."""
@@ -218,6 +229,9 @@ def _vdiv(typingctx, num, den):
 
     return num(num, den), codegen
 
+
+# how jitted code calls it: numba's stub types an intrinsic's call as its typer's (typingctx first) returning Never
+_vdiv = cast("Callable[[tuple[float, ...], tuple[float, ...]], tuple[float, ...]]", _vdiv_lanes)
 
 _TAYLOR_DEN = (6.0, 20.0, 42.0, 12.0, 30.0, 56.0)  # the divisors of the sin / cos Taylor series in _rotated
 
