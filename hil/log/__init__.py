@@ -20,7 +20,8 @@ from hil.log.reader import (
     units_path,
 )
 from hil.log.schema import ATTRS, LOG_FORMAT_VERSION, SCHEMA, AttrSpec, Channel, Group
-from hil.log.writer import LogError, SessionLog, prestart_writer
+from hil.log.session_log import SessionLog, prestart_writer
+from hil.log.writer import LogError
 
 __all__ = [
     "ATTRS",

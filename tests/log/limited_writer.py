@@ -2,7 +2,7 @@
 
     python tests/log/limited_writer.py LIMIT_BYTES
 
-Stands in for a full disk: the test points ``hil.log.writer._writer_argv`` here.
+Stands in for a full disk: the test points ``hil.log.session_log._writer_argv`` here.
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 import pytest
 
-import hil.log.writer as writer_mod
+import hil.log.session_log as session_log_mod
 from hil import __version__
 from hil.log import (
     ATTRS,
@@ -492,7 +492,7 @@ def test_unwritable_directory_names_path_and_cause(tmp_path):
 def test_disk_full_mid_session_sets_error_keeps_flushed_rows(tmp_path, monkeypatch):
     limit = 1_000_000  # bytes: the new file (~100 kB) fits, a few thousand more rows do not
     script = Path(__file__).with_name("limited_writer.py")
-    monkeypatch.setattr(writer_mod, "_writer_argv", lambda: [sys.executable, str(script), str(limit)])
+    monkeypatch.setattr(session_log_mod, "_writer_argv", lambda: [sys.executable, str(script), str(limit)])
     p = tmp_path / "full.h5"
     log = make_log(p)
     fill(log, 500)
@@ -553,7 +553,7 @@ def test_one_writer_process_writes_log_after_log_and_one_that_failed_is_not_reus
 
     limit = 1_000_000  # a writer that cannot write past 1 MB: its log fails
     script = Path(__file__).with_name("limited_writer.py")
-    monkeypatch.setattr(writer_mod, "_writer_argv", lambda: [sys.executable, str(script), str(limit)])
+    monkeypatch.setattr(session_log_mod, "_writer_argv", lambda: [sys.executable, str(script), str(limit)])
     with make_log(tmp_path / "full.h5") as log:
         limited = log.writer_pid
         assert limited != pids[0]  # the spare runs another command: not taken
