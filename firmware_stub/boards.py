@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from array import array
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -68,6 +68,7 @@ from hil.protocol.swing import (
     Envelope,
     Profile,
     Segment,
+    Vec6,
     check_envelope,
     profile_end_s,
     segment_from_message,
@@ -620,6 +621,12 @@ class ImageBoard(EmulatedBoard):
             self.send(self.pipeline.popleft())
 
 
+def _vec6(values: Iterable[float]) -> Vec6:
+    """The six values of one pose, rate or acceleration (HexAxis order) as a 6-tuple."""
+    x, y, z, roll, pitch, yaw = values
+    return x, y, z, roll, pitch, yaw
+
+
 class HexapodBoard(EmulatedBoard):
     """Hexapod controller: profile upload with an envelope check, START/STOP, POSE at 100 Hz.
 
@@ -720,7 +727,7 @@ class HexapodBoard(EmulatedBoard):
         """Host gone: ramp home, as HEXAPOD_STOP does."""
         self._stop()
 
-    def motion(self, tick: int) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+    def motion(self, tick: int) -> tuple[Vec6, Vec6, Vec6]:
         """Pose, rate, acceleration at the middle of the tick that starts at ``tick`` (before stepping)."""
         if not self._moving:
             return ZERO6, ZERO6, ZERO6
@@ -730,8 +737,8 @@ class HexapodBoard(EmulatedBoard):
             # scale by s(t) falling 1 -> 0 over the stop ramp: p_s = s p, v_s = s v + s' p, a_s = s a + 2 s' v
             s_dot = -TICKS_PER_S / self.stop_ramp_ticks
             s = max(0.0, 1.0 + s_dot * (tick - self.stop_tick + 0.5) / TICKS_PER_S)
-            pos, vel, acc = (tuple(s * p for p in pos), tuple(s * v + s_dot * p for v, p in zip(vel, pos, strict=True)),
-                             tuple(s * a + 2 * s_dot * v for a, v in zip(acc, vel, strict=True)))
+            pos, vel, acc = (_vec6(s * p for p in pos), _vec6(s * v + s_dot * p for v, p in zip(vel, pos, strict=True)),
+                             _vec6(s * a + 2 * s_dot * v for a, v in zip(acc, vel, strict=True)))
         return pos, vel, acc
 
     def on_tick(self, tick: int) -> None:

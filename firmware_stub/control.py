@@ -113,7 +113,9 @@ class ControlServer:
     def fds(self) -> dict[int, Callable[[float], None]]:
         readers: dict[int, Callable[[float], None]] = {self.sock.fileno(): self._accept}
         for fd in self.clients:
-            readers[fd] = lambda _t, fd=fd: self._serve(fd)
+            def serve(_t: float, fd: int = fd) -> None:
+                self._serve(fd)
+            readers[fd] = serve
         return readers
 
     def _accept(self, _t: float) -> None:

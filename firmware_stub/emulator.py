@@ -49,11 +49,11 @@ BOARD_IDS = {LinkName.SERVO: Board.SERVO, LinkName.DRIVER: Board.DRIVER, LinkNam
 def hexapod_envelope(plant: Plant) -> Envelope:
     """The hexapod's limits from the plant config, in HexAxis order (mm and deg)."""
     h = plant.config.hexapod
-    linear, angular = (h.x, h.y, h.z), (h.roll, h.pitch, h.yaw)
+    x, y, z, roll, pitch, yaw = h.x, h.y, h.z, h.roll, h.pitch, h.yaw
     return Envelope(
-        (*(a.position_mm for a in linear), *(a.angle_deg for a in angular)),
-        (*(a.rate_mm_s for a in linear), *(a.rate_dps for a in angular)),
-        (*(a.accel_mm_s2 for a in linear), *(a.accel_dps2 for a in angular)),
+        (x.position_mm, y.position_mm, z.position_mm, roll.angle_deg, pitch.angle_deg, yaw.angle_deg),
+        (x.rate_mm_s, y.rate_mm_s, z.rate_mm_s, roll.rate_dps, pitch.rate_dps, yaw.rate_dps),
+        (x.accel_mm_s2, y.accel_mm_s2, z.accel_mm_s2, roll.accel_dps2, pitch.accel_dps2, yaw.accel_dps2),
     )
 
 
@@ -122,7 +122,9 @@ class Emulator:
         readers: dict[int, Callable[[float], None]] = {} if self.control is None else self.control.fds()
         for name, link in self.links.items():
             if link.fd is not None:
-                readers[link.fd] = lambda t, name=name: self._on_readable(name, t)
+                def on_readable(t: float, name: LinkName = name) -> None:
+                    self._on_readable(name, t)
+                readers[link.fd] = on_readable
         return readers
 
     def _on_readable(self, name: LinkName, t_rx: float) -> None:
@@ -147,6 +149,8 @@ class Emulator:
         """Advance the world one tick: plant (with the driver's output and the hexapod's motion), faults due,
         then every board's periodic output (the servo board's GYRO_SAMPLE last). A board whose host timer
         expires at the new tick (realtime) protects itself before its periodic output."""
+        u_az: float
+        u_el: float
         u_az, u_el = self.driver.output_counts()
         if self.deadline is None:  # lockstep and sim: the modelled delay
             delay_s = self._drive_in_tick_s

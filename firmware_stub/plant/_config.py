@@ -270,7 +270,7 @@ class PlantConfig(_Section):
             raise ValueError(f"internal_step_s: {h!r} does not divide the 1 ms tick")
         for axis in ("az", "el"):
             fr: FrictionAxisConfig = getattr(self.friction, axis)
-            j_m = self.motor_side_inertia(axis)  # type: ignore[arg-type]
+            j_m = self.motor_side_inertia(axis)
             if fr.model == "tanh":
                 # the Coulomb term is explicit (held over a step); its slope T_c / w_s must not overshoot
                 gain = h * fr.coulomb_n_m / (j_m * fr.smoothing_rate_dps * D2R)
