@@ -10,7 +10,7 @@ import optuna
 import pytest
 import yaml
 
-from hil.fit import targets as targets_module
+from hil.fit import _targets_measure as measure_module
 from hil.fit.targets import (
     PREMISES,
     fit_targets,
@@ -189,7 +189,7 @@ def test_a_stop_from_on_cell_starts_no_further_cell(tmp_path: Path, monkeypatch:
     config = load_targets(path)
     calls: list[int] = []
     started: list[str] = []
-    run_cell = targets_module.run_cell
+    run_cell = measure_module.run_cell
 
     def counted(*args: Any, **kwargs: Any) -> Any:
         started.append(args[1].cell_id)
@@ -199,7 +199,7 @@ def test_a_stop_from_on_cell_starts_no_further_cell(tmp_path: Path, monkeypatch:
         calls.append(1)
         raise RuntimeError("enough")
 
-    monkeypatch.setattr(targets_module, "run_cell", counted)
+    monkeypatch.setattr(measure_module, "run_cell", counted)
     with pytest.raises(RuntimeError, match="enough"):
         measure(config, config.plant, {}, seeds=[1, 2, 3], on_cell=stop)
     assert calls == [1] and len(started) == 1  # one cell ran; the other two seeds' never started
