@@ -19,7 +19,7 @@ from hil.campaign.runner import cell_session, run_cell
 from hil.fit import ranges
 from hil.fit._targets_schema import Cell, Measurement, Target, TargetsConfig, _campaign
 from hil.session import emulator_for_plant
-from hil.tune import unstable_reason
+from hil.study import unstable_reason
 
 
 @dataclasses.dataclass

@@ -27,7 +27,7 @@ from hil.fit._targets_score import (
     residuals,
     target_terms,
 )
-from hil.tune import (
+from hil.study import (
     check_study_name,
     check_trials,
     failed,

@@ -15,7 +15,7 @@ the best complete trial's objective: every term is a square, so the rest can onl
 never have been the best (docs/emulator.md, "The paper's platform as a fitted preset", Method).
 
 The study is Optuna's (TPE, seeded, multivariate) in an RDB storage (SQLite by default), resumable; the
-storage, heartbeat and quiet-failure helpers are :mod:`hil.tune`'s. The best trial's plant is written with
+storage, heartbeat and quiet-failure helpers are :mod:`hil.study`'s. The best trial's plant is written with
 :func:`hil.fit.ranges.dump_plant`, then measured again on the verification seeds at each campaign's full duration:
 those numbers make the residual table.
 

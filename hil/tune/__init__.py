@@ -2,20 +2,25 @@
 
 ``parse_params``/``parse_constraints`` read the search space and the constraints, ``tune`` runs the study (Optuna,
 RDB storage, SQLite by default; on a Dask cluster with ``jobs``), ``TuneResult`` is what it found. The study plumbing
-(``open_study``, ``rdb_storage``, ``storage_url``) and the one stability rule (``unstable_reason``) are shared with
-:func:`hil.fit.fit_targets`."""
+(``open_study``, ``rdb_storage``, ``storage_url``, ``start_study``, ``run_study``) and the one stability rule
+(``unstable_reason``) are :mod:`hil.study`'s, shared with :func:`hil.fit.targets.fit_targets`, and re-exported here."""
 
-from hil.tune._driver import (
+from hil.study import (
     StudyRun,
     check_study_name,
     check_trials,
     failed,
+    open_study,
     quiet_nan_warnings,
+    rdb_storage,
     run_study,
     start_study,
+    storage_url,
+    unstable_reason,
 )
 from hil.tune._prune import PRUNE_MARGIN, PRUNE_STARTUP_TRIALS, CellPruner
 from hil.tune._report import write_tune_report
+from hil.tune._result import TrialInfo, TuneResult
 from hil.tune._space import (
     Constraint,
     Objective,
@@ -25,7 +30,6 @@ from hil.tune._space import (
     parse_objective,
     parse_params,
 )
-from hil.tune._store import TrialInfo, TuneResult, open_study, rdb_storage, storage_url
 from hil.tune._study import (
     choose_controller,
     compare_controllers,
@@ -33,7 +37,6 @@ from hil.tune._study import (
     log_health,
     trial_campaign,
     tune,
-    unstable_reason,
 )
 
 __all__ = [

@@ -28,7 +28,8 @@ from hil.reporting import (
     render_markdown,
     save_figure,
 )
-from hil.tune._store import TRIALS, TuneResult, rdb_storage
+from hil.study import rdb_storage
+from hil.tune._result import TRIALS, TuneResult
 
 if TYPE_CHECKING:
     import optuna

@@ -40,8 +40,17 @@ from hil.config import ConfigError, require_writable_dir
 from hil.control import registry
 from hil.control.registry import effective_params
 from hil.log.truth import truth_path
-from hil.tune._driver import check_study_name, check_trials, failed, run_study, start_study
+from hil.study import (
+    check_study_name,
+    check_trials,
+    failed,
+    run_study,
+    start_study,
+    storage_url,
+    unstable_reason,
+)
 from hil.tune._report import write_tune_report
+from hil.tune._result import TRIALS, TrialInfo, TuneResult
 from hil.tune._space import (
     Constraint,
     Objective,
@@ -51,7 +60,6 @@ from hil.tune._space import (
     parse_objective,
     parse_params,
 )
-from hil.tune._store import TRIALS, TrialInfo, TuneResult, storage_url
 
 if TYPE_CHECKING:
     import optuna
@@ -63,10 +71,8 @@ __all__ = [
 ]
 
 TUNE_DIR = Path("runs") / "tune"
-SATURATION_MAX_FRAC = 0.05  # a cell whose drive sits at its limit longer than this (after settling) is unstable
 MAX_OBJECTIVES = 3  # a multi-objective study's metrics at most
 HELDOUT_SEEDS = 3  # seeds after the campaign's own on which the report compares the tuned gains
-TRACK_VALID_MIN_FRAC = 0.5  # a tracking cell with fewer valid frames than this (after settling) lost the target
 
 
 # --- one trial -------------------------------------------------------------------------------
@@ -90,17 +96,6 @@ def trial_campaign(config: CampaignConfig, entry: ControllerEntry, params: dict[
 
     merged = ControllerEntry(label=entry.label, name=entry.name, params={**entry.params, **params})
     return config.model_copy(update={"controllers": [merged], "baseline": None, "acceptance": [], "paper": {}})
-
-
-def unstable_reason(saturated_frac: float, valid_frac: float | None) -> str:
-    """Why a session with this :func:`log_health` counts as unstable, "" if it does not: the one rule of tuning and of
-    the paper-targets fit. A drive at its limit more than SATURATION_MAX_FRAC of the time, or (a tracking session)
-    fewer than TRACK_VALID_MIN_FRAC of the frames valid."""
-    if saturated_frac > SATURATION_MAX_FRAC:
-        return f"unstable: the drive sat at its limit {100 * saturated_frac:.0f} % of the time"
-    if valid_frac is not None and valid_frac < TRACK_VALID_MIN_FRAC:
-        return f"lost the target: {100 * valid_frac:.0f} % valid frames"
-    return ""
 
 
 def drive_limit(config: CampaignConfig) -> float:

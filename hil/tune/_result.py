@@ -1,23 +1,15 @@
-"""Where a study lives and what it found: the Optuna RDB storage (SQLite by default, any SQLAlchemy URL for a
-study several machines share; a heartbeat fails the trials of a killed run), ``open_study`` (create, or load and
-check it was made with the same space and objective), and the result records ``TrialInfo`` and ``TuneResult``."""
+"""What a study found, as ``hil tune`` reports it: the result records ``TrialInfo`` and ``TuneResult`` (the storage
+is :mod:`hil.study`'s)."""
 
 from __future__ import annotations
 
 import dataclasses
-import warnings
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from hil.config import ConfigError
 from hil.tune._space import Constraint, ParamSpec
 
 TRIALS = "trials"
-
-
-HEARTBEAT_S = 30  # RDB heartbeat: a trial left RUNNING by a killed run is failed after GRACE_S
-GRACE_S = 120
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,45 +96,3 @@ class TuneResult:
                 "report": None if self.report is None else {"markdown": str(self.report.markdown),
                                                             "html": str(self.report.html),
                                                             "plots": [str(p) for p in self.report.pngs]}}
-
-
-def storage_url(storage: str | None, out_dir: Path) -> str:
-    if storage is None:
-        return f"sqlite:///{(out_dir / 'tune.db').absolute()}"
-    if "://" not in storage:
-        raise ConfigError(f"storage={storage!r}: not a database URL (e.g. sqlite:///tune.db, "
-                          "postgresql://user@host/db)")
-    return storage
-
-
-def rdb_storage(url: str) -> Any:
-    import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
-    import sqlalchemy.exc  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
-
-    kwargs: dict[str, Any] = {"connect_args": {"timeout": 60}} if url.startswith("sqlite") else {}
-    try:
-        with warnings.catch_warnings():  # the heartbeat is marked experimental
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            return optuna.storages.RDBStorage(url, engine_kwargs=kwargs, heartbeat_interval=HEARTBEAT_S,
-                                              grace_period=GRACE_S)
-    except (sqlalchemy.exc.SQLAlchemyError, ImportError, ValueError) as exc:
-        msg = " ".join(str(exc).split())
-        raise ConfigError(f"storage={url!r}: cannot open: {msg[:200]}") from None
-
-
-def open_study(rdb: Any, study_name: str, sampler: Any, direction: str | Sequence[str], *, meta: dict[str, Any],
-               exists: bool, pruner: Any = None) -> Any:
-    """Create the study, or load it (``exists``) and check it was made with the same ``meta`` (its user attributes:
-    the space, the objective, ...); ConfigError naming ``resume`` if not. A new study gets ``meta`` stored."""
-    import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
-
-    directions = [direction] if isinstance(direction, str) else list(direction)
-    st = optuna.create_study(storage=rdb, sampler=sampler, pruner=pruner, study_name=study_name,
-                             directions=directions, load_if_exists=True)
-    for key, value in meta.items():
-        if not exists:
-            st.set_user_attr(key, value)
-        elif st.user_attrs.get(key) != value:
-            raise ConfigError(f"resume=True: study={study_name!r} was made with {key} {st.user_attrs.get(key)!r}, "
-                              f"not {value!r}; choose another study name")
-    return st

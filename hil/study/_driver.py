@@ -1,6 +1,6 @@
-"""The one Optuna study driver, for :func:`hil.tune.tune` and :func:`hil.fit.fit_targets` alike.
+"""The one Optuna study driver, for :func:`hil.tune.tune` and :func:`hil.fit.targets.fit_targets` alike.
 
-A study has a name (checked here), lives in an RDB storage (:mod:`hil.tune._store`), is created or resumed (a study
+A study has a name (checked here), lives in an RDB storage (:mod:`hil.study._store`), is created or resumed (a study
 that exists is continued only with ``resume``, and only if it was made with the same ``meta``), is sampled by a
 seeded multivariate TPE (pruned by the caller's rule, if any), and owes this run the trials still missing to its
 target. A trial whose objective raises is a failed trial (its ``failure`` attribute says why; a NaN objective is
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from hil.config import ConfigError
-from hil.tune._store import open_study, rdb_storage
+from hil.study._store import open_study, rdb_storage
 
 STUDY_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")
 MAX_TRIALS = 100_000
