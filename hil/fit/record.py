@@ -20,8 +20,9 @@ from hil.campaign import load_campaign, run_campaign
 from hil.config import PROFILES, ControllerConfig, SessionConfig, load_session, session_yaml
 from hil.fit.logs import load_fit_log
 from hil.fit.twin import UnusableSweep, linear_frf
+from hil.ident import ident_sweeps
 from hil.protocol import LINKS
-from hil.session import emulator_for_plant, ident_sweeps, run
+from hil.session import emulator_for_plant, run
 
 SWING_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
 

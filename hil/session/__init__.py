@@ -8,8 +8,6 @@
   returning a :class:`RunResult`; campaigns, tuning and fitting run their sessions through it.
 - The emulated lab: :class:`EmulatorProcess` (``_loopback``, the emulator in its own process on ptys, realtime or
   lockstep) and the ``sim`` clock in this process (``_sim``: :func:`run_sim_session`, :class:`PlantTruth`).
-- A swept-sine identification as sessions, levelled until its coherence holds (``_ident``: :func:`ident_sweeps`,
-  ``hil ident``).
 - The lab a long-running process holds (``_lab``: :class:`BenchLab`, :func:`serve_lab`): `hil serve`'s worker.
 
 Import from here; the underscored modules are this package's own.
@@ -17,7 +15,6 @@ Import from here; the underscored modules are this package's own.
 
 from hil.session._control_loop import LATE_NS, ControlLoop, LoopStats, TrackJudge
 from hil.session._host import SERVICE_RT_PRIORITY, fifo_refusal
-from hil.session._ident import MIN_BAND_OCTAVES, IdentPass, IdentSweeps, ident_sweeps
 from hil.session._lab import BenchLab, current_lab, serve_lab
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._loopback import DEFAULT_EMULATOR, EmulatorProcess, emulator_for_plant
@@ -55,7 +52,6 @@ __all__ = [
     "HOST_ALIVE_S",
     "LATE_NS",
     "LINKS",
-    "MIN_BAND_OCTAVES",
     "SERVICE_RT_PRIORITY",
     "BenchLab",
     "Clock",
@@ -63,8 +59,6 @@ __all__ = [
     "DriveWriter",
     "EmulatorProcess",
     "EventLoopWatchdog",
-    "IdentPass",
-    "IdentSweeps",
     "LoopStats",
     "LoopThread",
     "PlantTruth",
@@ -83,7 +77,6 @@ __all__ = [
     "current_lab",
     "emulator_for_plant",
     "fifo_refusal",
-    "ident_sweeps",
     "link_fd",
     "prepare_run",
     "read_log",

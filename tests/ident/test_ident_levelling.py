@@ -33,8 +33,8 @@ from hil.analysis import (
 from hil.config import SessionConfig, session_yaml
 from hil.fit.ranges import draw_plant, dump_plant, load_plant_dict
 from hil.fit.record import session_on_plant
+from hil.ident import _sweeps  # the module whose session runs the test replaces
 from hil.log import LogData
-from hil.session import _ident as session_ident  # the module whose session runs the test replaces
 from tests.ident.test_ident import LOOP_CHANNELS, as_log, run_plant
 
 LIMIT = 30000.0
@@ -273,17 +273,17 @@ def test_a_pass_spoiled_by_the_host_is_run_again_and_a_lone_coherent_third_octav
         ran.append(cfg.excitation)
         return cfg.excitation
 
-    def fake_examine(sw: SweptSine, result: object, limit: float) -> session_ident.IdentPass:
-        run = session_ident.RunResult("completed", 0, "", tmp_path / "x.h5", "realtime", session=None)  # type: ignore[arg-type]
-        return session_ident.IdentPass(sw, run, None, spoiled, coherent_band(spoiled, sw))
+    def fake_examine(sw: SweptSine, result: object, limit: float) -> _sweeps.IdentPass:
+        run = _sweeps.RunResult("completed", 0, "", tmp_path / "x.h5", "realtime", session=None)  # type: ignore[arg-type]
+        return _sweeps.IdentPass(sw, run, None, spoiled, coherent_band(spoiled, sw))
 
-    monkeypatch.setattr(session_ident, "run", fake_run)
-    monkeypatch.setattr(session_ident, "_examine", fake_examine)
+    monkeypatch.setattr(_sweeps, "run", fake_run)
+    monkeypatch.setattr(_sweeps, "_examine", fake_examine)
     config = session_on_plant(DEFAULT_PLANT_CONFIG, tmp_path, name="stalled", swing=None)
-    result = session_ident.ident_sweeps(config, sweep)
-    assert len(ran) == session_ident.LEVEL_PASSES
-    assert [s.offset_dps for s in ran] == [3.0, -3.0] * (session_ident.LEVEL_PASSES // 2)
+    result = _sweeps.ident_sweeps(config, sweep)
+    assert len(ran) == _sweeps.LEVEL_PASSES
+    assert [s.offset_dps for s in ran] == [3.0, -3.0] * (_sweeps.LEVEL_PASSES // 2)
     assert all(s.levels == ran[1].levels for s in ran[1:])  # the same sweep again, only the direction changes
-    assert result.best.band_hz is not None and result.best.octaves < session_ident.MIN_BAND_OCTAVES
+    assert result.best.band_hz is not None and result.best.octaves < _sweeps.MIN_BAND_OCTAVES
     assert result.fit is None
     assert f"in {n - 1} third octaves of the kept pass the coherence failed where the bench ran late" in result.why

@@ -29,7 +29,7 @@ from hil.analysis import (
 )
 from hil.config import SessionConfig
 from hil.log import read_log
-from hil.session._run import Clock, Progress, RunResult, run
+from hil.session import Clock, Progress, RunResult, run
 
 COHERENCE_MIN = 0.8  # a bin counts in the fit from this coherence (hil.analysis.fit_plant's default)
 K_M_BELOW_HZ = 10.0  # a coherent band that does not reach below this cannot give k_m (the integrator's band)
