@@ -3,12 +3,12 @@
 Layout and semantics: docs/log-format.md. Write with ``SessionLog``; read with ``read_log`` (numpy)
 or ``read_log_frames`` (pandas DataFrames, for notebooks); repair a file left by a crash with
 ``recover_log`` (``hil recover LOG``); export with ``export_log`` (``hil export LOG``, Parquet or
-CSV). ``collect_provenance`` is what a session records of its software, plant and
-controller, ``read_provenance`` reads it back.
+CSV). ``read_provenance`` reads back what a session recorded of its software, plant and controller
+(``hil.session.collect_provenance``).
 """
 
 from hil.log.frames import LogFrames, read_log_frames
-from hil.log.provenance import collect_provenance, read_provenance
+from hil.log.provenance import read_provenance
 from hil.log.reader import (
     LogData,
     RecoverReport,
@@ -35,7 +35,6 @@ __all__ = [
     "LogFrames",
     "RecoverReport",
     "SessionLog",
-    "collect_provenance",
     "export_log",
     "free_path",
     "prestart_writer",

@@ -18,6 +18,7 @@ from hil.session._host import SERVICE_RT_PRIORITY, fifo_refusal
 from hil.session._lab import BenchLab, current_lab, serve_lab
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._loopback import DEFAULT_EMULATOR, EmulatorProcess, emulator_for_plant
+from hil.session._provenance import collect_provenance
 from hil.session._run import (
     CLOCKS,
     Clock,
@@ -74,6 +75,7 @@ __all__ = [
     "Watchdog",
     "as_session_config",
     "capture_for_session",
+    "collect_provenance",
     "current_lab",
     "emulator_for_plant",
     "fifo_refusal",

@@ -42,7 +42,6 @@ from hil.control.registry import needs_truth
 from hil.control.start_pose import REACHED, StartPose
 from hil.link import Capture, Link, LinkError, PortClaims, SerialLink, claim_ports
 from hil.log import SessionLog, free_path
-from hil.log.provenance import collect_provenance
 from hil.protocol import (
     LINKS,
     ClockLate,
@@ -67,6 +66,7 @@ from hil.session._host import (
     set_fifo,
 )
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
+from hil.session._provenance import collect_provenance
 from hil.session._watchdog import EventLoopWatchdog, Watchdog
 from hil.session._wind_down import HEXAPOD_HOME_S, TickSwingStart, TickWindDown
 from hil.telemetry import Telemetry, TelemetryProcess, schema_units

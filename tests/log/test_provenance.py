@@ -21,9 +21,10 @@ from hil.analysis import NO_BOARD_LATENCY, board_latency, json_safe, summarize_l
 from hil.config import PROFILES, ControllerConfig
 from hil.control.registry import REGISTRY, ControllerConfigError, controller_params, effective_params
 from hil.log import SessionLog, read_attrs, read_log, read_provenance
-from hil.log.provenance import collect_provenance, git_commit
+from hil.session import collect_provenance
+from hil.session._provenance import git_commit
+from tests.factories import run_session, session_config
 from tests.log.conftest import SIM_CONTROLLER
-from tests.session.helpers import run_session, session_config
 
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_PLANT = (PROFILES / "plant" / "default.yaml").resolve()
