@@ -15,7 +15,7 @@ from typing import Any
 
 from hil.link._ports import Holder, PortClaim, PortUnavailable, check_serial_port
 from hil.protocol import LINE_RATE_BAUD
-from hil.protocol.docgen import loop_wire_delay_s, periodic_load_bits_per_s
+from hil.protocol.budget import loop_wire_delay_s, periodic_load_bits_per_s
 
 SYSFS = Path("/sys")
 LATENCY_TIMER_MAX_MS = 1  # FTDI adapters default to 16 ms: a 1 kHz loop needs 1

@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from hil.protocol import messages as m
+from hil.protocol.budget import direction, loop_wire_delay_s, periodic_load_bits_per_s, periodic_rate_hz
 from hil.protocol.framing import (
-    BITS_PER_BYTE,
     CRC_SIZE,
     HEADER_SIZE,
     LINE_RATE_BAUD,
@@ -81,14 +81,6 @@ EXAMPLES: list[Example] = [
     ),
     Example("HEXAPOD_START (empty payload), host to hexapod", m.Board.HOST, m.Board.HEXAPOD, 0, m.HexapodStart()),
 ]
-
-
-def _node(board: m.Board | None) -> str:
-    return "any board" if board is None else board.name.lower()
-
-
-def direction(spec: MessageSpec) -> str:
-    return f"{_node(spec.sender)} → {_node(spec.receiver)}"  # type: ignore[arg-type]
 
 
 def _scaling(f: FieldSpec) -> str:
@@ -237,25 +229,7 @@ def render_limits(cat: Catalogue) -> str:
     )
 
 
-_RATE = re.compile(r"(\d+(?:\.\d+)?) (k?Hz)")
 BAUDS = (921_600, LINE_RATE_BAUD)  # the slow lab's and the default
-
-
-def periodic_rate_hz(spec: MessageSpec) -> float | None:
-    """A periodic message's rate (its catalogue ``rate``, "1 kHz", "100 Hz"), None for one sent on demand."""
-    found = _RATE.search(spec.rate)
-    return None if not found else float(found[1]) * (1000 if found[2] == "kHz" else 1)
-
-
-def periodic_load_bits_per_s(cat: Catalogue = m.CATALOGUE) -> dict[str, float]:
-    """The periodic messages' load per link direction (``"servo → host"``), bits/s on the wire (8N1: 10 bit times
-    per byte): what a link's baud rate must carry."""
-    load: dict[str, float] = {}
-    for s in cat:
-        hz = periodic_rate_hz(s)
-        if hz is not None and s.sender is not None and s.receiver is not None:
-            load[direction(s)] = load.get(direction(s), 0.0) + frame_size(s) * hz * BITS_PER_BYTE
-    return load
 
 
 def render_link_budget(cat: Catalogue) -> str:
@@ -277,12 +251,6 @@ def render_link_budget(cat: Catalogue) -> str:
     delays = ", ".join(f"{loop_wire_delay_s(b, b, cat) * 1e6:.0f} us at {b / 1e6:g} Mbaud" for b in BAUDS)
     out += ["", f"The 1 kHz loop's wire delay, a GYRO_SAMPLE's wire time plus its DRIVE_CMD's: {delays}."]
     return "\n".join(out)
-
-
-def loop_wire_delay_s(servo_baud: float, driver_baud: float, cat: Catalogue = m.CATALOGUE) -> float:
-    """What the wire adds to every cycle of the 1 kHz loop: GYRO_SAMPLE's wire time on the servo link plus
-    DRIVE_CMD's on the driver link (s)."""
-    return wire_time_s(cat.by_type[m.GyroSample], servo_baud) + wire_time_s(cat.by_type[m.DriveCmd], driver_baud)
 
 
 def render_blocks(cat: Catalogue = m.CATALOGUE) -> dict[str, str]:
