@@ -12,16 +12,13 @@ or option) for bad input, before anything reaches a board; the command line prin
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from hil.analysis import IDENT_SWEEP, summarize_log
-from hil.boards import check_boards
 from hil.config import (
     ConfigError,
-    PortConfig,
     SessionConfig,
     load_session,
     require_regular_file,
@@ -29,22 +26,20 @@ from hil.config import (
 )
 from hil.control.registry import ControllerConfigError, require_sim_clock
 from hil.ident import IdentRun, run_ident
-from hil.link import Finding, check_ports, wire_delay
+from hil.link import Finding
 from hil.log import LogError
 from hil.log.reader import NotASessionLog
 from hil.session import (
     CLOCKS,
-    SERVICE_RT_PRIORITY,
     Clock,
     Progress,
     RunResult,
+    check_hardware,
     emulator_for_plant,
-    fifo_refusal,
     prepare_run,
     read_log,
     run,
     run_async,
-    run_coroutine,
 )
 
 if TYPE_CHECKING:
@@ -290,39 +285,4 @@ def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Pa
     fingerprint against this bench's), and a ``servo stream`` finding: the stream started, listened to ``listen_s``
     and stopped, its rate and jitter against 1 kHz and the session's ``safety.watchdog_ms``. The motor driver is
     never enabled and the hexapod never moved. ``boards=False`` checks the ports alone, without a byte sent."""
-    if not (math.isfinite(listen_s) and listen_s > 0):
-        raise ConfigError(f"listen_s={listen_s!r}: not a finite number of seconds above 0")
-    refusal = fifo_refusal(SERVICE_RT_PRIORITY)
-    host = Finding("host", "realtime scheduling", refusal is None, refusal or (
-        f"this user may run the loop thread SCHED_FIFO (priority {SERVICE_RT_PRIORITY}; host.rt_priority, and "
-        "`hil serve` does it by itself)"))
-    if session is None:
-        by_id = sorted(Path("/dev/serial/by-id").glob("*"))
-        ports = {p.name: str(p) for p in by_id}
-        bauds = dict.fromkeys(ports, PortConfig.model_fields["baudrate"].default)
-        return [*check_ports(ports, bauds, sysfs=Path(sysfs)), host]
-    config = session if isinstance(session, SessionConfig) else load_session(session)
-    if config.ports is None:
-        raise ConfigError("ports: not set in the session file; a loopback run needs no hardware check")
-    links = {n: getattr(config.ports, n) for n in ("servo", "driver", "image", "hexapod")}
-    ports = {n: c.port for n, c in links.items() if c is not None}
-    bauds = {n: c.baudrate for n, c in links.items() if c is not None}
-    findings = check_ports(ports, bauds, sysfs=Path(sysfs))
-    loop = wire_delay(bauds["servo"], bauds["driver"], config.ports.wire_delay_budget_us)
-    if not boards:
-        return [*findings, loop, host]
-    # the links a session opens: the hexapod's only for a driver that talks over it
-    opened = [n for n in ports if n != "hexapod" or config.hexapod.driver_class.uses_link]
-    free = {n: ports[n] for n in opened
-            if all(f.ok for f in findings if f.link == n and f.check in ("port", "holder"))}
-    for name in opened:
-        if name not in free:
-            findings.append(Finding(name, "ident", False, "not asked: this port failed its own checks"))
-    if "servo" in opened and "servo" not in free:
-        findings.append(Finding("servo", "servo stream", False, "not listened to: the servo port failed its checks"))
-    if free:
-        findings += run_coroutine(check_boards, free, bauds, listen_s=listen_s,
-                                  watchdog_ms=config.safety.watchdog_ms)
-    order = list(ports)
-    # each link's rows together, then the loop's wire delay, then the host
-    return [*sorted(findings, key=lambda f: order.index(f.link)), loop, host]
+    return check_hardware(session, sysfs=sysfs, boards=boards, listen_s=listen_s)

@@ -9,11 +9,14 @@
 - The emulated lab: :class:`EmulatorProcess` (``_loopback``, the emulator in its own process on ptys, realtime or
   lockstep) and the ``sim`` clock in this process (``_sim``: :func:`run_sim_session`, :class:`PlantTruth`).
 - The lab a long-running process holds (``_lab``: :class:`BenchLab`, :func:`serve_lab`): `hil serve`'s worker.
+- Is the hardware ready (``_doctor``: :func:`check_hardware`, ``hil doctor``): the ports' checks, the boards', the
+  wire's delay and the host's realtime scheduling.
 
 Import from here; the underscored modules are this package's own.
 """
 
 from hil.session._control_loop import LATE_NS, ControlLoop, LoopStats, TrackJudge
+from hil.session._doctor import check_hardware
 from hil.session._host import SERVICE_RT_PRIORITY, fifo_refusal
 from hil.session._lab import BenchLab, current_lab, serve_lab
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
@@ -75,6 +78,7 @@ __all__ = [
     "Watchdog",
     "as_session_config",
     "capture_for_session",
+    "check_hardware",
     "collect_provenance",
     "current_lab",
     "emulator_for_plant",
