@@ -14,17 +14,14 @@ import yaml
 
 import hil
 from hil.config import PROFILES
-from tests.session.helpers import assert_same_channels, session_config
+from tests.factories import session_config
+from tests.session.helpers import assert_same_channels
 
 CAMPAIGNS = PROFILES / "campaigns"
 
 
-def short_session(seconds: float = 2.0) -> hil.SessionConfig:
-    return session_config(duration_s=seconds)
-
-
 def test_run_async_inside_a_running_loop_returns_a_log_read_as_dataframes(tmp_path: Path) -> None:
-    config = short_session()
+    config = session_config(duration_s=2.0)
     progress: list[int] = []
 
     async def notebook_cell() -> hil.RunResult:
@@ -47,7 +44,7 @@ def test_run_async_inside_a_running_loop_returns_a_log_read_as_dataframes(tmp_pa
 
 
 def test_run_blocks_inside_a_running_loop_without_reentering_it_and_lockstep_equals_sim(tmp_path: Path) -> None:
-    config = short_session()
+    config = session_config(duration_s=2.0)
     threads: list[str] = []
 
     async def notebook_cell() -> tuple[hil.RunResult, hil.RunResult]:
@@ -66,7 +63,7 @@ def test_run_blocks_inside_a_running_loop_without_reentering_it_and_lockstep_equ
 
 
 def test_bad_input_is_a_config_error_naming_the_field(tmp_path: Path) -> None:
-    config = short_session()
+    config = session_config(duration_s=2.0)
     with pytest.raises(hil.ConfigError, match=r"^clock: 'warp'"):
         hil.run(config, clock="warp", out=tmp_path)  # type: ignore[arg-type]
     with pytest.raises(hil.ConfigError, match=r"^ports: not set"):
@@ -141,7 +138,7 @@ def test_check_file_guesses_the_kind_from_the_keys_and_names_the_bad_field(tmp_p
 def test_a_session_ends_early_through_interrupt_as_ctrl_c_would(tmp_path: Path) -> None:
     from tests.session.helpers import logged_events
 
-    config = short_session(30.0)
+    config = session_config(duration_s=30.0)
     interrupts: list[asyncio.Task[None]] = []
 
     async def notebook_cell() -> hil.RunResult:
@@ -168,7 +165,7 @@ def test_a_keyboard_interrupt_in_a_notebook_cell_ends_the_session_safely(tmp_pat
     import os
     import signal
 
-    config = short_session(600.0)  # the sim clock runs it far faster than real time: long enough to interrupt
+    config = session_config(duration_s=600.0)  # the sim clock: long enough to interrupt
 
     async def notebook_cell() -> None:
         threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGINT)).start()  # the kernel's interrupt button

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import asyncio
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
-from hil.config import PortConfig, SessionConfig
+from hil.config import SessionConfig
 from hil.link import find_capture
-from hil.session import EmulatorProcess, Session, SessionResult
-from tests.session.helpers import session_config
+from hil.session import Session, SessionResult
+from tests.factories import run_session, session_config
 
 DURATION_S = 1.5
 
@@ -27,20 +26,13 @@ class CapturedRun:
 
 def run_captured(config: SessionConfig, out: Path, clock: str) -> CapturedRun:
     """One session against a fresh emulator with ``capture_dir``: its result, capture file and log."""
-    emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed,
-                               extra_args=config.emulator.process_args())
-    ports = emulator.start()
-    try:
-        # a watchdog far above any pause of a loaded machine: these runs are about what the links carried
-        session = Session(config, {n: PortConfig(port=p) for n, p in ports.items() if n != "control"}, out / "logs",
-                          watchdog_ms=1000.0, lockstep=clock == "lockstep", emulated=True,
-                          capture_dir=out / "capture")
-        result = asyncio.run(session.run())
-    finally:
-        summary = emulator.stop()
+    # a watchdog far above any pause of a loaded machine: these runs are about what the links carried
+    run = run_session(config, out, clock=clock, watchdog_ms=1000.0, emulated=True, capture_dir=out / "capture",
+                      log_dir=out / "logs")
+    result = run.result
     assert result.status == "completed", result.message
     assert result.log_path is not None
-    return CapturedRun(result, find_capture(out / "capture"), result.log_path, session, summary)
+    return CapturedRun(result, find_capture(out / "capture"), result.log_path, run.session, run.emulator)
 
 
 @pytest.fixture(scope="session")

@@ -27,7 +27,7 @@ from hil.link import (
 )
 from hil.protocol import Board, DriveCmd, DriveStatus, Encoder, GyroSample
 from hil.session import capture_for_session
-from tests.session.helpers import session_config
+from tests.factories import session_config
 
 ROOT = Path(__file__).resolve().parents[2]
 

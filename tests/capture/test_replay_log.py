@@ -17,7 +17,7 @@ from hil.log import read_log
 from hil.replay import ReplayError, replay_log, write_outputs, xcorr_lag
 from hil.session import run_sim_session
 from tests.capture.conftest import CapturedRun
-from tests.session.helpers import session_config
+from tests.factories import session_config
 
 
 def assert_reproduces_the_log(log: Path, *, one_per_frame: bool = False) -> None:

@@ -17,7 +17,7 @@ from hil.log import read_log
 from hil.protocol import CATALOGUE, Ack, DriveCmd, GyroSample, LinkCounters
 from hil.session import Session, SimLab, run_sim_session, sim_ports
 from tests.capture.conftest import CapturedRun
-from tests.session.helpers import session_config
+from tests.factories import session_config
 
 
 def exchanged(run: CapturedRun) -> tuple[CaptureDecode, list]:

@@ -188,7 +188,7 @@ SESSION_S = 4.0
 
 
 def _session(controller: dict, seed: int):  # type: ignore[no-untyped-def]
-    from tests.session.helpers import session_config
+    from tests.factories import session_config
 
     return session_config(duration_s=SESSION_S, seed=seed, controller=controller, tracking={"enabled": False})
 

@@ -131,7 +131,7 @@ def test_lockstep_streams_consecutive_ticks_and_moves_the_gimbal_with_the_hexapo
         host.close()
 
 
-def lockstep_run(seed: int, n: int = 800) -> dict[str, str]:
+def lockstep_digests(seed: int, n: int = 800) -> dict[str, str]:
     with running_emulator(clock="lockstep", seed=seed) as emu:
         host = Host(emu.ports())
         start_session(host, [PITCH_SWING])
@@ -169,7 +169,7 @@ def test_realtime_writes_the_sample_first_and_the_other_boards_frames_answered_o
 
 
 def test_lockstep_is_byte_identical_for_the_same_seed_and_commands() -> None:
-    first, second, other = lockstep_run(5), lockstep_run(5), lockstep_run(6)
+    first, second, other = lockstep_digests(5), lockstep_digests(5), lockstep_digests(6)
     assert first == second
     assert other["servo"] != first["servo"]  # the gyro noise follows the seed
 

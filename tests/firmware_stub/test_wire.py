@@ -15,9 +15,9 @@ from firmware_stub.config import ConfigError, load_emulator_config
 from hil.config import PROFILES
 from hil.protocol import CATALOGUE, NO_LATENCY_US, DriveCmd, GyroSample, LoopTiming, wire_time_s
 from hil.session import emulator_for_plant, run
+from tests.factories import session_config
 from tests.firmware_stub.host import Host, running_emulator
 from tests.firmware_stub.test_emulator import start_session, stream
-from tests.session.helpers import session_config
 
 SLOW_WIRE = dict.fromkeys(("servo", "driver", "image", "hexapod"), 921_600)  # profiles/emulator/slow-wire.yaml's
 SAMPLE_WIRE_US = wire_time_s(CATALOGUE.by_type[GyroSample], 921_600) * 1e6  # 423 us

@@ -13,10 +13,12 @@ import yaml
 from hil.fit import _targets_measure as measure_module
 from hil.fit.targets import (
     PREMISES,
+    TABLE_STDS,
     fit_targets,
     load_targets,
     measure,
     objective,
+    paper_figures,
     partial_objective,
     premise_values,
 )
@@ -95,7 +97,8 @@ def test_objective_is_the_weighted_sum_of_squared_log_ratios(tmp_path: Path) -> 
 def test_premise_values() -> None:
     v = {"eso-high-gain": 0.3, "table1-hg-std": 0.1, "table1-eso-std": 0.32, "table1-esokf-std": 0.16,
          "table2-eso-std": 6.0, "table3-eso-std": 12.0, "table2-hg-std": 2.71, "table3-hg-std": 6.15}
-    got = premise_values(v)
+    config = load_targets(SEED_000)
+    got = premise_values(config, v)
     assert got["a"] == pytest.approx(3.0)
     assert got["b1"] == pytest.approx(0.5)
     assert got["b2"] == pytest.approx(0.625)
@@ -104,6 +107,27 @@ def test_premise_values() -> None:
     by_id = {p.id: p for p in PREMISES}
     assert by_id["a"].holds(0.9, {"eso-high-gain": "drive at its limit"})  # unstable plain ESO: the premise holds
     assert not by_id["a"].holds(0.9, {})
+
+
+def test_the_paper_figures_come_from_the_targets_file(tmp_path: Path) -> None:
+    """Premise d's factors and premise c's quoted figure are the targets file's paper values, not the code's."""
+    data = yaml.safe_load(SEED_000.read_text())
+    for t in data["targets"]:
+        t["campaign"] = str((SEED_000.parent / t["campaign"]).resolve())
+        if t["id"] == "table3-eso-std":
+            t["paper"] = 12.04
+    data["plant"] = str((SEED_000.parent / data["plant"]).resolve())
+    data["measurements"] = [{**m, "campaign": str((SEED_000.parent / m["campaign"]).resolve())}
+                            for m in data["measurements"]]
+    path = tmp_path / "changed.yaml"
+    path.write_text(yaml.safe_dump(data))
+    shipped, changed = load_targets(SEED_000), load_targets(path)
+    c = {p.id: p for p in PREMISES}["c"]
+    assert c.describe(paper_figures(shipped)).endswith("paper 2.59)")
+    assert c.describe(paper_figures(changed)).endswith("paper 2)")
+    v = {k: paper_figures(shipped)[k] for k in TABLE_STDS}
+    assert premise_values(shipped, v)["d"] == pytest.approx(1.0)
+    assert premise_values(changed, v)["d"] == pytest.approx(15.60 / 12.04)
 
 
 def test_tiny_study_runs_and_resumes(tmp_path: Path) -> None:

@@ -18,9 +18,11 @@ from hil.link import LinkError
 from hil.log.reader import read_log
 from hil.protocol import HexAxis
 from hil.protocol.swing import Segment
-from hil.session import Session, SessionResult, SimLab, sim_ports
+from hil.session import Session, SessionResult, sim_ports
+from tests import factories
+from tests.factories import run_session, session_config
 from tests.hexapod.drivers import RecordingHexapod, RecordingOptions
-from tests.session.helpers import logged_events, run_session, session_config
+from tests.session.helpers import logged_events
 
 SEGMENT = Segment(HexAxis.PITCH, 0.0, 10.0, 1.0, 1.0)
 
@@ -32,20 +34,14 @@ def sim_session(config: SessionConfig, out: Path, *, hooks: dict[str, Any] | Non
     if ports_without_hexapod:
         del ports["hexapod"]  # a driver without the bench's link needs no hexapod port at all
 
-    async def main() -> tuple[Session, SessionResult]:
-        lab = SimLab(config.emulator.config, seed=config.seed)
-        session = Session(config, ports, out, lockstep=True, open_link=lab.open_link, watchdog=False)
-        lab.on_error = session.fault
+    def prepare(session: Session) -> None:
         if hooks is not None:
             RecordingHexapod.hooks.update(hooks)
             for name, hook in hooks.items():  # hooks that need the session get it
                 if getattr(hook, "wants_session", False):
                     RecordingHexapod.hooks[name] = lambda drv, hook=hook: hook(drv, session)
-        async with lab:
-            result = await session.run()
-        return session, result
 
-    return asyncio.run(main())
+    return factories.sim_session(config, out, ports=ports, prepare=prepare)
 
 
 def with_session(fn: Any) -> Any:

@@ -21,8 +21,7 @@ from hil.config import SessionConfig
 from hil.link import check_port, claim_ports, wire_delay
 from hil.protocol import CATALOGUE, Decoder, IdentRequest
 from hil.session import EmulatorProcess
-from tests.reliability.helpers import session_data, write_yaml
-from tests.session.helpers import session_config
+from tests.factories import session_config, session_data, write_yaml
 
 REPO = Path(__file__).resolve().parents[2]
 

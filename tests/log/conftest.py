@@ -15,7 +15,7 @@ SIM_CONTROLLER = {"name": "eso_kf_high_gain", "params": {"kp_counts_per_dps": 60
 def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The log of a 0.6 s session (ESO+KF high gain, kp overridden) against the emulated lab in this process."""
     from hil.session import run_sim_session
-    from tests.session.helpers import session_config
+    from tests.factories import session_config
 
     config = session_config(duration_s=SIM_SECONDS, seed=4, controller=SIM_CONTROLLER)
     result, _ = asyncio.run(run_sim_session(config, tmp_path_factory.mktemp("sim")))

@@ -9,28 +9,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 from hil.cli import main
-from hil.config import PROFILES
-
-BASE_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
-INCLUDED = ("controller", "profile", "hexapod_limits")
-
-
-def session_data(**changes: Any) -> dict[str, Any]:
-    """The shipped 1 deg / 1 Hz ESO session as a dict with absolute paths, top-level fields replaced."""
-    data = yaml.safe_load(BASE_SESSION.read_text())
-    for key in INCLUDED:
-        data[key] = str((BASE_SESSION.parent / data[key]).resolve())
-    data["emulator"]["config"] = str((BASE_SESSION.parent / data["emulator"]["config"]).resolve())
-    data.update(changes)
-    return data
-
-
-def write_yaml(path: Path, data: Any) -> Path:
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
 
 
 def listing(*roots: Path) -> set[str]:

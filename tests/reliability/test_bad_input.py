@@ -13,7 +13,8 @@ import pytest
 import yaml
 
 from hil.config import MAX_CONFIG_BYTES, MAX_YAML_NODES, PROFILES, load_session
-from tests.reliability.helpers import bad_input, emulator_run_dirs, listing, session_data, write_yaml
+from tests.factories import session_data, write_yaml
+from tests.reliability.helpers import bad_input, emulator_run_dirs, listing
 
 NAN, INF = float("nan"), float("inf")
 PITCH = {"axis": "pitch", "amplitude": 1.0, "frequency_hz": 1.0, "duration_s": 5.0}

@@ -11,7 +11,8 @@ import yaml
 
 from hil.campaign import runner
 from hil.config import MAX_YAML_NODES, PROFILES
-from tests.reliability.helpers import bad_input, listing, session_data, write_yaml
+from tests.factories import session_data, write_yaml
+from tests.reliability.helpers import bad_input, listing
 
 CAMPAIGN = PROFILES / "campaigns" / "filter-lag-15hz.yaml"
 

@@ -18,8 +18,9 @@ from firmware_stub.__main__ import main as emulator_main
 from firmware_stub.config import DEFAULT_EMULATOR_CONFIG
 from firmware_stub.control import MAX_LINE_BYTES, ControlClient, ControlServer
 from firmware_stub.plant import DEFAULT_PLANT_CONFIG
+from tests.factories import session_data, write_yaml
 from tests.firmware_stub.host import running_emulator
-from tests.reliability.helpers import bad_input, emulator_run_dirs, session_data, write_yaml
+from tests.reliability.helpers import bad_input, emulator_run_dirs
 
 
 def emulator_bad(capsys: pytest.CaptureFixture[str], args: list[str], *needles: str) -> str:

@@ -14,7 +14,8 @@ import pytest
 
 from hil.log import LogError, export_log, read_log, reader, recover_log
 from hil.log.reader import NotASessionLog
-from tests.reliability.helpers import bad_input, listing, session_data, write_yaml
+from tests.factories import session_data, write_yaml
+from tests.reliability.helpers import bad_input, listing
 
 CAMPAIGN = Path(__file__).resolve().parents[2] / "profiles" / "campaigns" / "filter-lag-15hz.yaml"
 

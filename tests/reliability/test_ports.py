@@ -18,7 +18,8 @@ import yaml
 from hil.config import PROFILES
 from hil.link import Holder, PortUnavailable, SerialLink, claim_ports, is_exclusive
 from hil.session import EmulatorProcess
-from tests.reliability.helpers import bad_input, session_data, write_yaml
+from tests.factories import session_data, write_yaml
+from tests.reliability.helpers import bad_input
 
 REPO = Path(__file__).resolve().parents[2]
 HIL = [sys.executable, "-m", "hil"]

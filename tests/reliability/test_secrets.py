@@ -19,7 +19,8 @@ from hil.config import SessionConfig, load_session
 from hil.log import read_log
 from hil.telemetry import MqttConfig, Telemetry
 from hil.telemetry import _publisher as telemetry  # the publisher module itself: its aiomqtt is patched
-from tests.reliability.helpers import bad_input, session_data, write_yaml
+from tests.factories import session_data, write_yaml
+from tests.reliability.helpers import bad_input
 
 SECRET = "hunter2-s3cret"
 

@@ -14,9 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-import yaml
 
-from hil.config import PROFILES, load_session, session_yaml
 from hil.service import Bench, BenchError
 
 READY_S = 180.0  # the worker starts the emulated lab and compiles nothing: minutes only on a machine under load
@@ -98,16 +96,6 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     svc = Service(tmp_path_factory.mktemp("serve") / "state").start()
     yield svc
     svc.stop()
-
-
-def short_session(directory: Path, duration_s: float = 2.0, name: str = "short", **changes: object) -> Path:
-    """The demo session, ``duration_s`` long, as a file that stands on its own."""
-    config = load_session(PROFILES / "sessions" / "demo.yaml")
-    data = yaml.safe_load(session_yaml(config))
-    data.update(name=name, duration_s=duration_s, **changes)
-    path = directory / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
 
 
 def wait_for(predicate, timeout_s: float = 120.0, poll_s: float = 0.1):  # type: ignore[no-untyped-def]

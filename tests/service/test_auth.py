@@ -14,7 +14,8 @@ import pytest
 import websockets
 
 from hil.service import BenchError
-from tests.service.conftest import Service, free_port, short_session
+from tests.factories import short_session
+from tests.service.conftest import Service, free_port
 
 REPO = Path(__file__).resolve().parents[2]
 OPERATOR = "op-7f3a9c2e5b1d4e8f"

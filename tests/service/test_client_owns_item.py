@@ -24,7 +24,8 @@ import pytest
 
 from hil.cli._bench import waiting_line
 from hil.service import Bench
-from tests.service.conftest import Service, short_session, wait_for
+from tests.factories import short_session
+from tests.service.conftest import Service, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 USER = getpass.getuser()  # who the command line's items are for (X-Hil-User)

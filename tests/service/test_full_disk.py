@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from hil.service import BenchError
-from tests.service.conftest import Service, short_session, wait_for
+from tests.factories import short_session
+from tests.service.conftest import Service, wait_for
 
 SIZE_MB = 48
 

@@ -43,7 +43,8 @@ from requests.adapters import BaseAdapter, HTTPAdapter
 
 from hil.service import API_ROUTES, BenchError
 from hil.service._auth import LOCAL_USER
-from tests.service.conftest import Service, short_session, wait_for
+from tests.factories import short_session
+from tests.service.conftest import Service, wait_for
 
 MAX_EXAMPLES = 30  # per operation, in the fuzzing phase (the examples and coverage phases add their own few)
 LOAD_S = 120.0  # the session that runs while the fuzzer does

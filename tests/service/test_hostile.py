@@ -15,7 +15,8 @@ import pytest
 import websockets.sync.client
 from websockets.exceptions import InvalidStatus
 
-from tests.service.conftest import Service, short_session
+from tests.factories import short_session
+from tests.service.conftest import Service
 
 EVIL = "http://evil.example"
 

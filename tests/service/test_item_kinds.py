@@ -13,7 +13,8 @@ import pytest
 import yaml
 
 from hil.service import BenchError
-from tests.service.conftest import Service, short_session
+from tests.factories import short_session
+from tests.service.conftest import Service
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -12,7 +12,8 @@ import pytest
 
 from hil.log import read_log
 from hil.service._worker import Outbox, Worker
-from tests.service.conftest import Service, short_session, wait_for
+from tests.factories import short_session
+from tests.service.conftest import Service, wait_for
 
 
 def test_the_item_after_an_abort_waits_for_the_stop_ramp_and_runs(service: Service, tmp_path: Path) -> None:

@@ -15,7 +15,8 @@ from websockets.exceptions import ConnectionClosed
 
 from hil.log import read_log_frames
 from hil.service import BenchError
-from tests.service.conftest import Service, short_session, wait_for
+from tests.factories import short_session
+from tests.service.conftest import Service, wait_for
 
 
 def test_another_operators_items_are_theirs_until_the_lease_says_otherwise(service: Service, tmp_path: Path) -> None:

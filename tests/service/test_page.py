@@ -12,7 +12,8 @@ from typing import Any
 
 import pytest
 
-from tests.service.conftest import Service, short_session, wait_for
+from tests.factories import short_session
+from tests.service.conftest import Service, wait_for
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")

@@ -12,7 +12,8 @@ from selenium import webdriver
 from selenium.webdriver.common.by import By
 from selenium.webdriver.support.ui import WebDriverWait
 
-from tests.service.conftest import Service, short_session
+from tests.factories import short_session
+from tests.service.conftest import Service
 from tests.service.test_page import browser, open_page, severe, state  # noqa: F401  (browser: a fixture; skips without Chromium)
 
 # a click in the history, by the row's uid: one script call (the table is redrawn every 15 s and on changes)

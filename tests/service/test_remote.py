@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.service.conftest import Service, short_session, wait_for
+from tests.factories import short_session
+from tests.service.conftest import Service, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 OPERATOR = "remote-op-4c1f9a7e2d"

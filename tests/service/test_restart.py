@@ -16,7 +16,8 @@ import h5py
 import pytest
 
 from hil.session import EmulatorProcess
-from tests.service.conftest import Service, free_port, short_session, wait_for
+from tests.factories import short_session
+from tests.service.conftest import Service, free_port, wait_for
 
 
 def test_a_manager_killed_mid_run_leaves_the_boards_safe_and_a_restart_keeps_queue_and_history(

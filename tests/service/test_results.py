@@ -16,7 +16,8 @@ import pytest
 import yaml
 
 from hil.service import BenchError
-from tests.service.conftest import Service, short_session
+from tests.factories import short_session
+from tests.service.conftest import Service
 from tests.service.test_item_kinds import REPO, hil
 
 CHARTS = {"rate", "drive", "miss", "gyro", "pose"}

@@ -16,7 +16,8 @@ import pytest
 import yaml
 
 from hil.service import API_ROUTES, BenchError
-from tests.service.conftest import Service, free_port, short_session, wait_for
+from tests.factories import short_session
+from tests.service.conftest import Service, free_port, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 

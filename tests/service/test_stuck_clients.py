@@ -12,7 +12,8 @@ from pathlib import Path
 
 import websockets
 
-from tests.service.conftest import Service, short_session
+from tests.factories import short_session
+from tests.service.conftest import Service
 
 
 async def stuck_pages(url: str, n: int, hold_s: float) -> int:

@@ -1,76 +1,17 @@
-"""Run bench sessions against the emulator (its own process, real ptys) and read what both sides recorded."""
+"""What a session left, read back: its events, its channels compared or digested (sessions are built in
+tests/factories.py)."""
 
 from __future__ import annotations
 
 import asyncio
 import hashlib
-import json
-from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from hil.config import PROFILES, PortConfig, SessionConfig, load_session
 from hil.log.reader import read_log
-from hil.session import EmulatorProcess, Session, SessionResult
-
-BASE_SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
-
-
-def session_config(**overrides: Any) -> SessionConfig:
-    """The shipped 1 deg / 1 Hz ESO session with fields replaced (validated like a file)."""
-    data = load_session(BASE_SESSION).model_dump()
-    for key, value in overrides.items():
-        if isinstance(value, dict) and isinstance(data.get(key), dict):
-            data[key] = {**data[key], **value}
-        else:
-            data[key] = value
-    return SessionConfig.model_validate(data)
-
-
-class Run:
-    def __init__(self, result: SessionResult, records: list[dict[str, Any]], emulator: dict[str, Any]) -> None:
-        self.result = result
-        self.records = records
-        self.emulator = emulator
-        self.telemetry = result.telemetry
-
-    def kinds(self, link: str | None = None) -> list[str]:
-        return [r["kind"] for r in self.records if link is None or r["link"] == link]
-
-
-During = Callable[[EmulatorProcess, Session], Awaitable[None]]
-
-
-def run_session(config: SessionConfig, out: Path, *, clock: str = "lockstep", emulator_args: list[str] | None = None,
-                during: During | None = None, watchdog_ms: float | None = None,
-                after: Callable[[EmulatorProcess], None] | None = None, emulated: bool = False) -> Run:
-    """One session against a fresh emulator; ``during`` runs beside the session, ``after`` once it has returned
-    (the emulator still running)."""
-    fault_log = out / "emulator-records.jsonl"
-    args = [*config.emulator.process_args(), *(emulator_args or []), "--fault-log", str(fault_log)]
-    if watchdog_ms is None and clock == "lockstep":
-        watchdog_ms = 1000.0
-    emulator = EmulatorProcess(config.emulator.config, clock=clock, seed=config.seed, extra_args=args)
-    ports = emulator.start()
-    try:
-        session = Session(config, {n: PortConfig(port=p) for n, p in ports.items() if n != "control"}, out,
-                          watchdog_ms=watchdog_ms, lockstep=clock == "lockstep", emulated=emulated)
-
-        async def main() -> SessionResult:
-            task = asyncio.create_task(session.run())
-            if during is not None:
-                await during(emulator, session)
-            return await task
-
-        result = asyncio.run(main())
-        if after is not None:
-            after(emulator)
-    finally:
-        summary = emulator.stop()
-    records = [json.loads(line) for line in fault_log.read_text().splitlines()] if fault_log.exists() else []
-    return Run(result, records, summary)
+from hil.session import Session
 
 
 async def wait_cycles(session: Session, n: int, timeout_s: float = 30.0) -> None:

@@ -17,7 +17,8 @@ import pytest
 
 from hil.config import PROFILES
 from hil.log import read_log
-from tests.session.helpers import BASE_SESSION, run_session, session_config, wait_cycles
+from tests.factories import BASE_SESSION, run_session, session_config
+from tests.session.helpers import wait_cycles
 
 HIL = [sys.executable, "-m", "hil"]
 

@@ -16,7 +16,7 @@ from hil.fit.ranges import load_plant_dict
 from hil.fit.twin import armature_current_a
 from hil.log.reader import read_log
 from hil.session import run_sim_session
-from tests.session.helpers import session_config
+from tests.factories import session_config
 
 
 def test_the_logged_currents_are_those_the_logged_drive_makes(tmp_path: Path) -> None:

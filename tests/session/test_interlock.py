@@ -61,7 +61,7 @@ def test_a_closed_interlock_refuses_every_command_that_moves_something() -> None
 
 def test_a_background_task_that_fails_ends_the_session_as_a_fault(tmp_path) -> None:  # type: ignore[no-untyped-def]
     from hil.session import Session
-    from tests.session.helpers import session_config
+    from tests.factories import session_config
 
     session = Session(session_config(duration_s=1.0), {}, tmp_path)
 

@@ -13,7 +13,7 @@ from hil.log import SCHEMA, SessionLog, read_log
 from hil.log.schema import LINK_COUNTERS, Group, group_by_name
 from hil.protocol import Board, Decoder, DriveStatus, Encoder, GyroSample
 from hil.session import ControlLoop
-from tests.session.helpers import run_session, session_config
+from tests.factories import run_session, session_config
 
 G = group_by_name(SCHEMA)
 ATTRS = {"config": {}, "ident": {}, "seed": 0}

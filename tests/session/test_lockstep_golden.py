@@ -20,7 +20,8 @@ import pytest
 
 from hil.config import PROFILES, load_session, read_yaml_mapping
 from hil.session import emulator_for_plant
-from tests.session.helpers import channel_digests, run_session, session_config
+from tests.factories import run_session, session_config
+from tests.session.helpers import channel_digests
 
 GOLDEN = Path(__file__).with_name("lockstep_golden.json")
 SESSIONS = sorted(p.stem for p in (PROFILES / "sessions").glob("*.yaml"))

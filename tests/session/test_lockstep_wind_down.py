@@ -19,7 +19,8 @@ import pytest
 from hil.config import PROFILES
 from hil.log.reader import read_log
 from hil.session import run_sim_session
-from tests.session.helpers import HOST_CLOCK, Run, run_session, session_config
+from tests.factories import Run, run_session, session_config
+from tests.session.helpers import HOST_CLOCK
 
 DURATION_S = 1.5  # then the wind-down: the default emulator ramps the swing home over 1 s
 TICKS = round(DURATION_S * 1000)

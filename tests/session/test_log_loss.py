@@ -19,8 +19,9 @@ from hil.cli.session import print_result
 from hil.config import ConfigError
 from hil.log import read_log
 from hil.session import Session
-from tests.reliability.helpers import bad_input, no_board_contact, session_data, write_yaml
-from tests.session.helpers import run_session, session_config, wait_cycles
+from tests.factories import run_session, session_config, session_data, write_yaml
+from tests.reliability.helpers import bad_input, no_board_contact
+from tests.session.helpers import wait_cycles
 
 FILL_AT_CYCLES = 1500
 __all__ = ["no_board_contact"]  # the fixture, used by name

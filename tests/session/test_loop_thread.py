@@ -13,7 +13,8 @@ import pytest
 
 from firmware_stub.control import ControlClient
 from hil.session import EmulatorProcess, Session
-from tests.session.helpers import logged_events, run_session, session_config
+from tests.factories import run_session, session_config
+from tests.session.helpers import logged_events
 
 
 def ended(session: Session) -> bool:

@@ -11,7 +11,8 @@ import pytest
 from hil.log import read_log
 from hil.session import EmulatorProcess, Session
 from hil.session import _host as host
-from tests.session.helpers import run_session, session_config, wait_cycles
+from tests.factories import run_session, session_config
+from tests.session.helpers import wait_cycles
 
 
 def test_resolve_cpu_indexes_the_allowed_cpus_like_a_python_list() -> None:

@@ -17,7 +17,7 @@ import numpy as np
 
 from hil.analysis import summarize_log
 from hil.log import LogError, read_log
-from tests.reliability.helpers import session_data, write_yaml
+from tests.factories import session_data, write_yaml
 from tests.session.helpers import logged_events
 
 REPO = Path(__file__).resolve().parents[2]

@@ -7,7 +7,7 @@ from pathlib import Path
 from firmware_stub.config import load_emulator_config
 from firmware_stub.emulator import Emulator
 from hil.protocol import MissDistance
-from tests.session.helpers import run_session, session_config
+from tests.factories import run_session, session_config
 
 
 def test_the_bench_follows_the_documented_session_sequence(tmp_path: Path) -> None:

@@ -16,17 +16,18 @@ from firmware_stub.control import ControlClient
 from hil.analysis import summarize_log
 from hil.log import read_log
 from hil.session import EmulatorProcess, Session
-from tests.session.helpers import logged_events, run_session, session_config, wait_cycles
+from tests.factories import Run, run_session, session_config
+from tests.session.helpers import logged_events, wait_cycles
 
 
 @pytest.fixture(scope="module")
-def lockstep_run(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+def lockstep_session(tmp_path_factory: pytest.TempPathFactory) -> Run:
     out = tmp_path_factory.mktemp("lockstep")
     return run_session(session_config(duration_s=3.0, seed=4), out)
 
 
-def test_lockstep_session_completes_and_logs_every_channel(lockstep_run) -> None:  # type: ignore[no-untyped-def]
-    res = lockstep_run.result
+def test_lockstep_session_completes_and_logs_every_channel(lockstep_session) -> None:  # type: ignore[no-untyped-def]
+    res = lockstep_session.result
     assert res.status == "completed" and res.exit_code == 0, res.message
     with h5py.File(res.log_path, "r") as f:  # closed cleanly: opens without SWMR
         assert f["loop/gyro_y_dps"].attrs["unit"] == "deg/s"
@@ -71,9 +72,9 @@ def test_lockstep_session_completes_and_logs_every_channel(lockstep_run) -> None
     assert log.attrs["ident"]["servo"]["firmware_version"] == "emu-1.0.0"
 
 
-def test_lockstep_sessions_are_reproducible(lockstep_run, tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_lockstep_sessions_are_reproducible(lockstep_session, tmp_path) -> None:  # type: ignore[no-untyped-def]
     again = run_session(session_config(duration_s=3.0, seed=4), tmp_path)
-    a, b = read_log(lockstep_run.result.log_path).groups["loop"], read_log(again.result.log_path).groups["loop"]
+    a, b = read_log(lockstep_session.result.log_path).groups["loop"], read_log(again.result.log_path).groups["loop"]
     n = min(a["tick"].size, b["tick"].size, 3000)
     for channel in ("gyro_y_dps", "gyro_z_dps", "drive_el_counts", "drive_az_counts", "el_deg", "rate_cmd_el_dps"):
         np.testing.assert_array_equal(a[channel][:n], b[channel][:n], err_msg=channel)

@@ -11,7 +11,8 @@ from pathlib import Path
 import aiomqtt
 
 from hil.telemetry import MqttConfig
-from tests.session.helpers import run_session, session_config, wait_cycles
+from tests.factories import run_session, session_config
+from tests.session.helpers import wait_cycles
 from tests.telemetry.broker import MqttBroker
 
 

@@ -15,7 +15,8 @@ import yaml
 from hil.config import PROFILES
 from hil.log.reader import read_log
 from hil.session import run_sim_session
-from tests.session.helpers import assert_same_channels, run_session, session_config
+from tests.factories import run_session, session_config
+from tests.session.helpers import assert_same_channels
 
 CASES = [(3, "eso"), (11, "eso_kf"), (5, "eso_kf_ukf_ff")]
 

@@ -15,7 +15,7 @@ from hil.config import PROFILES
 from hil.log.reader import read_log
 from hil.log.truth import read_truth, truth_path
 from hil.session import run_sim_session
-from tests.session.helpers import run_session, session_config
+from tests.factories import run_session, session_config
 
 TRUE = ("los_rate_true_rms_dps", "los_rate_true_lf_std_dps")
 

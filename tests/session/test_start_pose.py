@@ -13,7 +13,8 @@ from hil.analysis import summarize_log
 from hil.log.reader import read_log
 from hil.replay import replay_log
 from hil.session import run_sim_session
-from tests.session.helpers import logged_events, run_session, session_config
+from tests.factories import run_session, session_config
+from tests.session.helpers import logged_events
 
 POSE = {"az_deg": -2.0, "el_deg": 6.0}
 

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import hil
 from hil.session import EXIT_LOST_TARGET, TrackJudge
-from tests.session.helpers import logged_events, session_config
+from tests.factories import session_config
+from tests.session.helpers import logged_events
 
 
 def test_a_target_lost_past_max_lost_s_ends_lost_target(tmp_path: Path) -> None:

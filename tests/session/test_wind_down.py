@@ -16,7 +16,8 @@ import yaml
 from firmware_stub.control import ControlClient
 from hil.config import PROFILES
 from hil.session import EmulatorProcess
-from tests.session.helpers import logged_events, run_session, session_config
+from tests.factories import run_session, session_config
+from tests.session.helpers import logged_events
 
 DURATION_S = 0.6
 STOP_RAMP_S = 0.3  # the wind-down: the hexapod ramps home over this (simulated) time while the loop still runs
