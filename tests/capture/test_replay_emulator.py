@@ -79,6 +79,7 @@ def test_a_lockstep_capture_played_to_a_fresh_emulator_is_answered_frame_for_fra
     assert CaptureReader(r.record).meta["replay_of"] == str(lockstep_run.capture)
 
 
+@pytest.mark.realtime
 def test_a_realtime_capture_played_to_a_realtime_emulator_answers_each_sample_with_its_drive(
         realtime_run: CapturedRun, tmp_path: Path) -> None:
     tx = list(decode_capture(realtime_run.capture, directions=["tx"]))

@@ -48,6 +48,7 @@ def test_the_logged_controller_replayed_on_its_lockstep_log_gives_its_drive_back
     assert_reproduces_the_log(lockstep_run.log)
 
 
+@pytest.mark.realtime
 def test_the_same_holds_on_a_realtime_log_written_by_the_loop_thread(realtime_run: CapturedRun) -> None:
     # eso_kf: the Kalman rate fed back. The loop thread reads a camera frame's queue while the event loop fills it,
     # so in a microsecond window a frame is used one tick from where the log places it: that tick's command is then

@@ -104,6 +104,7 @@ def test_a_lockstep_capture_holds_the_frames_the_log_says_were_exchanged(lockste
     assert (t_rx <= loop["t_host_ns"]).all() and (t_drive < t_rx[1 : len(t_drive) + 1]).all()
 
 
+@pytest.mark.realtime
 def test_the_loop_threads_reads_and_writes_are_captured_with_its_own_times(realtime_run: CapturedRun) -> None:
     loop = check_against_log(realtime_run)
     _, frames = exchanged(realtime_run)

@@ -147,6 +147,7 @@ def lockstep_digests(seed: int, n: int = 800) -> dict[str, str]:
         return digests
 
 
+@pytest.mark.realtime
 def test_realtime_writes_the_sample_first_and_the_other_boards_frames_answered_or_not() -> None:
     with running_emulator(clock="realtime") as emu:
         host = Host(emu.ports(), host_alive_period_s=0.1)
@@ -317,6 +318,7 @@ def test_stall_silences_the_board_for_its_duration() -> None:
         host.close()
 
 
+@pytest.mark.realtime
 def test_latency_spike_delays_samples_without_losing_them() -> None:
     with running_emulator(clock="realtime") as emu:
         host = Host(emu.ports(), host_alive_period_s=0.1)
@@ -351,6 +353,7 @@ def test_board_reset_restarts_sequence_and_disables_the_driver() -> None:
         host.close()
 
 
+@pytest.mark.realtime
 def test_disconnect_hangs_up_and_the_same_path_serves_again() -> None:
     with running_emulator(clock="realtime") as emu:
         host = Host(emu.ports())
@@ -367,6 +370,7 @@ def test_disconnect_hangs_up_and_the_same_path_serves_again() -> None:
         host.close()
 
 
+@pytest.mark.realtime
 def test_a_host_that_reconnects_is_served_again() -> None:
     with running_emulator(clock="realtime") as emu:
         host = Host(emu.ports(), host_alive_period_s=0.1)

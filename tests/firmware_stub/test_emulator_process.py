@@ -28,6 +28,7 @@ def spawn(*args: str) -> tuple[subprocess.Popen[str], dict[str, str]]:
     return proc, json.loads(line)
 
 
+@pytest.mark.realtime
 def test_realtime_emulator_serves_a_host_and_leaves_nothing_behind(tmp_path: Path) -> None:
     ports_file = tmp_path / "ports.json"
     proc, ports = spawn("--clock", "realtime", "--ports-file", str(ports_file))

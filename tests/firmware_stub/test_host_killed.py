@@ -12,7 +12,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from hil.session import EmulatorProcess
+
+pytestmark = pytest.mark.realtime
 
 REPO = Path(__file__).resolve().parents[2]
 HOST_TIMEOUT_S = 0.5  # the documented default (profiles/emulator/default.yaml)

@@ -32,6 +32,7 @@ def latencies_us(host: Host) -> list[int]:
 # --- the emulator ------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.realtime
 def test_realtime_commands_arrive_no_sooner_than_the_two_wire_times() -> None:
     slow = load_emulator_config(clock="realtime", baudrates=SLOW_WIRE)  # wire times a pty alone never takes
     with running_emulator(slow) as emu:

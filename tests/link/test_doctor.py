@@ -90,6 +90,7 @@ def test_a_missing_port_a_non_tty_and_a_held_port_fail_by_name(pty: str, tmp_pat
     assert "session 'the other bench'" in held.detail
 
 
+@pytest.mark.realtime
 def test_the_command_checks_a_session_s_ports(tmp_path: Path) -> None:
     with EmulatorProcess(clock="lockstep") as emulator:
         ports = {n: p for n, p in emulator.ports.items() if n != "control"}
@@ -126,6 +127,7 @@ def records(fault_log: Path, kind: str) -> list[dict]:  # type: ignore[type-arg]
     return [r for r in map(json.loads, lines) if r["kind"] == kind]
 
 
+@pytest.mark.realtime
 def test_every_board_answers_with_the_bench_s_fingerprint_and_the_stream_runs_near_1_khz(tmp_path: Path) -> None:
     fault_log = tmp_path / "emulator.jsonl"
     with EmulatorProcess(clock="realtime", extra_args=["--fault-log", str(fault_log)]) as emulator:
@@ -164,6 +166,7 @@ def test_every_board_answers_with_the_bench_s_fingerprint_and_the_stream_runs_ne
     assert records(fault_log, "drive_enable") == [] and records(fault_log, "hexapod_state") == []
 
 
+@pytest.mark.realtime
 def test_a_board_from_another_catalogue_is_named_with_both_fingerprints(tmp_path: Path,
                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     fault_log = tmp_path / "emulator.jsonl"
@@ -210,6 +213,7 @@ def test_a_port_where_nothing_answers_says_so_within_the_timeout() -> None:
     assert [type(f.message) for f in frames] == [IdentRequest] * 4 and len({f.seq for f in frames}) == 1
 
 
+@pytest.mark.realtime
 def test_the_stream_is_stopped_and_the_ports_released_when_the_check_is_cancelled(tmp_path: Path) -> None:
     fault_log = tmp_path / "emulator.jsonl"
     with EmulatorProcess(clock="realtime", extra_args=["--fault-log", str(fault_log)]) as emulator:

@@ -104,6 +104,8 @@ REMOTE = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.browser
+@pytest.mark.realtime
 def test_a_client_and_a_browser_on_another_host_see_the_same_queue_live_run_and_history(
         other_host: tuple[str, str], tmp_path: Path) -> None:
     ns, address = other_host

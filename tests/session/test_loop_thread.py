@@ -16,6 +16,8 @@ from hil.session import EmulatorProcess, Session
 from tests.factories import run_session, session_config
 from tests.session.helpers import logged_events
 
+pytestmark = pytest.mark.realtime
+
 
 def ended(session: Session) -> bool:
     return session._finished is not None and session._finished.done()
