@@ -4,8 +4,9 @@ the ports and runs one item at a time through the same code as `hil run` (hil.ap
 
 - :class:`Store` (``_store``): the queue and the history; :class:`LeaseBook` (``_lease``): who holds the bench;
   :func:`check_item` (``_items``): what a client submits, checked by its kind's own loader.
-- :func:`build_app` (``_manager``): the Starlette app, its routes (``_api_models``: the bodies, the OpenAPI
-  document) and its WebSocket; :class:`Gate` (``_auth``): tokens and roles.
+- :func:`build_app` (``_app``): the Starlette app, its WebSocket and its routes (``_routes``; ``_api_models``: the
+  bodies, the OpenAPI document) around the :class:`Manager` (``_manager``); :class:`Gate` (``_auth``): tokens and
+  roles.
 - The worker (``_worker``, ``python -m hil.service._worker``): the lab's ports, the items, the live values.
 - :class:`Bench` (``_client``): the client (notebooks; the command line's runs on a service, `hil queue`,
   `hil bench`).
@@ -17,11 +18,13 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from hil.service._app import build_app
     from hil.service._auth import AuthError, Caller, Gate, TokenFile, is_loopback_host, load_tokens
     from hil.service._client import Bench, BenchError, bench_url, item_text
     from hil.service._items import IDENT_OPTIONS, MAX_ITEM_BYTES, CheckedItem, IdentOptions, ItemError, check_item
     from hil.service._lease import Lease, LeaseBook, LeaseError
-    from hil.service._manager import API_ROUTES, Manager, ServiceOptions, build_app, record_view
+    from hil.service._manager import Manager, ServiceOptions, record_view
+    from hil.service._routes import API_ROUTES
     from hil.service._store import (
         EXIT_STATUSES,
         ITEM_KINDS,
@@ -44,7 +47,9 @@ _FROM = {
     **dict.fromkeys(("IDENT_OPTIONS", "MAX_ITEM_BYTES", "CheckedItem", "IdentOptions", "ItemError", "check_item"),
                     "_items"),
     **dict.fromkeys(("Lease", "LeaseBook", "LeaseError"), "_lease"),
-    **dict.fromkeys(("API_ROUTES", "Manager", "ServiceOptions", "build_app", "record_view"), "_manager"),
+    **dict.fromkeys(("Manager", "ServiceOptions", "record_view"), "_manager"),
+    "API_ROUTES": "_routes",
+    "build_app": "_app",
     **dict.fromkeys(("EXIT_STATUSES", "ITEM_KINDS", "HistoryRecord", "QueuedItem", "Store", "StoreError"), "_store"),
 }
 
