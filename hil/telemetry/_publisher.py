@@ -1,4 +1,5 @@
-"""Live MQTT telemetry of a bench session (docs/telemetry.md); `hil watch` is in hil.telemetry._watch.
+"""Live MQTT telemetry of a bench session (docs/telemetry.md); `hil watch` is in hil.telemetry._watch, the topics,
+units and JSON both speak in hil.telemetry._wire.
 
 The control loop calls `Telemetry.sample()` on every 1 kHz cycle, in the event loop's thread.
 The rule of this module is that telemetry never blocks, slows down or crashes that loop:
@@ -30,7 +31,6 @@ import asyncio
 import contextlib
 import dataclasses
 import errno
-import json
 import logging
 import math
 import os
@@ -41,8 +41,6 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from functools import cache
-from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 import aiomqtt
@@ -50,7 +48,15 @@ import paho.mqtt.client as paho
 
 from hil.config import MqttConfig, check_topic_name
 from hil.log import ipc
-from hil.log.schema import SCHEMA
+from hil.telemetry._wire import (
+    MISS_X,
+    MISS_Y,
+    dumps,
+    meta_topic,
+    schema_units,
+    session_topic,
+    status_topic,
+)
 
 if TYPE_CHECKING:
     pass
@@ -88,44 +94,11 @@ class _ConnectionLost(logging.Filter):
 
 mqtt_log.addFilter(_ConnectionLost())
 
-TOPIC_ROOT = "hil"
 STOP_TIMEOUT_S = 2.0  # stop() returns within this, broker or not
 FIRST_REPORT_TIMEOUT_S = 5.0  # TelemetryProcess.start() waits this long at most for the first connection attempt
 EVENT_QOS = 1  # status, meta, state and events: rare and worth an acknowledgement
 _CHILD_NICE = 5  # the publisher child must not preempt the 1 kHz loop or the log writer
 _BURST = 25  # telemetry messages handed to paho per loop step when a backlog has built up
-MISS_X, MISS_Y = "miss_x_px", "miss_y_px"  # the miss distance's channels (named as in the log's image group)
-
-
-@cache
-def schema_units() -> Mapping[str, str]:
-    """Channel name -> unit, from the session log's schema (hil.log.schema): the units telemetry publishes.
-
-    A name that appears in several groups (``t_host_ns``, ``tick``) has the same unit in each; the first wins.
-    """
-
-    units: dict[str, str] = {}
-    for group in SCHEMA:
-        for channel in group.channels:
-            units.setdefault(channel.name, channel.unit)
-    return MappingProxyType(units)
-
-
-# --- topics -----------------------------------------------------------------------------------
-
-
-def status_topic(bench_id: str) -> str:
-    """``hil/<bench_id>/status``: retained online/offline (the last will publishes offline)."""
-    return f"{TOPIC_ROOT}/{bench_id}/status"
-
-
-def session_topic(bench_id: str, session_id: str, leaf: str) -> str:
-    """``hil/<bench_id>/session/<session_id>/<leaf>``; leaf is state, meta, telemetry or events."""
-    return f"{TOPIC_ROOT}/{bench_id}/session/{session_id}/{leaf}"
-
-
-def meta_topic(bench_id: str, session_id: str) -> str:
-    return session_topic(bench_id, session_id, "meta")
 
 
 @dataclass
@@ -137,40 +110,6 @@ class TelemetryStats:
     reconnects: int = 0  # successful connections after a lost one
     connected: bool = False
     last_error: str | None = None
-
-
-# --- JSON -------------------------------------------------------------------------------------
-
-
-def _json_default(o: Any) -> Any:
-    item = getattr(o, "item", None)  # numpy scalars (float32, int64, bool_)
-    if callable(item):
-        with contextlib.suppress(Exception):
-            return item()
-    if isinstance(o, (set, frozenset, tuple)):
-        return list(o)
-    return str(o)
-
-
-_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False, default=_json_default)
-
-
-def _finite(o: Any) -> Any:
-    if isinstance(o, float):
-        return o if math.isfinite(o) else None
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite(v) for v in o]
-    return o
-
-
-def dumps(obj: Any) -> str:
-    """Compact JSON; NaN and infinities become null (strict JSON, readable by any client)."""
-    try:
-        return _ENCODER.encode(obj)
-    except ValueError:  # a non-finite float: rare, so the sanitising pass is only paid then
-        return _ENCODER.encode(_finite(json.loads(json.dumps(obj, default=_json_default))))
 
 
 def _safe_dumps(body: dict[str, Any], detail: dict[str, Any]) -> str:
@@ -811,5 +750,3 @@ def _paho_of(client: aiomqtt.Client) -> paho.Client | None:
 
 
 # --- hil watch --------------------------------------------------------------------------------
-
-

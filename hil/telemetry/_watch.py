@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 import aiomqtt
 
 from hil.config import MqttConfig, check_topic_name
-from hil.telemetry._publisher import MISS_X, MISS_Y, TOPIC_ROOT, dumps, status_topic
+from hil.telemetry._wire import MISS_X, MISS_Y, TOPIC_ROOT, dumps, status_topic
 
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
