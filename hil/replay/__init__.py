@@ -8,12 +8,9 @@ from hil.replay._playback import (
     CapturePlayer,
     PlaybackResult,
     Quantiles,
-    emulator_settings,
     play_capture,
-    replay_capture,
-    resolve_ports,
-    write_playback_json,
 )
+from hil.replay._replay_capture import emulator_settings, replay_capture, resolve_ports, write_playback_json
 
 __all__ = [
     "FIRST_SAMPLE_WAIT_S",
