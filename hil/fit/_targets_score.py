@@ -33,15 +33,17 @@ def partial_objective(config: TargetsConfig, values: Mapping[str, float]) -> flo
 
 @dataclasses.dataclass(frozen=True)
 class Premise:
-    """One of the paper's premises as a number: ``value`` of the measured ids, which holds when it is ``>= bound``
-    (``sense`` ">=") or ``<= bound``; ``unstable_holds``: an unstable ``unstable_id`` cell makes it hold."""
+    """One of the paper's premises as a number: ``value`` of the measured ids (and of the targets file's paper
+    figures, id -> ``paper``), which holds when it is ``>= bound`` (``sense`` ">=") or ``<= bound``;
+    ``unstable_holds``: an unstable ``unstable_id`` cell makes it hold. ``text`` may name ``{paper}``: the premise's
+    value on the paper's own figures (:meth:`describe`)."""
 
     id: str
     text: str
     sense: Literal[">=", "<="]
     bound: float
     needs: tuple[str, ...]
-    value: Callable[[Mapping[str, float]], float]
+    value: Callable[[Mapping[str, float], Mapping[str, float]], float]
     unstable_id: str | None = None
 
     def holds(self, value: float, unstable: Mapping[str, str] | None = None) -> bool:
@@ -51,39 +53,58 @@ class Premise:
             return False
         return value >= self.bound if self.sense == ">=" else value <= self.bound
 
+    def describe(self, paper: Mapping[str, float]) -> str:
+        """``text`` with ``{paper}`` as the premise's value on the ``paper`` figures (id -> value; "-" without them)."""
+        if "{paper}" not in self.text:
+            return self.text
+        try:
+            x = f"{self.value(paper, paper):.3g}"
+        except (KeyError, ZeroDivisionError):
+            x = "-"
+        return self.text.replace("{paper}", x)
 
-def _worst_factor(v: Mapping[str, float]) -> float:
-    paper = {"table1-eso-std": 0.32, "table1-esokf-std": 0.17, "table1-hg-std": 0.11, "table2-eso-std": 6.02,
-             "table2-hg-std": 2.71, "table3-eso-std": 15.60, "table3-hg-std": 6.15}
-    factors = [max(v[k] / p, p / v[k]) if math.isfinite(v.get(k, math.nan)) and v[k] > 0 else math.inf
-               for k, p in paper.items()]
+
+def paper_figures(config: TargetsConfig) -> dict[str, float]:
+    """The targets file's published figures: target id -> the paper's value."""
+    return {t.id: t.paper for t in config.targets}
+
+
+TABLE_STDS = ("table1-eso-std", "table1-esokf-std", "table1-hg-std", "table2-eso-std", "table2-hg-std",
+              "table3-eso-std", "table3-hg-std")  # the Table 1-3 std targets of premise d
+
+
+def _worst_factor(v: Mapping[str, float], paper: Mapping[str, float]) -> float:
+    """The largest factor between a Table 1-3 std and the paper's (inf where one is missing or not positive)."""
+    factors = [max(v[k] / paper[k], paper[k] / v[k]) if math.isfinite(v.get(k, math.nan)) and v[k] > 0 else math.inf
+               for k in TABLE_STDS]
     return max(factors)
 
 
 PREMISES: tuple[Premise, ...] = (
     Premise("a", "gyro noise limits the observer gain: at the high-gain omega_o plain ESO is unstable or its rate "
             "std >= 1.2 x ESO+KF's at that gain", ">=", 1.2, ("eso-high-gain", "table1-hg-std"),
-            lambda v: v["eso-high-gain"] / v["table1-hg-std"], unstable_id="eso-high-gain"),
+            lambda v, _: v["eso-high-gain"] / v["table1-hg-std"], unstable_id="eso-high-gain"),
     Premise("b1", "ESO+KF beats ESO at the same gain (rate std ratio ESO+KF / ESO < 1)", "<=", 1.0,
-            ("table1-esokf-std", "table1-eso-std"), lambda v: v["table1-esokf-std"] / v["table1-eso-std"]),
+            ("table1-esokf-std", "table1-eso-std"), lambda v, _: v["table1-esokf-std"] / v["table1-eso-std"]),
     Premise("b2", "high-gain ESO+KF beats ESO+KF (rate std ratio < 1)", "<=", 1.0,
-            ("table1-hg-std", "table1-esokf-std"), lambda v: v["table1-hg-std"] / v["table1-esokf-std"]),
-    Premise("c", "miss std grows with the swing amplitude (ESO, 3 deg / 1 deg >= 1.5; paper 2.59)", ">=", 1.5,
-            ("table3-eso-std", "table2-eso-std"), lambda v: v["table3-eso-std"] / v["table2-eso-std"]),
+            ("table1-hg-std", "table1-esokf-std"), lambda v, _: v["table1-hg-std"] / v["table1-esokf-std"]),
+    Premise("c", "miss std grows with the swing amplitude (ESO, 3 deg / 1 deg >= 1.5; paper {paper})", ">=", 1.5,
+            ("table3-eso-std", "table2-eso-std"), lambda v, _: v["table3-eso-std"] / v["table2-eso-std"]),
     Premise("d", "each Table 1-3 std within a factor 1.5 of the paper's (the worst factor)", "<=", 1.5,
-            ("table1-eso-std", "table1-esokf-std", "table1-hg-std", "table2-eso-std", "table2-hg-std",
-             "table3-eso-std", "table3-hg-std"), _worst_factor),
+            TABLE_STDS, _worst_factor),
 )
 
 
-def premise_values(values: Mapping[str, float]) -> dict[str, float]:
-    """premise id -> its value, for every premise whose ids were measured (NaN where a value is missing)."""
+def premise_values(config: TargetsConfig, values: Mapping[str, float]) -> dict[str, float]:
+    """premise id -> its value, for every premise whose ids were measured (NaN where a value is missing, or a paper
+    figure it compares with is not in ``config``'s targets)."""
+    paper = paper_figures(config)
     out = {}
     for p in PREMISES:
         if all(k in values for k in p.needs):
             try:
-                x = p.value(values)
-            except ZeroDivisionError:
+                x = p.value(values, paper)
+            except (KeyError, ZeroDivisionError):
                 x = math.nan
             out[p.id] = float(x) if math.isfinite(x) or x == math.inf else math.nan
     return out

@@ -21,6 +21,7 @@ from hil.fit._targets_score import (
     PREMISES,
     Residual,
     objective,
+    paper_figures,
     partial_objective,
     premise_values,
     residual_markdown,
@@ -120,14 +121,14 @@ def best_complete_value(study: Any) -> float | None:
     return min(values) if values else None
 
 
-def _store_measured(trial: Any, m: Measured) -> None:
+def _store_measured(config: TargetsConfig, trial: Any, m: Measured) -> None:
     """The trial's measured values, unstable cells and the premises' values (those measured) as user attributes."""
     vals = m.values
     trial.set_user_attr("measured", {k: (v if math.isfinite(v) else None) for k, v in vals.items()})
     trial.set_user_attr("unstable", m.unstable)
     held = 0
     for p in PREMISES:
-        x = premise_values(vals).get(p.id)
+        x = premise_values(config, vals).get(p.id)
         if x is None:
             continue
         ok = p.holds(x, m.unstable)
@@ -223,7 +224,7 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
             return failed(trial, exc)
         finally:
             shutil.rmtree(work, ignore_errors=True)
-        _store_measured(trial, m)
+        _store_measured(config, trial, m)
         trial.set_user_attr("wall_s", time.monotonic() - t0)
         return objective(config, m.values)
 
@@ -235,7 +236,7 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
             return
         best = best_complete_value(st)
         if best is not None and bound > best:
-            _store_measured(trial, so_far)
+            _store_measured(config, trial, so_far)
             trial.set_user_attr("pruned", f"{bound:.4g} after {len(so_far.per_seed)} ids > best {best:.4g}")
             trial.set_user_attr("wall_s", time.monotonic() - so_far_t0[trial.number])
             raise TrialPruned(f"the targets so far sum to {bound:.4g}, more than the best trial's {best:.4g}")
@@ -282,10 +283,10 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
         result.residuals = residuals(config, vals)
         result.unstable = dict(best.user_attrs.get("unstable", {}))
         for p in PREMISES:
-            x = premise_values(vals).get(p.id)
+            x = premise_values(config, vals).get(p.id)
             if x is not None:
-                result.premises.append(PremiseResult(p.id, p.text, f"{p.sense} {p.bound:g}", [x], x,
-                                                     p.holds(x, result.unstable), *search[p.id]))
+                result.premises.append(PremiseResult(p.id, p.describe(paper_figures(config)), f"{p.sense} {p.bound:g}",
+                                                     [x], x, p.holds(x, result.unstable), *search[p.id]))
     result.residuals_path = out / "residuals.md"
     result.residuals_path.write_text(summary_markdown(result))
     (out / "result.json").write_text(json.dumps(result.to_json(), indent=2, default=str))
@@ -338,15 +339,15 @@ def _fill_verification(config: TargetsConfig, result: TargetsResult, m: Measured
     result.verify_objective = objective(config, vals)
     result.residuals = residuals(config, vals)
     n = min(len(v) for v in m.per_seed.values())
-    per_seed_premises = [premise_values({k: v[i] for k, v in m.per_seed.items()}) for i in range(n)]
-    mean = premise_values(vals)
+    per_seed_premises = [premise_values(config, {k: v[i] for k, v in m.per_seed.items()}) for i in range(n)]
+    mean = premise_values(config, vals)
     for p in PREMISES:
         if p.id not in mean:
             continue
         xs = [d.get(p.id, math.nan) for d in per_seed_premises]
         holds = bool(xs) and all(p.holds(x, m.unstable) for x in xs)
-        result.premises.append(PremiseResult(p.id, p.text, f"{p.sense} {p.bound:g}", xs, mean[p.id], holds,
-                                             *search[p.id]))
+        result.premises.append(PremiseResult(p.id, p.describe(paper_figures(config)), f"{p.sense} {p.bound:g}", xs,
+                                             mean[p.id], holds, *search[p.id]))
 
 
 def summary_markdown(result: TargetsResult) -> str:
