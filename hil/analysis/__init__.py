@@ -3,35 +3,21 @@
 ``identify_log`` and ``fit_plant`` are ``hil ident``'s (docs/ident.md); ``summarize_log`` computes the metrics
 every session ends with (rate error, miss distance, drive ripple, board latency; docs/api.md)."""
 
-from hil.analysis._ident import (
-    GYRO_CHANNEL,
-    IDENT_SWEEP,
+from hil.analysis._bode import bode_plot
+from hil.analysis._frf import Frf, estimate_frf, estimate_sweep_frf, welch_layout, welch_options
+from hil.analysis._levels import (
     REVERSAL_SMOOTH_S,
-    Frf,
     LevelCheck,
-    PlantFit,
-    SweepShapes,
-    SweptSine,
-    axis_columns,
-    bode_plot,
     check_levels,
     coherent_band,
-    estimate_frf,
-    estimate_sweep_frf,
-    fit_caption,
-    fit_plant,
-    host_disturbed,
-    identify_log,
     level_frequencies,
-    log_frf,
     next_level,
-    plant_response,
     resonance_hz,
-    sweep_start,
-    welch_layout,
-    welch_options,
 )
+from hil.analysis._logs import GYRO_CHANNEL, axis_columns, host_disturbed, identify_log, log_frf, sweep_start
+from hil.analysis._plant import PlantFit, SweepShapes, fit_caption, fit_plant, plant_response
 from hil.analysis._summary import NO_BOARD_LATENCY, board_latency, drive_ripple, json_safe, summarize_log
+from hil.analysis._sweep import IDENT_SWEEP, SweptSine
 
 __all__ = [
     "GYRO_CHANNEL",
