@@ -122,7 +122,7 @@ def fit_mechanics(logs: list[FitLog], axis: str, plant: Mapping[str, Any], *, ba
         half = max(1, round(smooth_ms * 1e-3 / dt))
         acc = np.radians(np.diff(_smooth(g, half))) / dt  # rad/s^2 over the tick k -> k + 1
         pivot = tuple((plant.get("mount") or {}).get("pivot_offset_m") or (0.0, 0.0, 0.0))
-        fx, _, fz = specific_force_el_frame(lg.pose, lg.loop["az_deg"], lg.loop["el_deg"], pivot)  # type: ignore[arg-type]
+        fx, _, fz = specific_force_el_frame(lg.pose, lg.loop["az_deg"], lg.loop["el_deg"], pivot)
         fx, fz = 0.5 * (fx[:-1] + fx[1:]), 0.5 * (fz[:-1] + fz[1:])
         stick = np.abs(v_mid) < stick_dps
         pad = half + 2
@@ -149,10 +149,10 @@ def fit_mechanics(logs: list[FitLog], axis: str, plant: Mapping[str, Any], *, ba
 
     for b in blocks:  # the columns that do not depend on the grid, filtered once
         b["sgn"] = np.tanh(b["v"] / 0.02)
-        fixed = [-b["sgn"], -np.radians(b["v"]), -b["th"]]
+        cols = [-b["sgn"], -np.radians(b["v"]), -b["th"]]
         if with_imb:
-            fixed += [-b["fx"] * 1e-3, b["fz"] * 1e-3]  # coefficients m rho_z, m rho_x in kg mm
-        b["fixed"] = filt(b, fixed)
+            cols += [-b["fx"] * 1e-3, b["fz"] * 1e-3]  # coefficients m rho_z, m rho_x in kg mm
+        b["fixed"] = filt(b, cols)
         b["motor"] = {}
 
     def design(b: dict[str, Any], vs: float, limit: float | None) -> tuple[np.ndarray, np.ndarray]:

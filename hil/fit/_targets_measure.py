@@ -112,15 +112,15 @@ def measure(config: TargetsConfig, plant: Mapping[str, Any] | str | Path, contro
     seeds = list(seeds) if seeds is not None else list(plan.seeds)
     duration = None if full else plan.duration_s
     own = work_dir is None
-    work = Path(tempfile.mkdtemp(prefix="hil-targets-")) if own else Path(work_dir)  # type: ignore[arg-type]
+    work = Path(tempfile.mkdtemp(prefix="hil-targets-")) if work_dir is None else Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
     try:
         plant_path = Path(plant) if isinstance(plant, str | Path) else ranges.dump_plant(plant, work / "plant.yaml")
-        wanted = [*config.targets, *config.measurements]
+        wanted: list[Target | Measurement] = [*config.targets, *config.measurements]
         if ids is not None:
             wanted = [c for c in wanted if c.id in set(ids)]
         cells: dict[tuple[Any, ...], tuple[Cell, dict[str, Any]]] = {}
-        owners: dict[tuple[Any, ...], list[Any]] = {}
+        owners: dict[tuple[Any, ...], list[Target | Measurement]] = {}
         for c in wanted:
             params = controller_overrides(config, values, _campaign_entry(c).name)
             if isinstance(c, Measurement) and c.gain_from is not None:
@@ -175,6 +175,6 @@ def measure(config: TargetsConfig, plant: Mapping[str, Any] | str | Path, contro
             shutil.rmtree(work, ignore_errors=True)
 
 
-def _campaign_entry(cell: Cell) -> Any:
+def _campaign_entry(cell: Cell) -> ControllerEntry:
     camp = _campaign(cell.campaign)
     return next(c for c in camp.controllers if c.label == cell.controller)

@@ -4,15 +4,17 @@ search) and :func:`load_targets`."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from hil.campaign.metrics import METRICS
+from hil.campaign.model import CampaignConfig
 from hil.campaign.runner import load_campaign
 from hil.config import ConfigError, load_model, one_line, resolve_relative
 from hil.control.registry import controller_params
 from hil.fit import ranges
+from hil.fit.ranges import ParamRange
 
 
 class _Strict(BaseModel):
@@ -88,17 +90,17 @@ class Search(_Strict):
 
     @field_validator("plant_params")
     @classmethod
-    def _known(cls, v: Any) -> Any:
+    def _known(cls, v: Literal["all"] | list[str]) -> Literal["all"] | list[str]:
         if isinstance(v, list):
             for name in v:
                 if name not in ranges.BY_NAME:
                     raise ValueError(f"unknown plant parameter {name!r} (hil.fit.ranges.PLAUSIBLE)")
         return v
 
-    def plant_ranges(self) -> list[ranges.ParamRange]:
+    def plant_ranges(self) -> list[ParamRange]:
         return list(ranges.PLAUSIBLE) if self.plant_params == "all" else [ranges.BY_NAME[n] for n in self.plant_params]
 
-    def bounds(self, p: ranges.ParamRange) -> tuple[float, float]:
+    def bounds(self, p: ParamRange) -> tuple[float, float]:
         return p.draw_range if self.ranges == "draw" else (p.lo, p.hi)
 
 
@@ -164,10 +166,10 @@ def load_targets(path: str | Path) -> TargetsConfig:
     return config
 
 
-_CAMPAIGNS: dict[Path, Any] = {}
+_CAMPAIGNS: dict[Path, CampaignConfig] = {}
 
 
-def _campaign(path: Path) -> Any:
+def _campaign(path: Path) -> CampaignConfig:
 
     if path not in _CAMPAIGNS:
         if not Path(path).is_file():

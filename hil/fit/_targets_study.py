@@ -265,9 +265,10 @@ def fit_targets(targets_path: str | Path, *, out_plant: str | Path, trials: int 
                            pruned=sum(t.state.name == "PRUNED" for t in all_trials), trials_run=todo, wall_s=wall)
     if not complete:
         return result
-    best = min(complete, key=lambda t: (t.value, t.number))
+    best_value, best = min(((t.value, t) for t in complete if t.value is not None),
+                           key=lambda vt: (vt[0], vt[1].number))
     plant_values, ctrl_values = _trial_values(config, best)
-    result.best_trial, result.best_value = best.number, float(best.value)
+    result.best_trial, result.best_value = best.number, float(best_value)
     result.plant_params, result.controller_params = plant_values, ctrl_values
     result.controllers = proposed_controllers(config, {**{p.name: p.default for p in config.search.controller_params},
                                                        **ctrl_values})

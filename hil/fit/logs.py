@@ -138,9 +138,10 @@ def load_fit_log(path: str | Path) -> FitLog:
                                 "needed for the imbalance and the carrier's motion")
         pose = _pose_on_loop(hexa, arrays["t_host_ns"], arrays["t_s"])
     prov = data.attrs.get("provenance") or {}
+    ident = data.attrs.get("ident")
     log = FitLog(path=p, kind=kind, axis=axis, loop=arrays, pose=pose, config=config,
                  provenance=prov if isinstance(prov, dict) else {},
-                 boards=data.attrs.get("ident") if isinstance(data.attrs.get("ident"), dict) else {},
+                 boards=ident if isinstance(ident, dict) else {},
                  dt_s=dt, controller=str(data.attrs.get("controller", "")), excitation=excitation)
     if gaps:
         log.notes.append(f"{gaps} tick gaps (missed samples): rows around them are left out")

@@ -254,7 +254,7 @@ def apply_params(cfg: Mapping[str, Any], values: Mapping[str, float]) -> dict[st
     return out
 
 
-def validate_plant(cfg: Mapping[str, Any]) -> Any:
+def validate_plant(cfg: Mapping[str, Any]) -> PlantConfig:
     """``PlantConfig`` of a plant dict (ValueError with the field on a bad one)."""
 
     return PlantConfig.model_validate(dict(cfg))

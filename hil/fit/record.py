@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from hil.analysis import IDENT_SWEEP, SweptSine
 from hil.campaign import load_campaign, run_campaign
@@ -96,7 +96,7 @@ def recording_plan(base: SessionConfig, *, static_s: float = 30.0, swing_s: floa
                       session("fit-static", None, "eso_kf", static_s, False))]
     for axis in axes:
         sweep = SweptSine(f_start_hz=f_start_hz, f_stop_hz=f_stop_hz, duration_s=sweep_s, amplitude_dps=amplitude_dps,
-                          axis=axis, offset_dps=offset_dps)  # type: ignore[arg-type]
+                          axis=axis, offset_dps=offset_dps)
         cfg = session(f"fit-ident-{axis}", None, "eso", sweep.total_s + 0.5, False)
         plan.append(Recording(f"fit-ident-{axis}", "ident", cfg.duration_s,
                               f"k_m of {axis}, the gyro's bandwidth and delay (the whole loop delay, the wire's "
@@ -125,7 +125,7 @@ def record(plan: list[Recording], *, loopback: bool, out_dir: str | Path | None 
     turning back: ``hil.fit.twin.linear_frf``) is recorded again with PI + LPF (``FALLBACK_CONTROLLER``), whose
     gain does not depend on a b0 guessed for the axis; the log that passes is kept."""
     logs: list[Path] = []
-    clock = "sim" if loopback else None
+    clock: Literal["sim"] | None = "sim" if loopback else None
     for i, rec in enumerate(plan, 1):
         if progress is not None:
             each = " a sweep, up to 6 sweeps when levelled" if rec.sweep is not None and level else ""

@@ -119,7 +119,7 @@ def match_breakaway(logs: list[FitLog], plant: Mapping[str, Any], axes: list[str
             if progress is not None:
                 progress(f"friction breakaway ({', '.join(axes)}): the swing logs re-run on the twin, {done} of "
                          f"{n + 1}")
-            values = {}
+            values: dict[str, float] = {}
             for ax, (r, v) in points.items():
                 values |= {f"friction.{ax}.stiction_ratio": r, f"friction.{ax}.stribeck_rate_dps": v}
             path = dump_plant(apply_params(copy.deepcopy(dict(plant)), values), work / "plant.yaml", "breakaway")
@@ -149,7 +149,10 @@ def match_breakaway(logs: list[FitLog], plant: Mapping[str, Any], axes: list[str
             c = float(np.sum(d[use] ** 2))
             return c if math.isfinite(c) else math.inf  # a point whose re-run failed is never chosen
 
-        best = {ax: min(range(len(paths[ax])), key=lambda k, ax=ax: cost(dev[k][ax])) for ax in axes}
+        def cost_at(ax: str) -> Callable[[int], float]:
+            return lambda k: cost(dev[k][ax])
+
+        best = {ax: min(range(len(paths[ax])), key=cost_at(ax)) for ax in axes}
         mids = {}
         for ax in axes:
             i, last = best[ax], len(paths[ax]) - 1

@@ -17,10 +17,13 @@ import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.config import ConfigError
 from hil.study._store import open_study, rdb_storage
+
+if TYPE_CHECKING:
+    import optuna
 
 STUDY_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")
 MAX_TRIALS = 100_000
@@ -44,7 +47,7 @@ def check_trials(trials: int) -> int:
 class StudyRun:
     """An opened study and what this run owes it."""
 
-    study: Any  # optuna.Study
+    study: optuna.Study
     name: str
     url: str
     created: bool  # False: an existing study resumed
@@ -88,8 +91,8 @@ def failed(trial: Any, exc: BaseException, t0: float | None = None) -> float:
     return math.nan
 
 
-def run_study(run: StudyRun, objective: Callable[[Any], float], *, n_jobs: int = 1, timeout_s: float | None = None,
-              callbacks: Sequence[Callable[[Any, Any], None]] = ()) -> float:
+def run_study(run: StudyRun, objective: Callable[[Any], float | Sequence[float]], *, n_jobs: int = 1,
+              timeout_s: float | None = None, callbacks: Sequence[Callable[[Any, Any], None]] = ()) -> float:
     """Run the trials ``run`` owes (``n_jobs`` at a time; ``timeout_s`` stops earlier). Returns the wall time (s)."""
     from optuna.trial import TrialState  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 

@@ -7,9 +7,12 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.config import ConfigError
+
+if TYPE_CHECKING:
+    import optuna
 
 HEARTBEAT_S = 30  # RDB heartbeat: a trial left RUNNING by a killed run is failed after GRACE_S
 GRACE_S = 120
@@ -24,7 +27,7 @@ def storage_url(storage: str | None, out_dir: Path) -> str:
     return storage
 
 
-def rdb_storage(url: str) -> Any:
+def rdb_storage(url: str) -> optuna.storages.RDBStorage:
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
     import sqlalchemy.exc  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
@@ -40,14 +43,15 @@ def rdb_storage(url: str) -> Any:
 
 
 def open_study(rdb: Any, study_name: str, sampler: Any, direction: str | Sequence[str], *, meta: dict[str, Any],
-               exists: bool, pruner: Any = None) -> Any:
+               exists: bool, pruner: Any = None) -> optuna.Study:
     """Create the study, or load it (``exists``) and check it was made with the same ``meta`` (its user attributes:
     the space, the objective, ...); ConfigError naming ``resume`` if not. A new study gets ``meta`` stored."""
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)
 
     directions = [direction] if isinstance(direction, str) else list(direction)
+    # the direction strings as the caller gives them: Optuna checks them itself
     st = optuna.create_study(storage=rdb, sampler=sampler, pruner=pruner, study_name=study_name,
-                             directions=directions, load_if_exists=True)
+                             directions=directions, load_if_exists=True)  # type: ignore[arg-type]
     for key, value in meta.items():
         if not exists:
             st.set_user_attr(key, value)

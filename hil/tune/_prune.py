@@ -52,9 +52,9 @@ class CellPruner(optuna.pruners.BasePruner):
 def best_feasible(study: optuna.Study) -> tuple[Any, int] | None:
     """(the best complete trial whose constraints all hold, how many trials have completed), or None."""
     done = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
-    ok = [t for t in done
+    ok = [(t.value, t) for t in done
           if t.value is not None and math.isfinite(t.value) and all(c <= 0 for c in t.constraints.values())]
     if not ok:
         return None
     sign = 1.0 if study.direction == optuna.study.StudyDirection.MINIMIZE else -1.0
-    return min(ok, key=lambda t: (sign * t.value, t.number)), len(done)
+    return min(ok, key=lambda vt: (sign * vt[0], vt[1].number))[1], len(done)

@@ -42,27 +42,32 @@ def _plot_history(result: TuneResult, path: Path) -> Path | None:
         return None
     fig, ax = new_figure()
     a = ax[0, 0]
+    value = {t.number: t.value for t in done if t.value is not None}
     ok = [t for t in done if t.feasible]
     bad = [t for t in done if not t.feasible]
     if ok:
-        a.plot([t.number for t in ok], [t.value for t in ok], "o", ms=3.5, color="C0", label="feasible trial")
+        a.plot([t.number for t in ok], [value[t.number] for t in ok], "o", ms=3.5, color="C0",
+               label="feasible trial")
     if bad:
-        a.plot([t.number for t in bad], [t.value for t in bad], "x", ms=4, color="C3", label="infeasible trial")
+        a.plot([t.number for t in bad], [value[t.number] for t in bad], "x", ms=4, color="C3",
+               label="infeasible trial")
     failed = [t.number for t in result.trials if t.state == "FAIL"]
     pick = min if result.direction == "minimize" else max
-    best, xs, ys = None, [], []
+    best: float | None = None
+    xs: list[int] = []
+    ys: list[float] = []
     for t in sorted(ok, key=lambda t: t.number):
-        best = t.value if best is None else pick(best, t.value)
+        best = value[t.number] if best is None else pick(best, value[t.number])
         xs.append(t.number)
         ys.append(best)
     if xs:
         a.step(xs, ys, where="post", color="k", lw=1.2, label="best feasible so far")
     if failed:
-        lo = min(t.value for t in done)
+        lo = min(value.values())
         a.plot(failed, [lo] * len(failed), "|", ms=8, color="0.5", label="failed (unstable) trial")
     a.set(title=f"{result.study}: {result.objective} per trial ({result.direction})", xlabel="trial",
           ylabel=result.objective)
-    if all(t.value > 0 for t in done):
+    if all(v > 0 for v in value.values()):
         a.set_yscale("log")
     a.grid(alpha=0.3)
     legend_below(fig, a)
@@ -157,7 +162,7 @@ def _plot_importances(imp: dict[str, float], path: Path) -> Path | None:
     return save_figure(fig, path)
 
 
-def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> Any:
+def write_tune_report(result: TuneResult, study: optuna.Study | None = None) -> ReportFiles:
     """tune.md, tune.html and the plots into the study's directory: the best parameters, the optimisation history,
     the parameter importances, the best trial's campaign table, the trials. Returns a ReportFiles."""
     import optuna  # noqa: PLC0415  (heavy (Optuna, SQLAlchemy): loaded only when a study runs)

@@ -295,6 +295,17 @@ def _best(trials: list[TrialInfo], direction: str) -> TrialInfo | None:
     return (min if direction == "minimize" else max)(ok, key=lambda t: (t.value, t.number))
 
 
+def _space(params: str | Sequence[str] | Sequence[ParamSpec], entry: ControllerEntry) -> list[ParamSpec]:
+    """The study's search space: ``params`` as given (every item a :class:`ParamSpec`), else parsed for ``entry``'s
+    controller (:func:`parse_params`; a :class:`ParamSpec` among strings as its own text)."""
+    if isinstance(params, str):
+        return parse_params(params, entry.name, entry.params)
+    specs = [p for p in params if isinstance(p, ParamSpec)]
+    if specs and len(specs) == len(params):
+        return specs
+    return parse_params([p if isinstance(p, str) else str(p) for p in params], entry.name, entry.params)
+
+
 def _engine_options(engine: str, scheduler: str | None, shared_dir: str | Path | None) -> dict[str, Any]:
     """The runner's keyword arguments for the engine, checked by the campaign's own rule
     (:func:`hil.campaign.engines.check_options`, nothing started); without a scheduler the dask engine's address is
@@ -361,7 +372,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
 
 
     try:
-        config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore
+        config = load_campaign(campaign) if isinstance(campaign, str | Path) else campaign
     except CampaignError as exc:
         raise ConfigError(str(exc)) from None
     goals = [parse_objective(o) for o in ([objective] if isinstance(objective, str | Objective) else objective)]
@@ -372,9 +383,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
     if not 1 <= workers <= 256 or not 1 <= jobs <= 64:
         raise ConfigError(f"workers={workers} / jobs={jobs}: need 1..256 and 1..64")
     entry = choose_controller(config, controller)
-    space = params if params and all(isinstance(p, ParamSpec) for p in params) else \
-        parse_params(params, entry.name, entry.params)  # type: ignore[arg-type]
-    space = list(space)  # type: ignore[arg-type]
+    space = _space(params, entry)
     cons = parse_constraints(constraints)
     check_cells([*goals, *cons], [p.label for p in config.profiles], f"campaign {config.name!r}")
     study_name = check_study_name(study or config.name)
@@ -442,7 +451,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
                         raise optuna.TrialPruned()
 
             result = run_campaign(cfg, trial_dir, jobs=jobs, on_cell=on_cell, **kwargs)
-            values, cvals, attrs = evaluate_all(result, trial_dir, goals, cons, scored=scored)
+            means, cvals, attrs = evaluate_all(result, trial_dir, goals, cons, scored=scored)
         except optuna.TrialPruned:
             trial.set_user_attr("wall_s", time.monotonic() - t0)
             raise
@@ -459,7 +468,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         for name, v in zip(attrs["constraint_names"], cvals, strict=True):
             trial.set_constraint(name, v)  # TPE: feasible when every value is <= 0
         trial.set_user_attr("wall_s", time.monotonic() - t0)
-        return tuple(values) if multi else values[0]
+        return tuple(means) if multi else means[0]
 
     def callback(s: optuna.Study, frozen: optuna.trial.FrozenTrial) -> None:
         if on_trial is None:
@@ -488,7 +497,7 @@ def tune(campaign: CampaignConfig | str | Path, params: str | Sequence[str] | Se
         best = _best(infos, direction)
     if best is not None:
         result.best_trial, result.best_value, result.best_params = best.number, best.value, best.params
-        result.best_values = list(best.values or (best.value,))
+        result.best_values = [v for v in (best.values or (best.value,)) if v is not None]
         result.params = {**entry.params, **best.params}
         scores = ", ".join(f"mean {g} {v:.6g}" for g, v in zip(goals, result.best_values, strict=True))
         how = (f"the point of the Pareto front ({len(result.pareto)} trials) nearest the best of every objective; "
