@@ -1,5 +1,4 @@
-"""One fitted parameter (:class:`Estimate`: value, 1-sigma, status, source) and its grading against the
-target accuracy of :mod:`hil.fit.ranges` (:func:`grade`)."""
+"""One fitted parameter (:class:`Estimate`) and its grade against the target accuracy (:func:`grade`)."""
 
 from __future__ import annotations
 

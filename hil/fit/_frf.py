@@ -1,5 +1,4 @@
-"""The frequency response of an ident log (:func:`fit_frequency_response`): the sweep's FRF on the bins the loop
-passed linearly, its analytic fit, and the finish on the emulated plant's own response."""
+"""An ident log's frequency response and its fit, finished on the emulated plant's own response."""
 
 from __future__ import annotations
 

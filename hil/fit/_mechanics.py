@@ -1,5 +1,4 @@
-"""The torque balance of every log with motion (:func:`fit_mechanics`): friction, cable, current limit and
-imbalance by an equation-error fit, with the carrier's specific force in the elevation frame."""
+"""The torque balance of the logs with motion: friction, cable, current limit, imbalance (:func:`fit_mechanics`)."""
 
 from __future__ import annotations
 

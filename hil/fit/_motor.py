@@ -1,5 +1,4 @@
-"""The motor and its driver as the logs see them: the armature current of a drive, the drive the plant received at
-the current limit, and the drive whose torque the motor made with its ripple."""
+"""The motor and its driver as the logs see them: the armature current, the current limit, the torque ripple."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""The gyro's noise from the static logs (:func:`fit_noise`): the white noise std per axis, one band-limited
-component, and the bias."""
+"""The gyro's white noise, band-limited component and bias from the static logs (:func:`fit_noise`)."""
 
 from __future__ import annotations
 

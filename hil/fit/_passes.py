@@ -1,5 +1,4 @@
-"""The whole fit (:func:`fit_logs`, :class:`TwinFit`): the passes over the logs in the order each estimate feeds
-the next (frequency response, torque balance, again with its springs, noise, breakaway)."""
+"""The whole fit (:func:`fit_logs`): the passes over the logs, in the order each estimate feeds the next."""
 
 from __future__ import annotations
 

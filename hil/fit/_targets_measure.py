@@ -1,5 +1,4 @@
-"""The targets' cells run on a plant (:func:`measure`): each campaign cell on the sim clock, in a warm worker
-process, ``jobs`` at a time."""
+"""The targets' campaign cells run on a plant, on the sim clock, in warm workers (:func:`measure`)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""The targets file's model (:class:`TargetsConfig`: the published figures, the cells that measure them, the
-search) and :func:`load_targets`."""
+"""The targets file's model (:class:`TargetsConfig`: figures, measuring cells, search) and :func:`load_targets`."""
 
 from __future__ import annotations
 

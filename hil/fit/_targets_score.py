@@ -1,5 +1,4 @@
-"""A measurement scored against the paper: the objective (weighted squared log ratios), the paper's premises and
-the residual table."""
+"""A measurement scored against the paper: the objective, the paper's premises, the residual table."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""The targets fit (:func:`fit_targets`): the Optuna study over the plant and controller parameters, its pruning
-rule, the best trial's plant and its verification."""
+"""The targets fit (:func:`fit_targets`): the Optuna study, its pruning, the best plant and its verification."""
 
 from __future__ import annotations
 

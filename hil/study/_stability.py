@@ -1,5 +1,4 @@
-"""The one stability rule of tuning and of the paper-targets fit (:func:`unstable_reason`): when a session counts
-as unstable."""
+"""The one stability rule of tuning and of the paper-targets fit: when a session counts as unstable."""
 
 from __future__ import annotations
 
@@ -8,9 +7,9 @@ TRACK_VALID_MIN_FRAC = 0.5  # a tracking cell with fewer valid frames than this 
 
 
 def unstable_reason(saturated_frac: float, valid_frac: float | None) -> str:
-    """Why a session with this :func:`log_health` counts as unstable, "" if it does not: the one rule of tuning and of
-    the paper-targets fit. A drive at its limit more than SATURATION_MAX_FRAC of the time, or (a tracking session)
-    fewer than TRACK_VALID_MIN_FRAC of the frames valid."""
+    """Why a session with this :func:`hil.campaign.metrics.log_health` counts as unstable, "" if it does not: the
+    one rule of tuning and of the paper-targets fit. A drive at its limit more than SATURATION_MAX_FRAC of the time,
+    or (a tracking session) fewer than TRACK_VALID_MIN_FRAC of the frames valid."""
     if saturated_frac > SATURATION_MAX_FRAC:
         return f"unstable: the drive sat at its limit {100 * saturated_frac:.0f} % of the time"
     if valid_frac is not None and valid_frac < TRACK_VALID_MIN_FRAC:

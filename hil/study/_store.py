@@ -1,6 +1,7 @@
-"""Where a study lives: the Optuna RDB storage (SQLite by default, any SQLAlchemy URL for a study several machines
-share; a heartbeat fails the trials of a killed run) and ``open_study`` (create, or load and check it was made with
-the same space and objective)."""
+"""Where a study lives: its Optuna RDB storage and ``open_study``.
+
+SQLite by default, any SQLAlchemy URL for a study several machines share; a heartbeat fails the trials of a killed
+run. ``open_study`` creates a study, or loads one and checks it was made with the same space and objective."""
 
 from __future__ import annotations
 

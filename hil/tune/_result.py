@@ -1,5 +1,4 @@
-"""What a study found, as ``hil tune`` reports it: the result records ``TrialInfo`` and ``TuneResult`` (the storage
-is :mod:`hil.study`'s)."""
+"""What a tuning study found: the result records ``TrialInfo`` and ``TuneResult``."""
 
 from __future__ import annotations
 
