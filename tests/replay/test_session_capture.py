@@ -16,8 +16,8 @@ from hil.link import CaptureDecode, CaptureReader, PortUnavailable, decode_captu
 from hil.log import read_log
 from hil.protocol import CATALOGUE, Ack, DriveCmd, GyroSample, LinkCounters
 from hil.session import Session, SimLab, run_sim_session, sim_ports
-from tests.capture.conftest import CapturedRun
 from tests.factories import session_config
+from tests.replay.conftest import CapturedRun
 
 
 def exchanged(run: CapturedRun) -> tuple[CaptureDecode, list]:

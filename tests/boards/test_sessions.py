@@ -20,8 +20,8 @@ from hil.protocol import HexAxis
 from hil.protocol.swing import Segment
 from hil.session import Session, SessionResult, sim_ports
 from tests import factories
+from tests.boards.drivers import RecordingHexapod, RecordingOptions
 from tests.factories import run_session, session_config
-from tests.hexapod.drivers import RecordingHexapod, RecordingOptions
 from tests.session.helpers import logged_events
 
 SEGMENT = Segment(HexAxis.PITCH, 0.0, 10.0, 1.0, 1.0)

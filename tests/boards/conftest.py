@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.hexapod import drivers
+from tests.boards import drivers
 
 EXAMPLE_PKG = Path(__file__).with_name("example_pkg")
 

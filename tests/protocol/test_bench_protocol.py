@@ -13,7 +13,7 @@ from types import ModuleType
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_protocol.py"
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_protocol.py"
 
 
 def load_bench() -> ModuleType:

@@ -16,7 +16,7 @@ from hil.link import RECORD_OVERHEAD, CaptureReader, decode_capture, link_decode
 from hil.protocol import CATALOGUE, DriveCmd, GyroSample, HexapodStop
 from hil.replay import CapturePlayer, PlaybackResult, ReplayError, play_capture
 from hil.session import EmulatorProcess
-from tests.capture.conftest import CapturedRun
+from tests.replay.conftest import CapturedRun
 
 runner = CliRunner()
 

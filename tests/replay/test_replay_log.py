@@ -16,8 +16,8 @@ from hil.control.registry import ControllerConfigError
 from hil.log import read_log
 from hil.replay import ReplayError, replay_log, write_outputs, xcorr_lag
 from hil.session import run_sim_session
-from tests.capture.conftest import CapturedRun
 from tests.factories import session_config
+from tests.replay.conftest import CapturedRun
 
 
 def assert_reproduces_the_log(log: Path, *, one_per_frame: bool = False) -> None:

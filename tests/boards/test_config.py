@@ -12,7 +12,7 @@ import pytest
 
 from hil.boards import HEXAPOD_DRIVERS, HexapodOptions, ProtocolHexapod, installed_hexapod_drivers, load_hexapod_driver
 from hil.config import PROFILES, ConfigError, SessionConfig, load_session
-from tests.hexapod.drivers import RecordingHexapod, RecordingOptions
+from tests.boards.drivers import RecordingHexapod, RecordingOptions
 
 PORTS3 = "ports: {servo: {port: /dev/ttyS0}, driver: {port: /dev/ttyS1}, image: {port: /dev/ttyS2}}\n"
 
@@ -62,10 +62,10 @@ def test_an_unknown_driver_is_one_line_naming_hexapod_driver_and_the_installed_o
 
 
 @pytest.mark.parametrize(("name", "why"), [
-    ("not_a_driver", "'not_a_driver' (tests.hexapod.drivers:NotADriver) is not a hil.boards.HexapodDriver subclass"),
-    ("incomplete", "'incomplete' (tests.hexapod.drivers:IncompleteHexapod) does not implement running, start, stop"),
-    ("missing", "'missing' (tests.hexapod.no_such_module:Driver) cannot be loaded: ModuleNotFoundError: "
-                "No module named 'tests.hexapod.no_such_module'"),
+    ("not_a_driver", "'not_a_driver' (tests.boards.drivers:NotADriver) is not a hil.boards.HexapodDriver subclass"),
+    ("incomplete", "'incomplete' (tests.boards.drivers:IncompleteHexapod) does not implement running, start, stop"),
+    ("missing", "'missing' (tests.boards.no_such_module:Driver) cannot be loaded: ModuleNotFoundError: "
+                "No module named 'tests.boards.no_such_module'"),
 ])
 def test_an_entry_point_that_is_no_driver_is_refused_when_the_session_is_read(tmp_path: Path, test_drivers: object,
                                                                               name: str, why: str) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from hil.control.registry import REGISTRY
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_control.py"
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_control.py"
 
 
 def test_control_benchmark_times_every_estimator_and_controller(tmp_path):

@@ -14,10 +14,10 @@ from hil.boards import HexapodDriver, HexapodOptions
 from hil.protocol.swing import Segment
 
 ENTRY_POINTS = {
-    "recording": "tests.hexapod.drivers:RecordingHexapod",
-    "not_a_driver": "tests.hexapod.drivers:NotADriver",
-    "incomplete": "tests.hexapod.drivers:IncompleteHexapod",
-    "missing": "tests.hexapod.no_such_module:Driver",
+    "recording": "tests.boards.drivers:RecordingHexapod",
+    "not_a_driver": "tests.boards.drivers:NotADriver",
+    "incomplete": "tests.boards.drivers:IncompleteHexapod",
+    "missing": "tests.boards.no_such_module:Driver",
 }
 
 
