@@ -35,7 +35,7 @@ BOARD_SECTIONS: list[tuple[str, m.Board | None]] = [
     ("Image-processing board", m.Board.IMAGE),
     ("Hexapod controller", m.Board.HEXAPOD),
 ]
-ENUMS: list[type[IntEnum]] = [
+ENUMS: list[type[IntEnum] | type[IntFlag]] = [
     m.Board,
     m.BoardState,
     m.ErrorCode,

@@ -305,8 +305,9 @@ class ProfileLoad(NamedTuple):
     profile against its envelope when the last segment arrives and NACKs with the axis and limit.
     """
 
-    index: Annotated[int, u8(doc="segment index, 0..count-1")]
-    count: Annotated[int, u8(doc="segments in the profile")]
+    # the wire's field names, shadowing tuple.index() and tuple.count() (a NamedTuple allows it)
+    index: Annotated[int, u8(doc="segment index, 0..count-1")]  # type: ignore[assignment]
+    count: Annotated[int, u8(doc="segments in the profile")]  # type: ignore[assignment]
     axis: Annotated[HexAxis, u8(doc="HexAxis", enum=HexAxis)]
     start_s: Annotated[float, f32("s", "segment start on the profile clock")]
     duration_s: Annotated[float, f32("s", "segment length")]
