@@ -299,6 +299,7 @@ def effective_params(controller_config: Any) -> dict[str, Any]:
     ``eso_kf_high_gain`` gives ``omega_o_rad_s`` 1000, not the 300 of ``eso_kf``. Returns plain JSON types, in
     the parameter model's field order. Raises :class:`ControllerConfigError` for an unknown name or parameter.
     """
+    name: object  # checked below: a str
     if isinstance(controller_config, str):
         name, params = controller_config, None
     elif isinstance(controller_config, Mapping):

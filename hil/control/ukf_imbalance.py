@@ -31,6 +31,7 @@ import math
 import random
 import time
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
 
@@ -238,6 +239,19 @@ class ImbalanceFeedForward:
 # --- scenario simulator (seed 001 section 4) ----------------------------------------------------------------------
 
 
+class UkfOptions(TypedDict, total=False):
+    """The :class:`ImbalanceUKF` keyword arguments a scenario passes on (the rest it sets from its own fields)."""
+
+    rho0_m: tuple[float, float]
+    rho0_std_m: float
+    rho_walk_std_m: float
+    accel_walk_std_m_s2: float
+    angle_walk_std_rad: float
+    alpha: float
+    beta: float
+    kappa: float
+
+
 @dataclass(slots=True)
 class ImbalanceScenario:
     """Seed 001 section 4 scenario on a 2-axis platform (eqs 1-5).
@@ -279,7 +293,7 @@ class ImbalanceScenario:
     accel_noise_m_s2: float = 0.02
     angle_noise_rad: float = 1e-5
     current_noise_a: float = 0.005
-    ukf_kwargs: dict[str, float] = field(default_factory=dict)
+    ukf_kwargs: UkfOptions = field(default_factory=UkfOptions)
 
 
 @dataclass(slots=True)
