@@ -402,11 +402,11 @@ class GuardedHexapod(HexapodDriver):
         driver.on_pose, driver.on_fault = self.driver.on_pose, self.driver.on_fault
         self.driver = driver
 
-    @property  # type: ignore[override]
-    def uses_link(self) -> bool:
+    @property
+    def uses_link(self) -> bool:  # type: ignore[override]  # the wrapped driver's class attribute, read per instance
         return self.driver.uses_link
 
-    @property  # type: ignore[override]
+    @property
     def on_pose(self) -> PoseCallback | None:
         return self.driver.on_pose
 
@@ -414,7 +414,7 @@ class GuardedHexapod(HexapodDriver):
     def on_pose(self, callback: PoseCallback | None) -> None:
         self.driver.on_pose = callback
 
-    @property  # type: ignore[override]
+    @property
     def on_fault(self) -> Callable[[str], None] | None:
         return self.driver.on_fault
 
