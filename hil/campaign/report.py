@@ -221,7 +221,8 @@ def verdict(result: CampaignResult) -> Banner:
         return Banner("No winner: no results to compare yet", f"{_on_what(result)} {accept}", result.passed)
     ranked = sorted(labels, key=lambda c: -wins[c])  # stable: the campaign's order breaks ties
     winner = ranked[0]
-    ref = result.config.baseline if result.config.baseline not in (None, winner, *oracles) else ranked[1]
+    baseline = result.config.baseline
+    ref = baseline if baseline is not None and baseline not in (winner, *oracles) else ranked[1]
     gains = _gains(result, winner, ref)
     if gains:
         mean = float(np.mean(gains))

@@ -216,10 +216,12 @@ def resolve_relative(value: Any, info: ValidationInfo) -> Any:
             return (Path(base) / value).resolve()
         return value
     path = Path(value)
-    if not path.is_absolute() and base is None:
-        raise ValueError(f"names {_as_named(value)}, relative to no file of the submitted item: {ITEM_RULE}")
+    if not path.is_absolute():
+        if base is None:
+            raise ValueError(f"names {_as_named(value)}, relative to no file of the submitted item: {ITEM_RULE}")
+        path = Path(base) / path
     try:
-        resolved = (path if path.is_absolute() else Path(base) / path).resolve()
+        resolved = path.resolve()
     except (OSError, ValueError, RuntimeError):
         resolved = None
     if resolved is None or not resolved.is_relative_to(root):

@@ -224,7 +224,9 @@ def _load(path: Path) -> _Inputs:
     loop = data.groups.get("loop") or {}
     if not loop or not len(loop.get("tick", ())):
         raise ReplayError(f"{path}: the log has no loop samples to replay")
-    config = data.attrs.get("config") if isinstance(data.attrs.get("config"), dict) else {}
+    config = data.attrs.get("config")
+    if not isinstance(config, dict):
+        config = {}
     notes: list[str] = []
     tracking = _section(TrackingConfig, config.get("tracking"), notes, "tracking")
     # a log written before sessions had a start pose phase had none
@@ -307,7 +309,8 @@ def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dic
     step = DriveStep(ctrl_az, ctrl_el, feed, clock, max_drive_counts=inp.safety.max_drive_counts,
                      max_slew_counts=inp.safety.max_slew_counts)
     n = inp.n
-    out = {key: np.zeros(n) for key in ("az_fb", "el_fb", "az_dist", "el_dist", "ff_el", "az_cmd", "el_cmd")}
+    out: dict[str, np.ndarray] = {key: np.zeros(n) for key in
+                                  ("az_fb", "el_fb", "az_dist", "el_dist", "ff_el", "az_cmd", "el_cmd")}
     drive_az, drive_el = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
     pending: deque[tuple[int, int]] = deque()  # (board time to use it, us; index into inp.frames)
     frames, poses = inp.frames, inp.poses
@@ -321,7 +324,7 @@ def _run(inp: _Inputs, spec: ControllerSpec) -> tuple[dict[str, np.ndarray], dic
     logged_az, logged_el = inp.drive["az"], inp.drive["el"]
     cmd32_az, cmd32_el = inp.cmd_logged["az"].tolist(), inp.cmd_logged["el"].tolist()
     f32 = np.float32
-    checks = Counter()
+    checks: Counter[str] = Counter()
     for k in range(n):
         while fi < len(frames) and frames[fi][0] <= k:  # camera frames that arrived before this sample
             pending.append((frames[fi][1], fi))

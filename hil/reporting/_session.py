@@ -297,7 +297,9 @@ def _provenance(provenance: Mapping[str, Any]) -> list[Block]:
         rows.append([Cell("plant file"), Cell(f"{plant.get('path')} (SHA-256 {plant.get('sha256')})")])
     controller = provenance.get("controller")
     if isinstance(controller, Mapping):
-        params = controller.get("params") if isinstance(controller.get("params"), Mapping) else {}
+        params = controller.get("params")
+        if not isinstance(params, Mapping):
+            params = {}
         text = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in params.items())
         rows.append([Cell("controller"), Cell(f"{controller.get('name', '')}: {text}".rstrip(": "))])
     return [Heading(2, "Software and parameters"), Table(["item", "recorded"], rows, "ll")] if rows else []
