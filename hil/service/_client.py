@@ -158,27 +158,27 @@ class Bench:
     # --- the API, one method a call -----------------------------------------------------------------
 
     def status(self) -> dict[str, Any]:
-        return self.call("GET", "/api/status")  # type: ignore[no-any-return]
+        return self.call("GET", "/api/status")
 
     def queue(self) -> dict[str, Any]:
-        return self.call("GET", "/api/queue")  # type: ignore[no-any-return]
+        return self.call("GET", "/api/queue")
 
     def add(self, file: str | Path | SessionConfig, *, kind: str = "session", options: dict[str, Any] | None = None,
             position: int | None = None) -> dict[str, Any]:
         """Submit a session, ident or campaign file (checked here first, as the CLI would, then by the service), with
         its own files (:func:`item_text`)."""
         file_name, body, files = item_text(file, kind)
-        return self.call("POST", "/api/queue/items",  # type: ignore[no-any-return]
+        return self.call("POST", "/api/queue/items",
                          {"kind": kind, "file_name": file_name, "body": body, "files": files, "options": options or {},
                           **({"position": position} if position is not None else {})})
 
     def remove(self, uid: str) -> dict[str, Any]:
         """Take a waiting item off the queue; ``uid`` may be a unique prefix of it (:meth:`resolve`)."""
-        return self.call("DELETE", f"/api/queue/items/{_quoted(self.resolve(uid))}")  # type: ignore[no-any-return]
+        return self.call("DELETE", f"/api/queue/items/{_quoted(self.resolve(uid))}")
 
     def move(self, uid: str, position: int) -> dict[str, Any]:
         """Move a waiting item to ``position`` (0 first); ``uid`` may be a unique prefix of it."""
-        return self.call("POST", f"/api/queue/items/{_quoted(self.resolve(uid))}/move",  # type: ignore[no-any-return]
+        return self.call("POST", f"/api/queue/items/{_quoted(self.resolve(uid))}/move",
                          {"position": position})
 
     def resolve(self, uid: str) -> str:
@@ -206,40 +206,40 @@ class Bench:
                               "(`hil queue list` shows them)")
 
     def clear(self) -> dict[str, Any]:
-        return self.call("POST", "/api/queue/clear", {})  # type: ignore[no-any-return]
+        return self.call("POST", "/api/queue/clear", {})
 
     def start(self, stop_on_failure: bool = False) -> dict[str, Any]:
-        return self.call("POST", "/api/queue/start", {"stop_on_failure": stop_on_failure})  # type: ignore[no-any-return]
+        return self.call("POST", "/api/queue/start", {"stop_on_failure": stop_on_failure})
 
     def stop_queue(self) -> dict[str, Any]:
-        return self.call("POST", "/api/queue/stop", {})  # type: ignore[no-any-return]
+        return self.call("POST", "/api/queue/stop", {})
 
     def item(self, uid: str) -> dict[str, Any]:
         """An item as it stands: queued (its place, who runs before it, the lease and the queue's state), running
         (cycles of total) or done (its history record)."""
-        return self.call("GET", f"/api/items/{_quoted(uid)}")  # type: ignore[no-any-return]
+        return self.call("GET", f"/api/items/{_quoted(uid)}")
 
     def history(self, limit: int = 100) -> list[dict[str, Any]]:
-        return self.call("GET", f"/api/history?limit={int(limit)}")["records"]  # type: ignore[no-any-return]
+        return self.call("GET", f"/api/history?limit={int(limit)}")["records"]
 
     def stop(self, reason: str = "", uid: str | None = None) -> dict[str, Any]:
         """Stop the running item the normal way (the swing stopped while stabilizing, then the driver disabled);
         with ``uid`` (or a unique prefix of it), only if that item is the one running."""
         uid = None if uid is None else self.resolve(uid)
-        return self.call("POST", "/api/bench/stop", {"reason": reason, "uid": uid})  # type: ignore[no-any-return]
+        return self.call("POST", "/api/bench/stop", {"reason": reason, "uid": uid})
 
     def abort(self, reason: str = "", uid: str | None = None) -> dict[str, Any]:
         """Abort the running item: the driver disabled first; with ``uid``, only if that item is the one running."""
         uid = None if uid is None else self.resolve(uid)
-        return self.call("POST", "/api/bench/abort", {"reason": reason, "uid": uid})  # type: ignore[no-any-return]
+        return self.call("POST", "/api/bench/abort", {"reason": reason, "uid": uid})
 
     def doctor(self) -> dict[str, Any]:
         """Run `hil doctor`'s checks on the service's ports (between items); the status then shows them."""
-        return self.call("POST", "/api/bench/doctor", {})  # type: ignore[no-any-return]
+        return self.call("POST", "/api/bench/doctor", {})
 
     def lease(self, ttl_s: float = 300.0) -> dict[str, Any]:
         """Take (or renew) the lease: only your items run until it lapses (renew within ``ttl_s``)."""
-        return self.call("POST", "/api/lease", {"ttl_s": ttl_s})  # type: ignore[no-any-return]
+        return self.call("POST", "/api/lease", {"ttl_s": ttl_s})
 
     @contextlib.contextmanager
     def leased(self, ttl_s: float = 30.0) -> Iterator[dict[str, Any]]:
@@ -265,10 +265,10 @@ class Bench:
                 self.release()
 
     def release(self) -> dict[str, Any]:
-        return self.call("DELETE", "/api/lease")  # type: ignore[no-any-return]
+        return self.call("DELETE", "/api/lease")
 
     def break_lease(self, reason: str) -> dict[str, Any]:
-        return self.call("POST", "/api/lease/break", {"reason": reason})  # type: ignore[no-any-return]
+        return self.call("POST", "/api/lease/break", {"reason": reason})
 
     # --- a run, as hil.run ---------------------------------------------------------------------------
 

@@ -386,5 +386,6 @@ def _queued(row: tuple[Any, ...]) -> QueuedItem:
 
 
 def _record(row: tuple[Any, ...]) -> HistoryRecord:
-    *head, summary = row
-    return HistoryRecord(*head, summary=json.loads(summary))
+    seq, uid, kind, name, user, file_name, submitted_at, started_at, ended_at, status, message, log_path, summary = row
+    return HistoryRecord(seq, uid, kind, name, user, file_name, submitted_at, started_at, ended_at, status, message,
+                         log_path, json.loads(summary))
