@@ -7,15 +7,23 @@ a run loads what it needs to check its file when it has one."""
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 from hil.cli._common import err_console, fail, no_progress, note
+
+if TYPE_CHECKING:
+    from hil.api import RunResult
+    from hil.service import Bench
+
+_P = ParamSpec("_P")
+_T = TypeVar("_T")
 
 EXIT_BAD_INPUT = 2
 
 
-def client(url: str | None):  # type: ignore[no-untyped-def]
+def client(url: str | None) -> Bench:
     from hil.service import Bench  # noqa: PLC0415  (the client loads on first use: `hil --help` stays fast)
 
     try:
@@ -24,7 +32,7 @@ def client(url: str | None):  # type: ignore[no-untyped-def]
         raise fail(str(exc)) from None
 
 
-def call(fn, *args: Any, **kwargs: Any) -> Any:  # type: ignore[no-untyped-def]
+def call(fn: Callable[_P, _T], *args: _P.args, **kwargs: _P.kwargs) -> _T:
     """A client call; the service's refusal as one line (exit 2 for bad input, 1 otherwise)."""
     from hil.service import BenchError  # noqa: PLC0415  (the client loads on first use: `hil --help` stays fast)
 
@@ -85,7 +93,7 @@ def waiting_line(name: str, url: str, view: dict[str, Any]) -> str:
 
 
 def run_on_bench(url: str, file: Path, out: Path | None, json_out: bool, *, kind: str = "session",
-                 options: dict[str, Any] | None = None) -> Any:
+                 options: dict[str, Any] | None = None) -> tuple[RunResult, dict[str, Any]]:
     """Submit ``file`` to the service, follow it with a progress bar, download the log; the RunResult and the
     item's history record. The client owns its item: Ctrl-C takes it off the queue or stops it, a second Ctrl-C
     aborts it, and the item's end still comes back (:meth:`hil.service.Bench.follow`)."""

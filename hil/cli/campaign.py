@@ -8,13 +8,16 @@ import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
 from rich.table import Table
 
 from hil.cli._bench import call, client, say, waiting_line
 from hil.cli._common import app, check_out_dir, console, err_console, fail, no_progress, note, print_json
+
+if TYPE_CHECKING:
+    from hil.campaign import CampaignResult, CellResult
 
 
 def campaign_json(run: Any) -> dict[str, Any]:
@@ -170,7 +173,7 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
                 disable=no_progress(json_out)) as bar:
             task = bar.add_task("cells", total=n_cells, last="")
 
-            def on_cell(cell) -> None:  # type: ignore[no-untyped-def]
+            def on_cell(cell: CellResult) -> None:
                 mark = "ok" if cell.passed else "FAIL"
                 bar.update(task, advance=1, last=f"{cell.cell_id} {mark}")
 
@@ -220,9 +223,10 @@ def campaign_on_bench(url: str, file: Path, json_out: bool, out: Path | None = N
     if json_out:
         print_json(record if out is None else {**record, "out": str(out), "files": [str(p) for p in files]})
     else:
-        summary = record.get("summary") or {}
+        summary: dict[str, Any] = record.get("summary") or {}
         colour = "green" if record["exit_code"] == 0 else "red"
-        verdict = {True: "PASS", False: "FAIL"}.get(summary.get("passed"), "")
+        verdicts: dict[object, str] = {True: "PASS", False: "FAIL"}
+        verdict = verdicts.get(summary.get("passed"), "")
         console.print(f"[bold {colour}]{record['status']}[/] {verdict} {record.get('message', '')}".rstrip(),
                       highlight=False)
         if record["links"].get("report"):
@@ -234,7 +238,7 @@ def campaign_on_bench(url: str, file: Path, json_out: bool, out: Path | None = N
     return int(bench.exit_code(record))
 
 
-def print_campaign(result) -> None:  # type: ignore[no-untyped-def]
+def print_campaign(result: CampaignResult) -> None:
     """The terminal table: one per profile, numbers formatted as in the report (format_values)."""
     from hil.campaign import METRICS  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
     from hil.campaign.report import format_values  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)

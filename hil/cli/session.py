@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
 from rich.table import Table
@@ -13,10 +13,15 @@ from rich.table import Table
 from hil.cli._bench import bench_for, run_on_bench
 from hil.cli._common import app, check_out_dir, console, err_console, fail, finite, no_progress, note, print_json
 
+if TYPE_CHECKING:
+    from hil.api import RunResult
+    from hil.config import SessionConfig
+    from hil.link._selftest import SelftestReport
+
 ClockOption = Literal["realtime", "lockstep", "sim"]
 
 
-def load_session_or_exit(path: Path):  # type: ignore[no-untyped-def]
+def load_session_or_exit(path: Path) -> SessionConfig:
     from hil.config import ConfigError, load_session  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
@@ -25,8 +30,8 @@ def load_session_or_exit(path: Path):  # type: ignore[no-untyped-def]
         raise fail(str(exc)) from None
 
 
-def run_and_print(config, out: Path | None, loopback: bool, clock: str | None, json_out: bool, *,  # type: ignore[no-untyped-def]
-                  capture: Path | None = None, show: bool = True):
+def run_and_print(config: SessionConfig, out: Path | None, loopback: bool, clock: str | None, json_out: bool, *,
+                  capture: Path | None = None, show: bool = True) -> RunResult:
     """Run one session through hil.api with a progress bar, print its summary (``show``), return the api's
     RunResult."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
@@ -54,7 +59,7 @@ def run_and_print(config, out: Path | None, loopback: bool, clock: str | None, j
     return result
 
 
-def print_result(result, json_out: bool) -> None:  # type: ignore[no-untyped-def]
+def print_result(result: RunResult, json_out: bool) -> None:
     summary = result.summary()
     if json_out:
         print_json(result.record(summary))
@@ -336,7 +341,7 @@ def selftest(
         raise typer.Exit(1)
 
 
-def _print_selftest(report) -> None:  # type: ignore[no-untyped-def]
+def _print_selftest(report: SelftestReport) -> None:
     b, c = report.board, report.counters
     t = Table(title="Protocol self-test: bench <-> emulated servo board on a pty")
     t.add_column("what")

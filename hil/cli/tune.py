@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 
 from hil.cli._common import Verbosity, app, console, err_console, fail, no_progress, note, print_json
+
+if TYPE_CHECKING:
+    from hil.tune import TrialInfo
 
 
 @app.command()
@@ -77,7 +80,7 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
                   transient=True, disable=no_progress(json_out)) as bar:
         task = bar.add_task("trials", total=None, last="")
 
-        def on_trial(t) -> None:  # type: ignore[no-untyped-def]
+        def on_trial(t: TrialInfo) -> None:
             what = ({"FAIL": "failed", "PRUNED": "pruned"}.get(t.state)
                     or f"{t.value:.4g}" + ("" if t.feasible else " infeasible"))
             bar.update(task, advance=1, last=f"trial {t.number}: {what}")
