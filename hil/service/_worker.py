@@ -214,7 +214,7 @@ class Worker:
         self.rt_refusal = fifo_refusal(SERVICE_RT_PRIORITY)
         self.rt_priority = 0 if self.rt_refusal else SERVICE_RT_PRIORITY
         self.boards_lock = asyncio.Lock()  # one of: an item, the doctor, the rest check has the ports open
-        self.rest_task: asyncio.Task[dict[str, Any]] | None = None
+        self.rest_task: asyncio.Task[None] | None = None
 
     # --- the lab -----------------------------------------------------------------------------------
 
