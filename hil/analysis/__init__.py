@@ -17,7 +17,7 @@ from hil.analysis._levels import (
 from hil.analysis._logs import GYRO_CHANNEL, axis_columns, host_disturbed, identify_log, log_frf, sweep_start
 from hil.analysis._plant import PlantFit, SweepShapes, fit_caption, fit_plant, plant_response
 from hil.analysis._summary import NO_BOARD_LATENCY, board_latency, drive_ripple, json_safe, summarize_log
-from hil.analysis._sweep import IDENT_SWEEP, SweptSine
+from hil.config import IDENT_SWEEP, SweptSine
 
 __all__ = [
     "GYRO_CHANNEL",

@@ -16,7 +16,7 @@ import numpy as np
 from hil.analysis._frf import HI_NPERSEG, Frf, default_nperseg
 from hil.analysis._logs import axis_columns, host_disturbed, sweep_start
 from hil.analysis._plant import PlantFit
-from hil.analysis._sweep import SweptSine
+from hil.config import SweptSine
 
 if TYPE_CHECKING:
     from hil.log.reader import LogData

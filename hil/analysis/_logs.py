@@ -13,7 +13,7 @@ import numpy as np
 
 from hil.analysis._frf import Frf, estimate_frf, estimate_sweep_frf
 from hil.analysis._plant import PlantFit, fit_plant
-from hil.analysis._sweep import SweptSine
+from hil.config import SweptSine
 from hil.log.schema import LATE_US
 
 if TYPE_CHECKING:

@@ -6,6 +6,7 @@ Files are read bounded (``read_yaml_mapping``: size, YAML node count, regular fi
 against the file that names them (``resolve_relative``), or kept inside a submitted item's own files
 (``confined_to``); ``MqttConfig`` is the broker section."""
 
+from hil.config._excitation import IDENT_SWEEP, SweptSine
 from hil.config._files import (
     MAX_CONFIG_BYTES,
     MAX_YAML_NODES,
@@ -45,6 +46,7 @@ from hil.config._models import (
 from hil.config._mqtt import MqttConfig, check_topic_name
 
 __all__ = [
+    "IDENT_SWEEP",
     "MAX_CONFIG_BYTES",
     "MAX_SESSION_S",
     "MAX_YAML_NODES",
@@ -62,6 +64,7 @@ __all__ = [
     "SessionConfig",
     "StartPoseConfig",
     "Strict",
+    "SweptSine",
     "SwingProfile",
     "TrackingConfig",
     "check_topic_name",

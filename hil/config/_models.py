@@ -36,8 +36,8 @@ from pydantic import (
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from hil.analysis import SweptSine
 from hil.boards import load_hexapod_driver
+from hil.config._excitation import SweptSine
 from hil.config._files import ConfigError, confinement, read_yaml_mapping, resolve_relative
 from hil.config._mqtt import MqttConfig
 from hil.control.registry import ControllerConfigError, controller_params
