@@ -27,7 +27,8 @@ with another duration. Parts, each measured against its peer in alternating roun
 3. The service's own cost per queued item: ``--item-rounds`` rounds of ``--items / --item-rounds`` sessions of
    ``--item-s``, queued at once through the service, alternating with the same sessions run one after another by
    ``hil.run`` in this process on a lab served as the worker serves it (one emulator started beforehand, its ports
-   claimed, ``hil.session.serve_lab``; each timed run is ``hil.run`` plus ``result.summary()``, what the worker does).
+   claimed, the lab passed to each run as ``lab=``; each timed run is ``hil.run`` plus ``result.summary()``, what
+   the worker does).
    Overhead per item = (the last item's ``ended_at`` - the first's ``started_at``) / items - the mean local time
    of one item. Also shown: the manager's gap from one item's end to the next one's start.
 4. ``--pollers`` threads each polling ``GET /api/status`` at ``--poll-hz`` (keep-alive http.client) during a
@@ -452,22 +453,21 @@ def fmt_row(row: dict[str, Any]) -> str:
 
 
 @contextlib.contextmanager
-def served_lab() -> Iterator[None]:
-    """This process serves an emulated lab as the service's worker does (one emulator, its ports claimed)."""
+def served_lab() -> Iterator[Any]:
+    """An emulated lab held as the service's worker holds it (one emulator, its ports claimed): the lab to pass
+    to each run."""
     from hil.config import PortConfig
     from hil.link import claim_ports
     from hil.protocol import LINKS
-    from hil.session import BenchLab, EmulatorProcess, serve_lab
+    from hil.session import BenchLab, EmulatorProcess
 
     emulator = EmulatorProcess(None, clock="realtime", seed=0)
     ports = {name: path for name, path in emulator.start().items() if name in LINKS}
     claims = claim_ports(ports, f"bench_service (pid {os.getpid()})")
     try:
-        serve_lab(BenchLab({name: PortConfig(port=p) for name, p in ports.items()}, claims, emulated=True,
-                           description="emulated lab (realtime), bench_service"))
-        yield
+        yield BenchLab({name: PortConfig(port=p) for name, p in ports.items()}, claims, emulated=True,
+                       description="emulated lab (realtime), bench_service")
     finally:
-        serve_lab(None)
         claims.release()
         emulator.stop()
 
@@ -479,8 +479,8 @@ def part_overhead(svc: Service, args: argparse.Namespace, work: Path) -> dict[st
     per_round = max(1, args.items // args.item_rounds)
     paths = [session_file(work, args.item_s, f"item{k}") for k in range(per_round)]
     rounds = []
-    with served_lab():
-        api.run(load_session(paths[0]), out=work / "inproc").summary()  # warm-up: the first run's imports
+    with served_lab() as lab:
+        api.run(load_session(paths[0]), out=work / "inproc", lab=lab).summary()  # warm-up: the first run's imports
         for r in range(args.item_rounds):
             bench.stop_queue()
             uids = [bench.add(p)["uid"] for p in paths]
@@ -494,7 +494,7 @@ def part_overhead(svc: Service, args: argparse.Namespace, work: Path) -> dict[st
             local_s = []
             for p in paths:
                 t0 = time.monotonic()
-                result = api.run(load_session(p), out=work / "inproc")
+                result = api.run(load_session(p), out=work / "inproc", lab=lab)
                 result.summary()
                 local_s.append(time.monotonic() - t0)
                 if result.status != "completed":

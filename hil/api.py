@@ -31,7 +31,10 @@ from hil.log import LogError
 from hil.log.reader import NotASessionLog
 from hil.session import (
     CLOCKS,
+    LABS,
+    BenchLab,
     Clock,
+    Lab,
     Progress,
     RunResult,
     check_hardware,
@@ -47,9 +50,31 @@ if TYPE_CHECKING:
     from hil.campaign.engines import Engine
     from hil.reporting import ReportFiles
 
-__all__ = ["CLOCKS", "CampaignRun", "Clock", "IdentRun", "Progress", "RunResult", "check_file", "doctor", "ident",
-           "load_session", "prepare_campaign", "prepare_run", "read_log", "replay_capture", "replay_log", "report",
-           "run", "run_async", "run_campaign", "tune"]
+__all__ = [
+    "CLOCKS",
+    "LABS",
+    "BenchLab",
+    "CampaignRun",
+    "Clock",
+    "IdentRun",
+    "Lab",
+    "Progress",
+    "RunResult",
+    "check_file",
+    "doctor",
+    "ident",
+    "load_session",
+    "prepare_campaign",
+    "prepare_run",
+    "read_log",
+    "replay_capture",
+    "replay_log",
+    "report",
+    "run",
+    "run_async",
+    "run_campaign",
+    "tune",
+]
 
 
 @dataclasses.dataclass
@@ -215,7 +240,7 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
           f_stop_hz: float = IDENT_SWEEP.f_stop_hz, sweep_s: float = IDENT_SWEEP.duration_s,
           amplitude_dps: float = IDENT_SWEEP.amplitude_dps, offset_dps: float = IDENT_SWEEP.offset_dps,
           level: bool = True, progress: Progress | None = None,
-          on_pass: Callable[[int, Any], None] | None = None) -> IdentRun:
+          on_pass: Callable[[int, Any], None] | None = None, lab: Lab | None = None) -> IdentRun:
     """Frequency-sweep identification (seed 000 Figs. 8-9, docs/ident.md): a swept sine on one axis's rate command
     of the closed rate loop (``session``'s controller, tracking off, no swing), the plant's frequency response from
     the log, a Bode plot and the fit of k_m, the gyro's bandwidth and the delay.
@@ -224,11 +249,12 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
     ``offset_dps`` are where it starts; up to three more sweeps raise the amplitude where the coherence fails and
     the drive has headroom, lower it where the drive saturates, raise the offset while the axis reverses (at most
     60 deg of travel), each pass turning the axis back. The fit is made on the widest coherent band only, and
-    ``band_hz`` reports it. ``on_pass(i, sweep)`` announces each pass. ValueError (ConfigError) for bad input; a
+    ``band_hz`` reports it. ``on_pass(i, sweep)`` announces each pass. ``lab``: the lab to run on
+    (:class:`hil.session.Lab`), whatever ``loopback`` and ``clock`` say. ValueError (ConfigError) for bad input; a
     fit that cannot be made raises ValueError naming the log."""
     return run_ident(session, axis=axis, loopback=loopback, clock=clock, out=out, f_start_hz=f_start_hz,
                      f_stop_hz=f_stop_hz, sweep_s=sweep_s, amplitude_dps=amplitude_dps, offset_dps=offset_dps,
-                     level=level, progress=progress, on_pass=on_pass)
+                     level=level, progress=progress, on_pass=on_pass, lab=lab)
 
 
 def replay_log(log: str | Path, controller: str | None = None, params: Any = None, *, settle_s: float = 1.0) -> Any:

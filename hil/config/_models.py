@@ -162,9 +162,10 @@ class HexapodLimits(Strict):
     yaw: AxisLimits
 
     def envelope(self) -> Envelope:
-        axes = (self.x, self.y, self.z, self.roll, self.pitch, self.yaw)
-        return Envelope(tuple(a.position for a in axes), tuple(a.rate for a in axes),  # type: ignore[arg-type]
-                        tuple(a.accel for a in axes))
+        x, y, z, roll, pitch, yaw = self.x, self.y, self.z, self.roll, self.pitch, self.yaw
+        return Envelope((x.position, y.position, z.position, roll.position, pitch.position, yaw.position),
+                        (x.rate, y.rate, z.rate, roll.rate, pitch.rate, yaw.rate),
+                        (x.accel, y.accel, z.accel, roll.accel, pitch.accel, yaw.accel))
 
 
 class HexapodConfig(BaseModel):

@@ -22,13 +22,20 @@ TIMEOUT = "timeout"
 class StartPoseSpec(Protocol):
     """What the phase reads of its configuration (hil.config.StartPoseConfig)."""
 
-    az_deg: float
-    el_deg: float
-    tolerance_deg: float
-    hold_ms: float
-    kp_per_s: float
-    max_rate_dps: float
-    timeout_s: float
+    @property
+    def az_deg(self) -> float: ...
+    @property
+    def el_deg(self) -> float: ...
+    @property
+    def tolerance_deg(self) -> float: ...
+    @property
+    def hold_ms(self) -> float: ...
+    @property
+    def kp_per_s(self) -> float: ...
+    @property
+    def max_rate_dps(self) -> float: ...
+    @property
+    def timeout_s(self) -> float: ...
 
 
 def wrap_deg(angle_deg: float) -> float:

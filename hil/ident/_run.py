@@ -17,7 +17,7 @@ from hil.analysis import IDENT_SWEEP, SweptSine, bode_plot
 from hil.config import ConfigError, SessionConfig, one_line, require_writable_dir
 from hil.control.registry import K_M_DEFAULT
 from hil.ident._sweeps import MIN_BAND_OCTAVES, ident_sweeps
-from hil.session import Clock, Progress, RunResult, as_session_config
+from hil.session import Clock, Lab, Progress, RunResult, as_session_config
 
 MAX_EL_TRAVEL_DEG = 60.0  # ident: keep the elevation axis away from the az-el gimbal's 90 deg singularity
 
@@ -44,7 +44,7 @@ def run_ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] 
               f_stop_hz: float = IDENT_SWEEP.f_stop_hz, sweep_s: float = IDENT_SWEEP.duration_s,
               amplitude_dps: float = IDENT_SWEEP.amplitude_dps, offset_dps: float = IDENT_SWEEP.offset_dps,
               level: bool = True, progress: Progress | None = None,
-              on_pass: Callable[[int, Any], None] | None = None) -> IdentRun:
+              on_pass: Callable[[int, Any], None] | None = None, lab: Lab | None = None) -> IdentRun:
     """Frequency-sweep identification (seed 000 Figs. 8-9, docs/ident.md): a swept sine on one axis's rate command
     of the closed rate loop (``session``'s controller, tracking off, no swing), the plant's frequency response from
     the log, a Bode plot and the fit of k_m, the gyro's bandwidth and the delay.
@@ -53,7 +53,8 @@ def run_ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] 
     ``offset_dps`` are where it starts; up to three more sweeps raise the amplitude where the coherence fails and
     the drive has headroom, lower it where the drive saturates, raise the offset while the axis reverses (at most
     60 deg of travel), each pass turning the axis back. The fit is made on the widest coherent band only, and
-    ``band_hz`` reports it. ``on_pass(i, sweep)`` announces each pass. ValueError (ConfigError) for bad input; a
+    ``band_hz`` reports it. ``on_pass(i, sweep)`` announces each pass. ``lab``: the lab to run on
+    (:class:`hil.session.Lab`), whatever ``loopback`` and ``clock`` say. ValueError (ConfigError) for bad input; a
     fit that cannot be made raises ValueError naming the log."""
     if axis not in ("el", "az"):
         raise ConfigError(f"axis={axis!r}: not el or az")
@@ -79,7 +80,7 @@ def run_ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] 
                           f"sweep (at most {MAX_EL_TRAVEL_DEG:g}: near 90 deg the cross-elevation gyro loses the "
                           "azimuth axis); lower offset_dps= or sweep_s=, or identify axis='az'")
     sweeps = ident_sweeps(config, sweep, level=level, loopback=loopback, clock=clock, out=out_dir, progress=progress,
-                          on_pass=on_pass)
+                          on_pass=on_pass, lab=lab)
     best, fit = sweeps.best, sweeps.fit
     passes = [{"pass": i, "log": None if p.run.log_path is None else str(p.run.log_path), "status": p.run.status,
                "amplitude_dps": p.sweep.amplitude_dps, "offset_dps": p.sweep.offset_dps,

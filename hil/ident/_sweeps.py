@@ -29,7 +29,7 @@ from hil.analysis import (
 )
 from hil.config import SessionConfig
 from hil.log import read_log
-from hil.session import Clock, Progress, RunResult, run
+from hil.session import Clock, Lab, Progress, RunResult, run
 
 COHERENCE_MIN = 0.8  # a bin counts in the fit from this coherence (hil.analysis.fit_plant's default)
 K_M_BELOW_HZ = 10.0  # a coherent band that does not reach below this cannot give k_m (the integrator's band)
@@ -108,11 +108,12 @@ def _examine(sweep: SweptSine, result: RunResult, max_drive_counts: float) -> Id
 def ident_sweeps(config: SessionConfig, sweep: SweptSine, *, level: bool = True, passes: int = LEVEL_PASSES,
                  offset_max_dps: float | None = None, loopback: bool = True, clock: Clock | None = None,
                  out: str | Path | None = None, progress: Progress | None = None,
-                 on_pass: Callable[[int, SweptSine], None] | None = None) -> IdentSweeps:
+                 on_pass: Callable[[int, SweptSine], None] | None = None, lab: Lab | None = None) -> IdentSweeps:
     """Run ``sweep`` as ``config``'s excitation and, with ``level``, up to ``passes`` sweeps levelled by
     ``hil.analysis.next_level`` (the drive's limit: ``config.safety.max_drive_counts``; the offset at most
     ``offset_max_dps``, default the sweep's or what turns the axis ``MAX_TRAVEL_DEG``, the larger). ``on_pass(i,
-    sweep)`` announces each pass (1-based). The pass kept is the one whose coherent band reaches below
+    sweep)`` announces each pass (1-based). ``lab``: the lab every pass runs on (default: ``loopback`` and ``clock``
+    choose, as for :func:`hil.session.run`). The pass kept is the one whose coherent band reaches below
     ``K_M_BELOW_HZ``, without a reversal inside it, widest, earliest (in that order); the fit is made on its band
     only, if it spans ``MIN_BAND_OCTAVES`` or more (the gyro's pole reported only inside it): the rigid model up to
     ``RIGID_HZ`` first, and if the band shows a resonance above that model (``hil.analysis.resonance_hz``), the fit
@@ -133,7 +134,7 @@ def ident_sweeps(config: SessionConfig, sweep: SweptSine, *, level: bool = True,
         if on_pass is not None:
             on_pass(i, current)
         cfg = config.model_copy(update={"excitation": current, "duration_s": current.total_s + 0.5})
-        p = _examine(current, run(cfg, loopback=loopback, clock=clock, out=out, progress=progress), limit)
+        p = _examine(current, run(cfg, loopback=loopback, clock=clock, out=out, progress=progress, lab=lab), limit)
         done.append(p)
         if p.check is None:
             why = f"pass {i}: the session ended {p.run.status}"

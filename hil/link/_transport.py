@@ -91,6 +91,21 @@ class Link(ABC):
     def close(self) -> None:
         """Close the link; :meth:`_closed_with` follows (at once or from the event loop)."""
 
+    @property
+    def fd(self) -> int | None:
+        """The file descriptor under the link, which the realtime loop thread reads and writes itself; None for a
+        backend without one (the ``sim`` clock's passes objects) and for a closed link. A backend over a file
+        descriptor overrides it."""
+        return None
+
+    def pause_reading(self) -> None:
+        """Stop reading for the event loop while the realtime loop thread reads :attr:`fd` itself
+        (:meth:`resume_reading` gives it back). Only a backend over a file descriptor can."""
+        raise LinkError(f"{self.name}: this link has no file descriptor for the loop thread to read")
+
+    def resume_reading(self) -> None:  # noqa: B027  (a backend without a file descriptor never paused)
+        """Read for the event loop again after :meth:`pause_reading` (nothing, once the link is closed)."""
+
     # receiving ----------------------------------------------------------------------------------
     def feed(self, data: bytes) -> None:
         """Bytes read from the board: each frame decoded and delivered, then (``acknowledge``) LOCKSTEP_ACK of the
@@ -269,6 +284,7 @@ class SerialLink(Link, asyncio.Protocol):
         except OSError as exc:
             raise LinkError(f"{name}: cannot open {port}: {open_refusal(exc)}") from None
         await asyncio.sleep(0)  # let connection_made run
+        assert isinstance(link, cls)  # the protocol the factory above made
         link.port = port
         ser = getattr(link.transport, "serial", None)
         if ser is not None:
@@ -290,6 +306,15 @@ class SerialLink(Link, asyncio.Protocol):
         ser = getattr(self.transport, "serial", None)
         fd = getattr(ser, "fd", None)
         return fd if isinstance(fd, int) and fd >= 0 else None
+
+    def pause_reading(self) -> None:
+        if self.transport is None:
+            raise LinkError(f"{self.name}: closed")
+        self.transport.pause_reading()
+
+    def resume_reading(self) -> None:
+        if self.transport is not None:
+            self.transport.resume_reading()
 
     # asyncio.Protocol ------------------------------------------------------------------------
     def connection_made(self, transport: asyncio.BaseTransport) -> None:

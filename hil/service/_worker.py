@@ -3,9 +3,9 @@
 
 It claims the boards' ports once, when it starts (TIOCEXCL plus a lock naming the service, hil.link), and holds
 them while it serves: a `hil run` or another `hil serve` on them is refused. With ``loopback`` it first starts the
-emulated lab on the realtime clock (hil.session.EmulatorProcess) and claims its ports. Every session of this
-process then runs on that lab (hil.session.serve_lab). Between items the boards are as every session leaves
-them: driver disabled, stream idle, hexapod stopped at home.
+emulated lab on the realtime clock (hil.session.EmulatorProcess) and claims its ports. Every item then runs on
+that lab, passed to its run as ``lab=`` (hil.session.BenchLab). Between items the boards are as every session
+leaves them: driver disabled, stream idle, hexapod stopped at home.
 
 The manager speaks to it over its stdin and stdout, one JSON object a line (docs/service.md, "The worker"):
 
@@ -60,7 +60,7 @@ from hil.link import LinkError, PortClaims, PortUnavailable, check_ports, claim_
 from hil.protocol import LINKS
 from hil.reporting import Figure, write_session_report
 from hil.service._items import IDENT_OPTIONS, ItemError, check_item, write_item
-from hil.session import EXIT_STOPPED, SERVICE_RT_PRIORITY, BenchLab, EmulatorProcess, Session, fifo_refusal, serve_lab
+from hil.session import EXIT_STOPPED, SERVICE_RT_PRIORITY, BenchLab, EmulatorProcess, Session, fifo_refusal
 
 LIVE_HZ = 50.0  # the running item's latest values, sent to the manager this often (the page wants >= 20 Hz)
 LIVE_CHANNELS = {
@@ -248,11 +248,9 @@ class Worker:
         self.lab = BenchLab({name: PortConfig(port=path) for name, path in ports.items()}, self.claims,
                             emulated=self.loopback, description="emulated lab (realtime)" if self.loopback else
                             str(self.lab_session), on_session=self._on_session)
-        serve_lab(self.lab)
         return ports
 
     def close_lab(self) -> None:
-        serve_lab(None)
         if self.claims is not None:
             self.claims.release()
             self.claims = None
@@ -383,7 +381,7 @@ class Worker:
         if kind == "ident":
             chosen = {k: v for k, v in options.items() if k in IDENT_OPTIONS}  # checked: IdentOptions
             try:
-                ident = api.ident(config, out=out_dir, progress=progress, **chosen)
+                ident = api.ident(config, out=out_dir, progress=progress, lab=self.lab, **chosen)
             except ConfigError:
                 raise
             except ValueError as exc:  # it ran, and its log could not be fitted: the log still comes back
@@ -397,7 +395,7 @@ class Worker:
                 figures.append(Figure(ident.bode_png, f"{ident.bode_png.name}: the plant's frequency response and "
                                                       "its fit (hil ident)"))
         else:
-            result = api.run(config, out=out_dir, progress=progress)
+            result = api.run(config, out=out_dir, progress=progress, lab=self.lab)
             extra = {}
         summary = {**(result.summary() if result.log_path is not None else {}), **extra}
         done = {"status": result.status, "exit_code": result.exit_code, "message": result.message,

@@ -8,7 +8,9 @@
   returning a :class:`RunResult`; campaigns, tuning and fitting run their sessions through it.
 - The emulated lab: :class:`EmulatorProcess` (``_loopback``, the emulator in its own process on ptys, realtime or
   lockstep) and the ``sim`` clock in this process (``_sim``: :func:`run_sim_session`, :class:`PlantTruth`).
-- The lab a long-running process holds (``_lab``: :class:`BenchLab`, :func:`serve_lab`): `hil serve`'s worker.
+- The labs a session runs on (``_lab``: :class:`Lab`, one backend each, named in :data:`LABS`: the hardware, the
+  emulator process, the in-process ``sim`` lab; :class:`BenchLab`, the ports `hil serve`'s worker holds), passed
+  to :func:`run` as ``lab=`` or chosen by :func:`lab_for` from ``loopback`` and ``clock``.
 - Is the hardware ready (``_doctor``: :func:`check_hardware`, ``hil doctor``): the ports' checks, the boards', the
   wire's delay and the host's realtime scheduling.
 
@@ -18,7 +20,7 @@ Import from here; the underscored modules are this package's own.
 from hil.session._control_loop import LATE_NS, ControlLoop, LoopStats, TrackJudge
 from hil.session._doctor import check_hardware
 from hil.session._host import SERVICE_RT_PRIORITY, fifo_refusal
-from hil.session._lab import BenchLab, current_lab, serve_lab
+from hil.session._lab import LABS, BenchLab, EmulatorLab, HardwareLab, InProcessLab, Lab, LabRun, lab_for
 from hil.session._loop_thread import DriveWriter, LoopThread, link_fd
 from hil.session._loopback import DEFAULT_EMULATOR, EmulatorProcess, emulator_for_plant
 from hil.session._provenance import collect_provenance
@@ -54,6 +56,7 @@ __all__ = [
     "EXIT_LOST_TARGET",
     "EXIT_STOPPED",
     "HOST_ALIVE_S",
+    "LABS",
     "LATE_NS",
     "LINKS",
     "SERVICE_RT_PRIORITY",
@@ -61,8 +64,13 @@ __all__ = [
     "Clock",
     "ControlLoop",
     "DriveWriter",
+    "EmulatorLab",
     "EmulatorProcess",
     "EventLoopWatchdog",
+    "HardwareLab",
+    "InProcessLab",
+    "Lab",
+    "LabRun",
     "LoopStats",
     "LoopThread",
     "PlantTruth",
@@ -80,9 +88,9 @@ __all__ = [
     "capture_for_session",
     "check_hardware",
     "collect_provenance",
-    "current_lab",
     "emulator_for_plant",
     "fifo_refusal",
+    "lab_for",
     "link_fd",
     "prepare_run",
     "read_log",
@@ -91,6 +99,5 @@ __all__ = [
     "run_async",
     "run_coroutine",
     "run_sim_session",
-    "serve_lab",
     "sim_ports",
 ]

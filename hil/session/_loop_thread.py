@@ -37,7 +37,7 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from hil.link import RX, TX, Link, LinkError, SerialLink
+from hil.link import RX, TX, Link, LinkError
 from hil.protocol import AxisMask, Board, ClockLate, DriveCmd, DriveDisable, Frame, GyroSample
 from hil.protocol.framing import FramePacker
 from hil.session._host import pin_this_thread, set_fifo
@@ -49,7 +49,7 @@ GIL_SWITCH_S = 50e-6  # sys.setswitchinterval while a loop thread runs (see the 
 
 def link_fd(link: Link) -> int | None:
     """The file descriptor under a link, None for a link without one (the sim clock's) or a closed one."""
-    return link.fd if isinstance(link, SerialLink) else None
+    return link.fd
 
 
 def clock_late_s(frames: list[Frame], tick: int) -> float:
@@ -67,7 +67,7 @@ class DriveWriter:
     ``os.write`` on the driver fd. A write the fd does not take whole (its buffer full: the board stopped reading)
     is counted in ``short_writes``; the board's decoder drops the broken frame and its stale timeout zeroes it."""
 
-    def __init__(self, link: SerialLink, fd: int) -> None:
+    def __init__(self, link: Link, fd: int) -> None:
         self.fd = fd
         self._drive = FramePacker(DriveCmd, link.encoder, Board.DRIVER).pack
         self._disable = FramePacker(DriveDisable, link.encoder, Board.DRIVER).pack
@@ -118,7 +118,7 @@ class LoopThread:
     ``cpu``/``rt_priority``: the placement this thread takes for itself (hil.session._host); what it could not take is
     reported through ``on_info``."""
 
-    def __init__(self, servo: SerialLink, writer: DriveWriter, dog: Watchdog, loop: ControlLoopLike, *,
+    def __init__(self, servo: Link, writer: DriveWriter, dog: Watchdog, loop: ControlLoopLike, *,
                  on_trip: Callable[[float], None], on_error: Callable[[str], None],
                  cpu: int | None = None, rt_priority: int = 0,
                  on_info: Callable[..., None] | None = None) -> None:
@@ -147,8 +147,7 @@ class LoopThread:
 
     def start(self) -> None:
         """Take the servo link's reading over from the event loop and start."""
-        assert self.servo.transport is not None
-        self.servo.transport.pause_reading()
+        self.servo.pause_reading()
         self._switch_before = sys.getswitchinterval()
         sys.setswitchinterval(GIL_SWITCH_S)
         self._thread.start()
@@ -182,8 +181,8 @@ class LoopThread:
         if self._switch_before is not None:
             sys.setswitchinterval(self._switch_before)
             self._switch_before = None
-        if self.servo.transport is not None and not self._thread.is_alive():
-            self.servo.transport.resume_reading()
+        if not self._thread.is_alive():
+            self.servo.resume_reading()
 
     def _wake(self) -> None:
         with contextlib.suppress(OSError):  # closed, or already holds wake-ups

@@ -19,27 +19,19 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from firmware_stub.config import ConfigError as EmulatorConfigError
 from hil.analysis import summarize_log
 from hil.config import (
     ConfigError,
-    PortConfig,
     SessionConfig,
     load_session,
     named,
-    require_regular_file,
     require_writable_dir,
 )
-from hil.control.registry import ControllerConfigError, require_sim_clock
-from hil.link import LinkError, PortUnavailable
 from hil.log import LogError
 from hil.log.frames import read_log_frames
 from hil.log.schema import estimated_log_bytes
-from hil.protocol import LINKS
-from hil.session._lab import current_lab
-from hil.session._loopback import EmulatorProcess
+from hil.session._lab import Lab, lab_for
 from hil.session._session import Session, SessionResult
-from hil.session._sim import CAPTURE_REFUSED, run_sim_session
 
 if TYPE_CHECKING:
     from hil.log.frames import LogFrames
@@ -106,35 +98,26 @@ def as_session_config(config: SessionConfig | str | Path) -> SessionConfig:
 
 
 def prepare_run(config: SessionConfig | str | Path, *, loopback: bool = True, clock: Clock | None = None,
-                out: str | Path | None = None) -> tuple[SessionConfig, str, Path]:
-    """Check a run's inputs without starting anything: (config, clock, log directory). ConfigError otherwise."""
+                out: str | Path | None = None, lab: Lab | None = None) -> tuple[SessionConfig, str, Path]:
+    """Check a run's inputs without starting anything: (config, clock, log directory). ConfigError otherwise.
+    ``lab``: the lab to run on (:mod:`hil.session._lab`); default the one ``loopback`` and ``clock`` ask for."""
+    config, chosen, out_dir = _prepare(config, loopback=loopback, clock=clock, out=out, lab=lab, capture=None)
+    return config, chosen.clock, out_dir
+
+
+def _prepare(config: SessionConfig | str | Path, *, loopback: bool, clock: Clock | None, out: str | Path | None,
+             lab: Lab | None, capture: Path | None) -> tuple[SessionConfig, Lab, Path]:
     config = as_session_config(config)
     if clock is not None and clock not in CLOCKS:
         raise ConfigError(f"clock: {clock!r} is not realtime, lockstep or sim")
     out_dir = Path(out) if out is not None else config.logging.dir
     require_writable_dir(out_dir, "out" if out is not None else "logging.dir")
     require_log_room(config, out_dir, "out" if out is not None else "logging.dir")
-    lab = current_lab()
-    if lab is not None:  # this process serves a lab (hil serve's worker): every session runs on its ports
-        _require_clock(config, lab.clock)
-        return config, lab.clock, out_dir
-    if not loopback:
-        if clock == "sim":
-            raise ConfigError("clock='sim': runs the emulated lab in this process; needs loopback=True")
-        if config.ports is None:
-            raise ConfigError("ports: not set in the session file; give the lab's serial ports, or pass loopback=True")
-        if config.safety.emulator_stall_grace_ms:
-            raise ConfigError("safety.emulator_stall_grace_ms: only for emulated boards (loopback=True); real boards "
-                              "are never late, so remove it from a lab session")
-        _require_clock(config, "hardware")
-        return config, "hardware", out_dir
-    try:  # the emulator validates it; a missing one is refused here, before anything starts
-        require_regular_file(config.emulator.config)
-    except ValueError as exc:
-        raise ConfigError(f"emulator.config: {exc}") from None
-    clock_name = clock or config.emulator.clock
-    _require_clock(config, clock_name)
-    return config, clock_name, out_dir
+    chosen = lab if lab is not None else lab_for(config, loopback=loopback, clock=clock)
+    chosen.check(config, capture=capture is not None)
+    if capture is not None:
+        require_writable_dir(capture, "capture")
+    return config, chosen, out_dir
 
 
 SETUP_AND_WIND_DOWN_S = 15.0  # logged beyond duration_s: connecting, arming, the hexapod's way home (<= 5 s)
@@ -154,94 +137,27 @@ def require_log_room(config: SessionConfig, out_dir: Path, what: str) -> None:
                           "elsewhere")
 
 
-def _require_clock(config: SessionConfig, clock: str) -> None:
-    """The controller can run on this clock (the oracle needs the sim clock's true plant state)."""
-    try:
-        require_sim_clock(config.controller.name, clock)
-    except ControllerConfigError as exc:
-        raise ConfigError(str(exc)) from None
-
-
 async def run_async(config: SessionConfig | str | Path, *, loopback: bool = True, clock: Clock | None = None,
                     out: str | Path | None = None, capture: str | Path | None = None,
                     progress: Progress | None = None,
-                    on_session: Callable[[Session], None] | None = None) -> RunResult:
+                    on_session: Callable[[Session], None] | None = None, lab: Lab | None = None) -> RunResult:
     """Run one session and return its :class:`RunResult`; awaitable inside a running event loop (Jupyter).
 
     ``config``: a :class:`SessionConfig` or the path of a session YAML. ``loopback``: against the emulated lab
     (started here) rather than the lab's ports. ``clock`` (loopback): ``realtime`` (paced 1 kHz over ptys),
     ``lockstep`` (the full protocol over ptys, byte-reproducible) or ``sim`` (boards and plant in this process;
-    the same log as lockstep); default the session's ``emulator.clock``. ``out``: the log directory (default
-    ``logging.dir``). ``capture``: a directory for every link's raw bytes (docs/capture.md). ``on_session``: called
-    with the :class:`hil.session.Session` once it exists (to end it early: ``session.interrupt()``)."""
-    config, clock_name, out_dir = prepare_run(config, loopback=loopback, clock=clock, out=out)
+    the same log as lockstep); default the session's ``emulator.clock``. ``lab``: a lab to run on instead
+    (:class:`hil.session.Lab`, e.g. the ports `hil serve`'s worker holds), whatever ``loopback`` and ``clock``
+    say. ``out``: the log directory (default ``logging.dir``). ``capture``: a directory for every link's raw bytes
+    (docs/capture.md). ``on_session``: called with the :class:`hil.session.Session` once it exists (to end it
+    early: ``session.interrupt()``)."""
     capture_dir = Path(capture) if capture is not None else None
-    if capture_dir is not None:
-        if clock_name == "sim":
-            raise ConfigError(CAPTURE_REFUSED)
-        require_writable_dir(capture_dir, "capture")
-    hook = on_session or (lambda _s: None)
-    lab = current_lab()
-    if lab is not None:
-        session = Session(config, lab.ports, out_dir, progress=progress, emulated=lab.emulated, claims=lab.claims,
-                          log_attrs={"loopback": lab.emulated, "clock": lab.clock, **lab.extra},
-                          **_capture(capture_dir))
-        hook(session)
-        if lab.on_session is not None:
-            lab.on_session(session)
-        return _result(await _run_session(session), lab.clock, {})
-    if clock_name == "sim":
-        try:
-            result, emulator = await run_sim_session(config, out_dir, progress=progress, on_session=hook)
-        except EmulatorConfigError as exc:
-            raise ConfigError(str(exc)) from None
-        return _result(result, "sim", emulator)
-    if not loopback:
-        assert config.ports is not None
-        ports = {name: port for name in LINKS
-                 if (port := getattr(config.ports, name)) is not None}
-        session = Session(config, ports, out_dir, progress=progress,
-                          log_attrs={"loopback": False, "clock": "hardware"}, **_capture(capture_dir))
-        hook(session)
-        return _result(await _run_session(session), "hardware", {})
-    bauds = [f"--baud={name}={baud}" for name, baud in config.link_baudrates().items()]  # the ports' line rates
-    emulator = EmulatorProcess(config.emulator.config, clock=clock_name, seed=config.seed,
-                               extra_args=[*config.emulator.process_args(), *bauds])
-    _log.info("starting the emulated lab: %s clock, seed %d, %s", clock_name, config.seed, config.emulator.config)
-    try:  # stopped on every way out, a cancellation while it starts included
-        try:
-            started = await asyncio.to_thread(emulator.start)
-        except LinkError as exc:
-            raise ConfigError(str(exc)) from None
-        ports = {name: PortConfig(port=path) for name, path in started.items() if name != "control"}
-        # lockstep: the emulator waits for us, and we may wait for a descheduled emulator
-        watchdog_ms = max(config.safety.watchdog_ms, 1000.0) if clock_name == "lockstep" else None
-        session = Session(config, ports, out_dir, watchdog_ms=watchdog_ms, progress=progress,
-                          log_attrs={"loopback": True, "clock": clock_name}, lockstep=clock_name == "lockstep",
-                          emulated=True, **_capture(capture_dir))
-        hook(session)
-        result = await _run_session(session)
-    finally:
-        summary = await asyncio.shield(asyncio.to_thread(emulator.stop))
-    return _result(result, clock_name, summary)
-
-
-async def _run_session(session: Session) -> SessionResult:
-    """``session.run()``; a port it cannot own (missing, not a serial port, held by another bench) is bad input."""
-    try:
-        return await session.run()
-    except PortUnavailable as exc:
-        raise ConfigError(str(exc)) from None
-
-
-def _capture(capture_dir: Path | None) -> dict[str, Any]:
-    return {} if capture_dir is None else {"capture_dir": capture_dir}
-
-
-def _result(result: SessionResult, clock: str, emulator: dict[str, Any]) -> RunResult:
-    return RunResult(status=result.status, exit_code=result.exit_code, message=result.message,
-                     log_path=result.log_path, clock=clock, session=result, emulator=emulator,
-                     capture=result.capture)
+    config, chosen, out_dir = _prepare(config, loopback=loopback, clock=clock, out=out, lab=lab, capture=capture_dir)
+    done = await chosen.run(config, out_dir, progress=progress, on_session=on_session or (lambda _s: None),
+                            capture_dir=capture_dir)
+    return RunResult(status=done.session.status, exit_code=done.session.exit_code, message=done.session.message,
+                     log_path=done.session.log_path, clock=chosen.clock, session=done.session,
+                     emulator=done.emulator, capture=done.session.capture)
 
 
 def _in_running_loop() -> bool:
@@ -262,7 +178,12 @@ def run_coroutine(coro_fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any
     sessions: list[Any] = []
     if "on_session" in kwargs:
         caller_hook = kwargs["on_session"] or (lambda _s: None)
-        kwargs["on_session"] = lambda s: (sessions.append(s), caller_hook(s))
+
+        def keep_session(session: Any) -> None:
+            sessions.append(session)
+            caller_hook(session)
+
+        kwargs["on_session"] = keep_session
     task: asyncio.Task[Any] | None = None
 
     def in_worker() -> Any:
@@ -291,10 +212,10 @@ def run_coroutine(coro_fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any
 
 def run(config: SessionConfig | str | Path, *, loopback: bool = True, clock: Clock | None = None,
         out: str | Path | None = None, capture: str | Path | None = None,
-        progress: Progress | None = None) -> RunResult:
+        progress: Progress | None = None, lab: Lab | None = None) -> RunResult:
     """:func:`run_async`, blocking; works in a script and inside a running event loop (a notebook cell)."""
     return run_coroutine(run_async, config, loopback=loopback, clock=clock, out=out, capture=capture, progress=progress,
-                 on_session=None)
+                         on_session=None, lab=lab)
 
 
 def read_log(path: str | Path) -> LogFrames:

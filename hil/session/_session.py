@@ -12,9 +12,10 @@ Safety: the watchdog (no GYRO_SAMPLE for ``watchdog_ms``; hil.session._watchdog)
 zero the drive and DISABLE the driver at once, log a fault event, then stop or recover per config.
 SIGINT and SIGTERM disable the driver first, stop the hexapod, close the log and end with 130 / 143.
 
-One responsibility in one file (about 820 lines): one session's life on the boards, from connecting to safe,
-with its faults and recoveries; the per-sample cycle (_control_loop), the loop thread, the watchdog and the
-wind-down (_wind_down) live beside it.
+One job: one session's life on the boards, from connecting to safe, with its faults and recoveries, as one state
+machine whose every step reads and writes the same state (armed, disarmed, the swing's progress, the fault being
+handled): split across files, each half would need the other's internals. The per-sample cycle
+(_control_loop), the loop thread, the watchdog and the wind-down (_wind_down) live beside it.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import functools
 import gc
 import logging
 import signal
@@ -263,7 +265,7 @@ class Session:
             # the world waits until the other boards' frames of a tick are handled before the tick's sample
             link.acknowledge = self.open_link is None and name != "servo"
         self.links[name] = link
-        link.closed.add_done_callback(lambda fut, name=name: self._link_lost(name, fut))
+        link.closed.add_done_callback(functools.partial(self._link_lost, name))
         if name == "hexapod":
             await self._hexapod_driver(link).identify()
             return
@@ -314,7 +316,7 @@ class Session:
         self._placement_before = current_placement()
         if host_cfg.loop_cpu is not None:
             helpers = [p for p in (self.log.writer_pid if self.log else None,
-                                   self.telemetry.pid if self.telemetry else None) if p is not None]
+                                   getattr(self.telemetry, "pid", None)) if p is not None]
             try:
                 cpus = allowed_cpus()
                 cpu = resolve_cpu(host_cfg.loop_cpu, cpus)
@@ -356,7 +358,7 @@ class Session:
         if self.driver is not None:
             with contextlib.suppress(LinkError, OSError):
                 self.driver.disable_now()
-        self._disarm_watchdog()
+        self.disarm_watchdog()
         loop.stats.faults.append(reason)
         self.event("fault", reason=reason)
         safety = self.config.safety
@@ -399,7 +401,11 @@ class Session:
     def _stall_reporter(self) -> Callable[[float, float, str], None]:
         """The loop thread's watchdog's stall report, handed to the event loop."""
         aloop = asyncio.get_running_loop()
-        return lambda *stall: aloop.call_soon_threadsafe(self._on_host_stall, *stall)
+
+        def report(late_s: float, silent_s: float, by: str) -> None:
+            aloop.call_soon_threadsafe(self._on_host_stall, late_s, silent_s, by)
+
+        return report
 
     def _watchdog_trip(self, silent_s: float) -> None:
         self.fault(f"watchdog: no GYRO_SAMPLE for {silent_s * 1000:.1f} ms")
@@ -413,7 +419,7 @@ class Session:
         elif self.event_watchdog is not None:
             self.event_watchdog.arm()
 
-    def _disarm_watchdog(self) -> None:
+    def disarm_watchdog(self) -> None:
         if self.loop_thread is not None:
             self.loop_thread.disarm_watchdog()
         if self.event_watchdog is not None:
@@ -695,11 +701,15 @@ class Session:
                 await self.telemetry.start()
             self._place()
             aloop_ = asyncio.get_running_loop()
+
+            def done_in_thread() -> None:
+                aloop_.call_soon_threadsafe(self.finish, "completed")
+
             self.loop_ = ControlLoop(self.config, self.driver.drive, self.log, telemetry=self.telemetry,
                                      duration_ticks=round(self.config.duration_s * 1000),
-                                     on_done=(lambda: aloop_.call_soon_threadsafe(self.finish, "completed"))
-                                     if self.use_thread else self._duration_done, truth=self.truth,
-                                     record_truth=self.record_truth, on_start_pose=self._start_pose_from_loop)
+                                     on_done=done_in_thread if self.use_thread else self._duration_done,
+                                     truth=self.truth, record_truth=self.record_truth,
+                                     on_start_pose=self._start_pose_from_loop)
             self.loop_.decoders = {name: link.decoder for name, link in self.links.items()}
             self.hexapod.on_pose = self._on_pose
             self.event("state", state="configured")
@@ -812,7 +822,7 @@ class Session:
         it; the event ``state: safe`` records what each board confirmed."""
         if self.loop_ is not None:
             self.loop_.armed = False
-        self._disarm_watchdog()
+        self.disarm_watchdog()
         self._stop_loop_thread()  # the event loop reads the servo link again (the ACKs of the shutdown)
         alive = [t for t in self._tasks if t.get_name() == "hil-HOST_ALIVE"]
         others = [t for t in self._tasks if t not in alive]

@@ -5,15 +5,21 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 from hil.boards import ProtocolHexapod, ServoBoard
 from hil.link import LinkError
 from hil.protocol import GyroSample
 from hil.session._control_loop import ControlLoop
 
-if TYPE_CHECKING:
-    from hil.session._session import Session  # only annotated: _session imports this module
+
+class WindingSession(Protocol):
+    """What the wind-down asks of its :class:`hil.session.Session` (which imports this module)."""
+
+    def disarm_watchdog(self) -> None: ...
+    def event(self, kind: str, **detail: Any) -> None: ...
+    def fault(self, reason: str, *, recoverable: bool = True) -> None: ...
+    def swing_began(self) -> None: ...
 
 
 HEXAPOD_HOME_S = 5.0  # wind-down: the hexapod ramps down (1 s on the emulator) and rests within this
@@ -43,8 +49,8 @@ class TickWindDown:
     CHECK_TICKS = 10  # the hexapod's POSE period
     HOME_TICKS = round(HEXAPOD_HOME_S * 1000)
 
-    def __init__(self, session: Session, loop: ControlLoop, servo: ServoBoard, hexapod: ProtocolHexapod | None, *,
-                 world_waits: bool) -> None:
+    def __init__(self, session: WindingSession, loop: ControlLoop, servo: ServoBoard,
+                 hexapod: ProtocolHexapod | None, *, world_waits: bool) -> None:
         self.session = session
         self.loop = loop
         self.servo = servo
@@ -74,7 +80,7 @@ class TickWindDown:
         if self.last_sample:
             self.loop.armed = False
             self._on_sample(g, t_rx)
-            self.session._disarm_watchdog()  # no sample comes after this one
+            self.session.disarm_watchdog()  # no sample comes after this one
             if not self.world_waits:
                 with contextlib.suppress(LinkError, OSError):  # else the shutdown stops it
                     self.servo.stop_stream_now()
@@ -156,7 +162,7 @@ class TickSwingStart:
     clocks. A NACK ends the session as a fault; an ACK that has not come by the next sample (a lockstep timeout) too.
     """
 
-    def __init__(self, session: Session, loop: ControlLoop, hexapod: ProtocolHexapod) -> None:
+    def __init__(self, session: WindingSession, loop: ControlLoop, hexapod: ProtocolHexapod) -> None:
         self.session = session
         self.loop = loop
         self.held: tuple[int, int, int] | None = None
