@@ -13,8 +13,7 @@ from typing import Any
 
 import yaml
 
-from firmware_stub.config import read_yaml_mapping
-from hil.config import PROFILES
+from hil.config import PROFILES, ConfigError, read_yaml_mapping
 from hil.link import LinkError
 
 DEFAULT_EMULATOR = PROFILES / "emulator" / "default.yaml"
@@ -27,7 +26,10 @@ def emulator_for_plant(plant: str | Path, out_dir: str | Path, *, base: str | Pa
     (``...-nowire.yaml`` without the wire's time); its path. Written whole and renamed into place, so processes
     that share ``out_dir`` never read half a file."""
     base, plant = Path(base), Path(plant)
-    data = read_yaml_mapping(base)
+    try:
+        data = read_yaml_mapping(base)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     data["plant"] = str(plant.resolve())
     if seed is not None:
         data["seed"] = seed
