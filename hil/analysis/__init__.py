@@ -12,10 +12,9 @@ from hil.analysis._levels import (
     coherent_band,
     level_frequencies,
     next_level,
-    resonance_hz,
 )
 from hil.analysis._logs import GYRO_CHANNEL, axis_columns, host_disturbed, identify_log, log_frf, sweep_start
-from hil.analysis._plant import PlantFit, SweepShapes, fit_caption, fit_plant, plant_response
+from hil.analysis._plant import PlantFit, SweepShapes, fit_caption, fit_plant, plant_response, resonance_hz
 from hil.analysis._summary import NO_BOARD_LATENCY, board_latency, drive_ripple, json_safe, summarize_log
 from hil.config import IDENT_SWEEP, SweptSine
 

@@ -4,6 +4,7 @@
   estimate ``P = S_ry / S_ru`` of the plant ``y/u``: both spectra are cross-spectra with the external excitation
   ``r``, which the gyro noise and the disturbances are not correlated with, so neither noise nor feedback bias it
   (the direct ``S_uy / S_uu`` tends to ``-1/C`` where noise dominates, because ``u`` carries the fed-back noise).
+* :func:`octave_share`: the bins of one third octave, the unit the levelling and the resonance search read an FRF in.
 
 Docs: docs/ident.md.
 """
@@ -155,3 +156,12 @@ def estimate_sweep_frf(r: Any, u: Any, y: Any, dt_s: float, *, f_min_hz: float, 
     return Frf(np.concatenate([lo.freq_hz[lo_sel], hi.freq_hz[hi_sel]]),
                np.concatenate([lo.response[lo_sel], hi.response[hi_sel]]),
                np.concatenate([lo.coherence[lo_sel], hi.coherence[hi_sel]]), dt_s, lo.n_segments)
+
+
+LEVELS_PER_OCTAVE = 3  # the level table's spacing: third octaves
+
+
+def octave_share(freq_hz: np.ndarray, centre_hz: float) -> np.ndarray:
+    """Where ``freq_hz`` lies in the third octave (``LEVELS_PER_OCTAVE``) centred on ``centre_hz``."""
+    half = 2.0 ** (0.5 / LEVELS_PER_OCTAVE)
+    return (freq_hz >= centre_hz / half) & (freq_hz < centre_hz * half)

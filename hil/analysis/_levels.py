@@ -1,6 +1,6 @@
 """The levelling of a sweep (``hil ident``, docs/ident.md "Levelling"): what one sweep's log says about its level
-per third octave (:func:`check_levels`), the next sweep (:func:`next_level`), the coherent band
-(:func:`coherent_band`) and the first resonance over a rigid fit (:func:`resonance_hz`).
+per third octave (:func:`check_levels`), the next sweep (:func:`next_level`) and the coherent band
+(:func:`coherent_band`).
 
 Docs: docs/ident.md.
 """
@@ -13,16 +13,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hil.analysis._frf import HI_NPERSEG, Frf, default_nperseg
+from hil.analysis._frf import HI_NPERSEG, LEVELS_PER_OCTAVE, Frf, default_nperseg, octave_share
 from hil.analysis._logs import axis_columns, host_disturbed, sweep_start
-from hil.analysis._plant import PlantFit
 from hil.config import SweptSine
 
 if TYPE_CHECKING:
     from hil.log.reader import LogData
 
 
-LEVELS_PER_OCTAVE = 3  # the level table's spacing: third octaves
 CLIPPED_SHARE = 0.01  # a third octave whose drive sat at its limit on more than this share of its ticks saturated
 DISTURBED_SHARE = 0.02  # a third octave whose ticks the host disturbed (host_disturbed) more than this: its
 # failed coherence may be the host's
@@ -78,11 +76,6 @@ def level_frequencies(sweep: SweptSine) -> np.ndarray:
     return np.geomspace(lo, hi, n)
 
 
-def _octave_share(freq_hz: np.ndarray, centre_hz: float) -> np.ndarray:
-    half = 2.0 ** (0.5 / LEVELS_PER_OCTAVE)
-    return (freq_hz >= centre_hz / half) & (freq_hz < centre_hz * half)
-
-
 def check_levels(data: LogData, sweep: SweptSine, frf: Frf, max_drive_counts: float) -> LevelCheck:
     """Per third octave of ``sweep`` on the log ``data`` (the sweep located as :func:`identify_log` does), the
     coherence of ``frf`` (the log's FRF), the drive's peak, mean and share of ticks at ``max_drive_counts`` while
@@ -109,9 +102,9 @@ def check_levels(data: LogData, sweep: SweptSine, frf: Frf, max_drive_counts: fl
     low_seg, split_hz = default_nperseg(n_frf, dt, lo_hz), max(20.0, 8.0 / (HI_NPERSEG * dt))
     coh, peak, clip, mean, rev, swing, dist = (np.zeros(centres.size) for _ in range(7))
     for i, fc in enumerate(centres):
-        bins = _octave_share(frf.freq_hz, fc)
+        bins = octave_share(frf.freq_hz, fc)
         coh[i] = float(np.median(frf.coherence[bins])) if np.any(bins) else 0.0
-        there = _octave_share(f_t, fc)
+        there = octave_share(f_t, fc)
         if np.any(there):
             at = np.flatnonzero(there)
             half = (HI_NPERSEG if fc >= split_hz else low_seg) // 2
@@ -180,23 +173,6 @@ def next_level(sweep: SweptSine, check: LevelCheck, *, max_drive_counts: float, 
     data.update(levels=tuple((float(f), round(float(a), 4)) for f, a in zip(check.freq_hz, amp, strict=True)),
                 offset_dps=math.copysign(round(offset, 4), sweep.offset_dps or 1.0))
     return SweptSine.model_validate(data)
-
-
-def resonance_hz(frf: Frf, fit: PlantFit, *, f_min_hz: float, f_max_hz: float, coherence_min: float = 0.8,
-                 excess_db: float = 6.0) -> float | None:
-    """The first resonance the rigid model ``fit`` does not have, between ``f_min_hz`` and ``f_max_hz``: the lowest
-    third octave whose coherent bins stand a median ``excess_db`` or more above the model, at its largest bin; None
-    without one. (A structural mode with the gyro on the load peaks 1/(2 zeta), 14 dB at zeta = 0.1; the gyro's lag,
-    which the rigid fit below it may lack, only lowers the data.)"""
-    ok = (frf.coherence >= coherence_min) & np.isfinite(frf.response) & (np.abs(frf.response) > 0)
-    f = frf.freq_hz
-    excess = np.full(f.size, -np.inf)
-    excess[ok] = 20.0 * np.log10(np.abs(frf.response[ok]) / np.abs(fit.response(f[ok])))
-    for fc in np.geomspace(f_min_hz, f_max_hz, max(2, round(math.log2(f_max_hz / f_min_hz) * LEVELS_PER_OCTAVE) + 1)):
-        there = _octave_share(f, fc) & ok
-        if np.count_nonzero(there) >= 3 and float(np.median(excess[there])) >= excess_db:
-            return float(f[there][np.argmax(excess[there])])
-    return None
 
 
 def coherent_band(check: LevelCheck, sweep: SweptSine, coherence_min: float = 0.8) -> tuple[float, float] | None:
