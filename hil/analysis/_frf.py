@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 @dataclass(frozen=True)
@@ -70,9 +71,9 @@ def default_nperseg(n: int, dt_s: float, f_min_hz: float) -> int:
 
 
 def estimate_frf(
-    r: Any,
-    u: Any,
-    y: Any,
+    r: ArrayLike,
+    u: ArrayLike,
+    y: ArrayLike,
     dt_s: float,
     *,
     f_min_hz: float,
@@ -141,7 +142,8 @@ def estimate_frf(
 HI_NPERSEG = 1024  # Welch segment of a sweep's high band (a chirp: longer segments hold more of it, fewer average it)
 
 
-def estimate_sweep_frf(r: Any, u: Any, y: Any, dt_s: float, *, f_min_hz: float, f_max_hz: float) -> Frf:
+def estimate_sweep_frf(r: ArrayLike, u: ArrayLike, y: ArrayLike, dt_s: float, *, f_min_hz: float,
+                       f_max_hz: float) -> Frf:
     """:func:`estimate_frf` of a swept sine at two resolutions: long segments (~4 bins below ``f_min_hz``) for the
     low band (k_m, a cable's spring), ``HI_NPERSEG`` ones above ``max(20 Hz, 8 bins)``: a chirp crosses each
     high-frequency bin in milliseconds, so the short segments' noise is a fraction of the long ones' and their

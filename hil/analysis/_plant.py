@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from hil.analysis._frf import LEVELS_PER_OCTAVE, Frf, octave_share
 
@@ -27,7 +27,7 @@ TWO_PI = 2.0 * math.pi
 
 
 def plant_response(
-    freq_hz: Any,
+    freq_hz: ArrayLike,
     k_m_dps2_per_count: float,
     *,
     bandwidth_hz: float | None = None,
@@ -93,7 +93,7 @@ class PlantFit:
     model_delay_s: float  # what the model curve uses, even when delay_ms is None
     dt_s: float | None  # the sampled integrator's period (None: continuous k_m / s)
 
-    def response(self, freq_hz: Any) -> np.ndarray:
+    def response(self, freq_hz: ArrayLike) -> np.ndarray:
         return plant_response(
             freq_hz,
             self.k_m_dps2_per_count,

@@ -13,10 +13,10 @@ from typing import Any, Literal
 
 from pydantic import ValidationError
 
-from hil.analysis import IDENT_SWEEP, SweptSine, bode_plot
+from hil.analysis import IDENT_SWEEP, Frf, PlantFit, SweptSine, bode_plot
 from hil.config import ConfigError, SessionConfig, one_line, require_writable_dir
 from hil.control.registry import K_M_DEFAULT
-from hil.ident._sweeps import MIN_BAND_OCTAVES, ident_sweeps
+from hil.ident._sweeps import MIN_BAND_OCTAVES, IdentPass, ident_sweeps
 from hil.session import Clock, Lab, Progress, RunResult, as_session_config
 
 MAX_EL_TRAVEL_DEG = 60.0  # ident: keep the elevation axis away from the az-el gimbal's 90 deg singularity
@@ -30,12 +30,12 @@ class IdentRun:
     band (``band_hz``). ``fit`` is None when the session did not complete."""
 
     run: RunResult
-    frf: Any = None
-    fit: Any = None
+    frf: Frf | None = None
+    fit: PlantFit | None = None
     bode_png: Path | None = None
     json_path: Path | None = None
     report: dict[str, Any] = dataclasses.field(default_factory=dict)
-    passes: list[Any] = dataclasses.field(default_factory=list)
+    passes: list[IdentPass] = dataclasses.field(default_factory=list)
     band_hz: tuple[float, float] | None = None
 
 
@@ -44,7 +44,7 @@ def run_ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] 
               f_stop_hz: float = IDENT_SWEEP.f_stop_hz, sweep_s: float = IDENT_SWEEP.duration_s,
               amplitude_dps: float = IDENT_SWEEP.amplitude_dps, offset_dps: float = IDENT_SWEEP.offset_dps,
               level: bool = True, progress: Progress | None = None,
-              on_pass: Callable[[int, Any], None] | None = None, lab: Lab | None = None) -> IdentRun:
+              on_pass: Callable[[int, SweptSine], None] | None = None, lab: Lab | None = None) -> IdentRun:
     """Frequency-sweep identification (seed 000 Figs. 8-9, docs/ident.md): a swept sine on one axis's rate command
     of the closed rate loop (``session``'s controller, tracking off, no swing), the plant's frequency response from
     the log, a Bode plot and the fit of k_m, the gyro's bandwidth and the delay.
