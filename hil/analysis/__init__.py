@@ -1,7 +1,12 @@
 """What a log says: the plant's frequency response and its fit (identification), and a session's summary metrics.
 
 ``identify_log`` and ``fit_plant`` are ``hil ident``'s (docs/ident.md); ``summarize_log`` computes the metrics
-every session ends with (rate error, miss distance, drive ripple, board latency; docs/api.md)."""
+every session ends with (rate error, miss distance, drive ripple, board latency; docs/api.md).
+
+The identification's modules: ``_frf`` (the Welch estimate), ``_plant`` (the model, its fit, the resonance over it),
+``_bode`` (the plot), ``_logs`` (a session log's columns, the host's disturbances, the FRF of a logged sweep) and
+``_levels`` (the levelling's checks). ``SweptSine`` and ``IDENT_SWEEP`` are ``hil.config``'s (the sweep is a
+session's excitation), exported here too."""
 
 from hil.analysis._bode import bode_plot
 from hil.analysis._frf import Frf, estimate_frf, estimate_sweep_frf, welch_layout, welch_options

@@ -1,4 +1,4 @@
-"""Frequency-sweep identification of the rate-loop plant (seed 000 Figs 8-9, eqs 33-38): the excitation.
+"""The swept-sine excitation of a session (``excitation:``), which ``hil ident`` runs (seed 000 Figs 8-9).
 
 The bench adds a swept sine ``r(t)`` (:class:`SweptSine`) to the rate command of the closed 1 kHz rate loop and logs,
 per tick, the command ``r`` (deg/s), the drive ``u`` (signed DAC counts) and the measured gyro rate ``y`` (deg/s).

@@ -1,4 +1,4 @@
-"""Frequency-sweep identification (hil.analysis._ident): the chirp, the indirect closed-loop FRF, the fit, session logs.
+"""Frequency-sweep identification (hil.analysis): the chirp, the indirect closed-loop FRF, the fit, session logs.
 
 A synthetic loop (k_m/s under a zero-order hold, first-order gyro at 200 Hz, 0.5 ms delay, white gyro noise, P
 controller) checks the estimator and the fit against known values; the emulated plant (firmware_stub.plant) under a
