@@ -24,7 +24,7 @@ from hil.link._capture import (
 )
 from hil.link._doctor import Finding, baud_budget, check_port, check_ports, wire_delay
 from hil.link._ports import Holder, PortClaims, PortUnavailable, claim_ports, is_exclusive, set_exclusive
-from hil.link._selftest import main_sync
+from hil.link._selftest import SelftestReport, main_sync
 from hil.link._transport import Link, LinkError, SerialLink, board_of
 
 __all__ = [
@@ -43,6 +43,7 @@ __all__ = [
     "LinkError",
     "PortClaims",
     "PortUnavailable",
+    "SelftestReport",
     "SerialLink",
     "TimedFrame",
     "baud_budget",

@@ -6,6 +6,7 @@ Import messages and the codec from here::
 """
 
 from hil.protocol import messages
+from hil.protocol._text import frame_json, hex_bytes, message_json
 from hil.protocol.framing import (
     BITS_PER_BYTE,
     CRC_INIT,
@@ -43,7 +44,10 @@ __all__ = [  # noqa: PLE0604
     "MessageSpec",
     "crc16",
     "encode_frame",
+    "frame_json",
     "frame_size",
+    "hex_bytes",
+    "message_json",
     "LINE_RATE_BAUD",
     "wire_time_s",
 ]
