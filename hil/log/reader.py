@@ -288,7 +288,7 @@ def recover_log(path: str | Path, *, output: Path | None = None) -> RecoverRepor
     if clean:
         with f:
             order = _channel_order(f)
-            rows = {g: _extent(f, g, order[g])[0] for g in order}
+            rows: dict[str, int] = {g: _extent(f, g, order[g])[0] for g in order}
         return RecoverReport(path, None, None, True, rows, {}, f"{path}: closed cleanly, nothing to recover")
     target = Path(output) if output is not None else path
     if output is not None and target.exists():
@@ -301,7 +301,7 @@ def recover_log(path: str | Path, *, output: Path | None = None) -> RecoverRepor
     if tmp.exists() or tmp.is_symlink():
         f.close()
         raise LogError(f"cannot recover {path}: {tmp} is in the way (left by an earlier attempt? remove it)")
-    rows: dict[str, int] = {}
+    rows = {}
     trimmed: dict[str, int] = {}
     backup = None
     try:

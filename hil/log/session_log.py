@@ -321,7 +321,7 @@ class SessionLog:
             bad += changed
         if bad:
             self.bad_values[group] += bad
-        return self._slots[group][0](*values)  # type: ignore[no-any-return]
+        return self._slots[group][0](*values)
 
     def event(self, kind: str, tick: int, detail: dict[str, Any] | str = "") -> None:
         """Log an event now (t_host_ns = time.monotonic_ns()). ``detail``: a dict (stored as JSON) or text."""

@@ -690,11 +690,11 @@ class CapturePlayer:
                 if t_old is not None:
                     self._forgotten = (old, t_old)
         elif kind is Ack or kind is Nack:
-            key = (link, msg.msg_id, msg.seq)
+            reply = (link, msg.msg_id, msg.seq)
             err = "" if kind is Ack else f"{_NAMES.get(msg.msg_id, hex(msg.msg_id))}: " \
                                          f"{getattr(msg.error, 'name', msg.error)}"
-            if key in self._expect and key not in self._answered:
-                self._answered.add(key)
+            if reply in self._expect and reply not in self._answered:
+                self._answered.add(reply)
                 if kind is Ack:
                     lp.acked += 1
                 else:

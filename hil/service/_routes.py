@@ -11,10 +11,10 @@ import json
 import math
 import os
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import Any, TypeVar
 from urllib.parse import quote
 
 from pydantic import BaseModel, ValidationError
@@ -65,7 +65,7 @@ def token_of(conn: HTTPConnection) -> str | None:
     return conn.cookies.get("hil_token")
 
 
-def error(status: int, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
+def error(status: int, message: str, headers: Mapping[str, str] | None = None) -> JSONResponse:
     """Every error the service answers: ``{"detail": "one line"}``."""
     return JSONResponse({"detail": " ".join(message.split())}, status_code=status, headers=headers)
 
@@ -79,6 +79,7 @@ class RequestError(Exception):
 
 
 Handler = Callable[[Request, Manager, Caller], Awaitable[Response]]
+Body = TypeVar("Body", bound=BaseModel)
 
 
 def endpoint(handler: Handler, *, operator: str | None = None) -> Callable[[Request], Awaitable[Response]]:
@@ -139,7 +140,7 @@ async def read_body(request: Request, limit: int = MAX_BODY_BYTES) -> bytes:
     return b"".join(chunks)
 
 
-async def body_as(request: Request, model: type[BaseModel]) -> Any:
+async def body_as(request: Request, model: type[Body]) -> Body:
     """The JSON body as ``model``; 413 (too large), 400 (not JSON) or 422 (not the model: one line naming the
     field; a string that is not Unicode text)."""
     raw = await read_body(request)
