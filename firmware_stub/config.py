@@ -19,7 +19,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from hil.protocol import CATALOGUE, LINE_RATE_BAUD, DriveCmd, GyroSample, wire_time_s
-from hil.protocol.docgen import periodic_load_bits_per_s
+from hil.protocol.budget import periodic_load_bits_per_s
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_EMULATOR_CONFIG = REPO / "profiles" / "emulator" / "default.yaml"
