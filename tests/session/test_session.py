@@ -118,8 +118,7 @@ def test_a_bench_the_host_stopped_while_the_board_was_stopped_too_does_not_trip(
     has looked. A sample the board wrote just before the stop and the bench had not read yet reaches the
     bench when it resumes and feeds the watchdog first; that stop is then no stall at all, which is also
     right, so the test asks for at least one stall of the three and no trip. A loaded host may stall the bench
-    on its own as well (a late look at a shorter silence): those are counted too, never tripped on, and left out
-    of the count of the stops'."""
+    on its own as well, even as long as a stop: those are counted too and never tripped on."""
     stops = 3
 
     async def freeze(emu: EmulatorProcess, session: Session) -> None:
@@ -142,7 +141,8 @@ def test_a_bench_the_host_stopped_while_the_board_was_stopped_too_does_not_trip(
     assert summary["faults"] == 0 and run.result.stats.faults == []
     assert summary["host_stalls"] == run.result.stats.host_stalls
     stalls_ms = [d["silent_ms"] for k, d in logged_events(run.result.log_path) if k == "host_stall"]
-    assert stops >= len([ms for ms in stalls_ms if ms >= 60.0]) >= 1, stalls_ms  # seen as stalls, none a trip
+    # seen as stalls, none a trip (a loaded host may add stalls of its own as long as the stops: not bounded here)
+    assert len([ms for ms in stalls_ms if ms >= 60.0]) >= 1, stalls_ms
     assert 60.0 <= summary["host_stall_max_ms"] < 1000.0
 
 
