@@ -1,6 +1,10 @@
 """The plant's numba kernel (``@numba.njit(cache=True)``): one tick (``kernel``) or many (``_run``) over float64
 arrays of parameters (``P_*``/``PA_*`` offsets) and state (``S_*``), laid out by ``pack_params``. One implementation for
-every clock: the emulator, the in-process sim clock and offline runs all call it."""
+every clock: the emulator, the in-process sim clock and offline runs all call it.
+
+One job: the jitted functions of one tick, which call each other. numba's on-disk cache checks only the source of
+the file a function is in, so a jitted helper moved into another module could change without recompiling the
+kernels that inline it; keeping them in one file keeps the cache honest."""
 
 from __future__ import annotations
 
