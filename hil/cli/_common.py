@@ -69,7 +69,7 @@ def print_json(data: Any) -> None:
     try:  # plain data (a service's answer) as it is, without loading the analysis for it
         text = json.dumps(data, allow_nan=False)
     except (TypeError, ValueError):
-        from hil.analysis import json_safe  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+        from hil.api import json_safe  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
         text = json.dumps(json_safe(data), default=str)
     console.print_json(text)

@@ -17,7 +17,7 @@ from hil.cli._bench import call, client, say, waiting_line
 from hil.cli._common import app, check_out_dir, console, err_console, fail, no_progress, note, print_json
 
 if TYPE_CHECKING:
-    from hil.campaign import CampaignResult, CellResult
+    from hil.api import CampaignResult, CellResult
 
 
 def campaign_json(run: Any) -> dict[str, Any]:
@@ -92,9 +92,9 @@ def print_interrupted(stop: Any, command: str) -> None:
 
 @contextlib.contextmanager
 def stop_on_signals() -> Iterator[None]:
-    """While in the block, SIGINT and SIGTERM raise :class:`hil.campaign.engines.Interrupted` naming the signal
-    (the campaign then stops its cells with it); the previous handlers come back after."""
-    from hil.campaign.engines import Interrupted  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    """While in the block, SIGINT and SIGTERM raise :class:`hil.api.Interrupted` naming the signal (the campaign
+    then stops its cells with it); the previous handlers come back after."""
+    from hil.api import Interrupted  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -152,7 +152,6 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
     from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.campaign.runner import CampaignInterrupted, interrupted  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
     from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     if bench is not None:
@@ -184,7 +183,7 @@ def campaign(  # noqa: PLR0917 (typer maps parameters to options)
             except ConfigError as exc:
                 raise fail(str(exc)) from None
     except KeyboardInterrupt as exc:  # before or after the cells ran: the campaign as it stands on disk
-        stop = exc if isinstance(exc, CampaignInterrupted) else interrupted(
+        stop = exc if isinstance(exc, api.CampaignInterrupted) else api.campaign_interrupted(
             config, out_dir, getattr(exc, "signum", signal.SIGINT))
         command = resume_command(ctx)
         if json_out:
@@ -240,8 +239,7 @@ def campaign_on_bench(url: str, file: Path, json_out: bool, out: Path | None = N
 
 def print_campaign(result: CampaignResult) -> None:
     """The terminal table: one per profile, numbers formatted as in the report (format_values)."""
-    from hil.campaign import METRICS  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.campaign.report import format_values  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.api import METRICS, format_values  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     cfg = result.config
     for profile in cfg.profiles:

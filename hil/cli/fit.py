@@ -5,11 +5,14 @@ from __future__ import annotations
 import shlex
 import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from hil.cli._common import app, as_flags, console, err_console, fail, no_progress, note, print_json
+
+if TYPE_CHECKING:
+    from hil.api import Recording
 
 
 @app.command()
@@ -69,9 +72,7 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
         return
     if not logs:
         raise fail("LOGS: give the session logs to fit (or --targets FILE)")
-    from hil.fit.logs import FitInputError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.fit.report import write_fit_report  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.fit.twin import fit_logs  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     if out.suffix not in (".yaml", ".yml"):
         raise fail(f"--out: {out} is not a .yaml file")
@@ -82,14 +83,14 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
                 status.update(f"fitting: {text}")
 
         try:
-            result = fit_logs(list(logs), prior=prior, progress=progress)
-        except FitInputError as exc:
+            result = api.fit_logs(logs, prior=prior, progress=progress)
+        except api.FitInputError as exc:
             raise fail(str(exc)) from None
         except (OSError, ValueError) as exc:
             raise fail(f"fit: {exc}") from None
         plant_path = result.write(out, command=command)
         progress("re-running the sessions on the twin" if rerun else "report")
-        files, checks = write_fit_report(result, plant_path, report, rerun=rerun, command=command)
+        files, checks = api.write_fit_report(result, plant_path, report, rerun=rerun, command=command)
     if json_out:
         print_json({
             "plant": str(plant_path), "report": str(files.markdown), "html": str(files.html),
@@ -119,8 +120,8 @@ def fit(  # noqa: PLR0917 (typer maps parameters to options)
     note(f"report: {files.markdown} (and {files.html.name})")
 
 
-def _command(rec: Any, session_file: str) -> str:
-    """The command that records ``rec`` (a :class:`hil.fit.record.Recording`) from its session file."""
+def _command(rec: Recording, session_file: str) -> str:
+    """The command that records ``rec`` (a :class:`hil.api.Recording`) from its session file."""
     if rec.sweep is None:
         return f"hil run {session_file}"
     s = rec.sweep
@@ -128,12 +129,12 @@ def _command(rec: Any, session_file: str) -> str:
             f"--sweep-s {s.duration_s:g} --amplitude-dps {s.amplitude_dps:g} --offset-dps {s.offset_dps:g}")
 
 
-def _plan_of(session: Path) -> list[Any]:
-    from hil.config import ConfigError, load_session  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.fit.record import recording_plan  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+def _plan_of(session: Path) -> list[Recording]:
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
-        return recording_plan(load_session(session))
+        return api.fit_plan(session)
     except ConfigError as exc:
         raise fail(str(exc)) from None
 
@@ -141,7 +142,7 @@ def _plan_of(session: Path) -> list[Any]:
 def _print_plan(session: Path, sessions_dir: Path, json_out: bool) -> None:
     """The recording set for ``session``'s lab: each recording's command, duration and purpose."""
     plan = _plan_of(session)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for rec in plan:
         file = str(rec.write(sessions_dir))
         rows.append({"name": rec.name, "kind": rec.kind, "seconds": rec.seconds, "why": rec.why,
@@ -161,7 +162,7 @@ def _print_plan(session: Path, sessions_dir: Path, json_out: bool) -> None:
 
 def _record(session: Path, sessions_dir: Path, *, loopback: bool, json_out: bool) -> list[Path]:
     """Run the recording set; the logs' paths."""
-    from hil.fit.record import record  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     plan = _plan_of(session)
     for rec in plan:
@@ -174,7 +175,7 @@ def _record(session: Path, sessions_dir: Path, *, loopback: bool, json_out: bool
                 note(f"recording: {text}")
 
         try:
-            logs = record(plan, loopback=loopback, progress=progress)
+            logs = api.fit_record(plan, loopback=loopback, progress=progress)
         except RuntimeError as exc:
             raise fail(f"--record: {exc}", code=1) from None
     for path in logs:
@@ -186,7 +187,7 @@ def _fit_targets(targets: Path, out: Path, trials: int, storage: str | None, stu
                  seed: int, json_out: bool, report_dir: Path | None, *, jobs: int | None, prune: bool) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    from hil.fit.targets import fit_targets  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     with Progress(TextColumn(f"[bold]fit {targets.stem}[/]"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[last]}"), TimeElapsedColumn(), console=err_console,
@@ -197,7 +198,7 @@ def _fit_targets(targets: Path, out: Path, trials: int, storage: str | None, stu
             bar.update(task, advance=1 if line.startswith("trial") else 0, last=line[:60])
 
         try:
-            result = fit_targets(targets, out_plant=out, trials=trials, storage=storage, study=study, seed=seed,
+            result = api.fit_targets(targets, out_plant=out, trials=trials, storage=storage, study=study, seed=seed,
                                  resume=resume, progress=progress, out_dir=report_dir, jobs=jobs, prune=prune)
         except (OSError, ValueError) as exc:
             raise fail(str(exc)) from None

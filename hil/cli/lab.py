@@ -25,9 +25,8 @@ def watch(
 
     from pydantic import ValidationError  # noqa: PLC0415  (loaded on first use: `hil --help` stays fast)
 
-    from hil.config import one_line  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.telemetry import MqttConfig  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.telemetry import watch as watch_telemetry  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil.config import MqttConfig, one_line  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     finite("--seconds", seconds)
     if seconds is not None and seconds <= 0:
@@ -38,8 +37,7 @@ def watch(
         raise fail(one_line("--broker", exc)) from None
     except ValueError as exc:
         raise fail(f"--broker: {exc}") from None
-    raise typer.Exit(asyncio.run(watch_telemetry(config, seconds=seconds, console=console,
-                                                 err_console=err_console)))
+    raise typer.Exit(asyncio.run(api.watch(config, seconds=seconds, console=console, err_console=err_console)))
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -54,12 +52,10 @@ def emulate(  # noqa: PLR0917 (typer maps parameters to options)
     seconds: Annotated[float | None, typer.Option(help="Stop after this much simulated time.")] = None,
 ) -> None:
     """Run the emulated lab (gimbal on a hexapod, four boards on ptys) until Ctrl-C: `python -m firmware_stub`."""
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
-    args = [sys.executable, "-m", "firmware_stub"]
-    for flag, value in (("--config", config), ("--clock", clock), ("--seed", seed), ("--ports-file", ports_file),
-                        ("--fault-log", fault_log), ("--seconds", seconds)):
-        if value is not None:
-            args += [flag, str(value)]
+    args = api.emulator_command(config=config, clock=clock, seed=seed, ports_file=ports_file, fault_log=fault_log,
+                                seconds=seconds)
     sys.stdout.flush()
     os.execv(sys.executable, args + list(ctx.args))  # the emulator gets our pid, so signals reach it directly
 

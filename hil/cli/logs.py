@@ -26,22 +26,26 @@ def report(
     finite("--settle-s", settle_s)
     if not log.is_dir():
         check_input_file(log)
-    try:
-        out = api.report(log, settle_s=settle_s)
-    except ConfigError as exc:
-        raise fail(str(exc)) from None
     if log.is_dir():
+        try:
+            done = api.report_campaign(log)
+        except ConfigError as exc:
+            raise fail(str(exc)) from None
         if json_out:
             from hil.cli.campaign import campaign_json  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
-            print_json(campaign_json(out))
-        else:
-            note(f"report: {out.report.markdown}\n        {out.report.html}  ({len(out.report.pngs)} plots)")
+            print_json(campaign_json(done))
+        elif done.report is not None:
+            note(f"report: {done.report.markdown}\n        {done.report.html}  ({len(done.report.pngs)} plots)")
         return
+    try:
+        summary = api.report_log(log, settle_s=settle_s)
+    except ConfigError as exc:
+        raise fail(str(exc)) from None
     if json_out:
-        print_json(out)
+        print_json(summary)
     else:
-        print_summary(out)
+        print_summary(summary)
 
 
 @app.command()
@@ -52,13 +56,13 @@ def export(
     json_out: Annotated[bool, typer.Option("--json", help="Print the written files as JSON.")] = False,
 ) -> None:
     """Export every group of a log to Parquet or CSV files, units kept (docs/log-format.md, "Export")."""
-    from hil.log import LogError, export_log  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     check_input_file(log)
     check_out_dir(out if out is not None else log.parent, "--out" if out is not None else "the log's directory")
     try:
-        paths = export_log(log, fmt, out)
-    except LogError as exc:
+        paths = api.export_log(log, fmt, out)
+    except api.LogError as exc:
         raise fail(str(exc)) from None
     if json_out:
         print_json({"log": str(log), "format": fmt, "files": [str(p) for p in paths]})
@@ -73,12 +77,12 @@ def recover(
     json_out: Annotated[bool, typer.Option("--json", help="Print the recovered log's path as JSON.")] = False,
 ) -> None:
     """Make a log left by a crash (SIGKILL, power loss) open normally; the original is kept beside it."""
-    from hil.log import LogError, recover_log  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     check_input_file(log)
     try:
-        result = recover_log(log)
-    except LogError as exc:
+        result = api.recover_log(log)
+    except api.LogError as exc:
         raise fail(str(exc)) from None
     if json_out:
         print_json({"log": str(log), "recovered": str(result)})

@@ -3,17 +3,18 @@ capture of every link, hil.link, or raw bytes of one)."""
 
 from __future__ import annotations
 
-import enum
-import re
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 from rich.table import Table
 
 from hil.cli._common import console, err_console, fail, print_json, protocol_app
+
+if TYPE_CHECKING:
+    from hil.api import Frame, TimedFrame
 
 
 @protocol_app.command("docs")
@@ -22,16 +23,16 @@ def protocol_docs(
     path: Annotated[Path | None, typer.Option(help="The protocol document (default: docs/protocol.md).")] = None,
 ) -> None:
     """Check (or with --write, regenerate) the catalogue tables in docs/protocol.md."""
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
     from hil.config import read_text_file  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.protocol import docgen  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
-    path = path or docgen.DOC_PATH
+    path = path or api.PROTOCOL_DOC
     try:
         old = read_text_file(path, 16 << 20)
     except ValueError as exc:
         raise fail(str(exc)) from None
     try:
-        new = docgen.apply(old)
+        new = api.protocol_docs(old)
     except ValueError as exc:
         raise fail(str(exc)) from None
     if new == old:
@@ -65,15 +66,15 @@ def protocol_decode(  # noqa: PLR0917 (typer maps parameters to options)
 ) -> None:
     """Decode what a link carried: a capture's frames with their times (every link, both directions), or a raw
     capture of one link; then the link counters. Streams: memory stays bounded."""
-    from hil.link import CaptureError, find_capture, is_capture  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     path = Path(capture)
-    if capture != "-" and not hex_input and (path.is_dir() or is_capture(path)):
+    if capture != "-" and not hex_input and (path.is_dir() or api.is_capture(path)):
         if side is not None:
             raise fail("--side: a capture knows each record's direction; choose it with --direction rx|tx")
         try:
-            found = find_capture(path)
-        except CaptureError as exc:
+            found = api.find_capture(path)
+        except api.CaptureError as exc:
             raise fail(str(exc)) from None
         _decode_capture(found, limit, link, direction, json_out)
         return
@@ -82,37 +83,19 @@ def protocol_decode(  # noqa: PLR0917 (typer maps parameters to options)
     _decode_raw(capture, hex_input, limit, link, side=side or "host", json_out=json_out)
 
 
-def _message_json(msg: Any) -> dict[str, Any]:
-    """A message's fields as JSON values: enums by name, arrays as lists."""
-    out: dict[str, Any] = {}
-    for name, value in msg._asdict().items():
-        if isinstance(value, enum.Enum):
-            out[name] = value.name if value.name is not None else int(value)
-        else:
-            out[name] = list(value) if isinstance(value, tuple) else value
-    return out
-
-
-def _frame_json(frame: Any) -> dict[str, Any]:
-    from hil.protocol import CATALOGUE  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-
-    return {"src": frame.src, "dst": frame.dst, "seq": frame.seq, "message": CATALOGUE.spec(frame.message).name,
-            "fields": _message_json(frame.message)}
-
-
 def _decode_capture(path: Path, limit: int, link: str | None, direction: str | None, json_out: bool) -> None:
-    from hil.link import CaptureDecode, CaptureError, CaptureReader, TimedFrame, decode_capture  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
-        result = CaptureDecode(CaptureReader(path))
-    except (CaptureError, OSError) as exc:
+        result = api.open_capture(path)
+    except (api.CaptureError, OSError) as exc:
         raise fail(str(exc)) from None
     if link is not None and link not in result.reader.links:
         raise fail(f"--link: {link!r} is not in this capture (links: {', '.join(result.reader.links)})")
     shown: list[TimedFrame] = []
     n_frames = 0
     try:
-        for tf in decode_capture(path, links=None if link is None else [link],
+        for tf in api.decode_capture(path, links=None if link is None else [link],
                                  directions=None if direction is None else [direction], result=result):
             n_frames += 1
             if len(shown) < limit:
@@ -129,7 +112,7 @@ def _decode_capture(path: Path, limit: int, link: str | None, direction: str | N
             "problem": reader.problem, "trailing_bytes": reader.trailing_bytes, "frames_total": n_frames,
             "first_t_ns": result.first_t_ns, "last_t_ns": result.last_t_ns,
             "frames": [{"t_ns": tf.t_ns, "t_s": (tf.t_ns - t0) / 1e9, "link": tf.link, "direction": tf.direction,
-                        **_frame_json(tf.frame)} for tf in shown],
+                        **api.frame_json(tf.frame)} for tf in shown],
             "counters": {f"{name} {d}": {**dec.counters.as_dict(), "errors": dec.counters.errors(),
                                          "pending": dec.pending}
                          for (name, d), dec in result.decoders.items()},
@@ -157,18 +140,16 @@ def _decode_capture(path: Path, limit: int, link: str | None, direction: str | N
 
 
 def _decode_raw(capture: str, hex_input: bool, limit: int, link: str | None, *, side: str, json_out: bool) -> None:
-
-    from hil.link import board_of  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.protocol import Decoder, Frame  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     chunk_bytes = 1 << 16
     if link is None:
-        decoder = Decoder()
+        decoder = api.Decoder()
     else:
-        board = board_of(link)
+        board = api.board_of(link)
         if board is None:
             raise fail(f"--link: {link!r} is not servo, driver, image or hexapod")
-        decoder = Decoder.for_link(board, "host" if side == "host" else "board")
+        decoder = api.Decoder.for_link(board, "host" if side == "host" else "board")
     if capture == "-":
         source, where = sys.stdin.buffer, "stdin"
     elif hex_input:
@@ -189,36 +170,23 @@ def _decode_raw(capture: str, hex_input: bool, limit: int, link: str | None, *, 
         while block := source.read(chunk_bytes):
             yield block
 
-    def hex_blocks() -> Iterator[bytes]:
-        """Hex text to bytes, block by block; spaces, newlines and ':' between digits are ignored."""
-        carry, offset = b"", 0
-        for text in blocks():
-            bad = re.search(rb"[^0-9a-fA-F \t\r\n:]", text)
-            if bad:
-                raise fail(f"{where}: not hex text: {bad[0].decode('latin-1')!r} at byte {offset + bad.start()}")
-            offset += len(text)
-            digits = carry + text.translate(None, b" \t\r\n:")
-            cut = len(digits) & ~1
-            carry = digits[cut:]
-            yield bytes.fromhex(digits[:cut].decode("ascii"))
-        if carry:
-            raise fail(f"{where}: not hex text: an odd number of hex digits")
-
     shown: list[Frame] = []
     n_frames = 0
     try:
-        for block in hex_blocks() if hex_input else blocks():
+        for block in api.hex_bytes(blocks(), where) if hex_input else blocks():
             frames = decoder.feed(block)
             n_frames += len(frames)
             if len(shown) < limit:
                 shown += frames[: limit - len(shown)]
     except OSError as exc:
         raise fail(f"{where}: cannot read: {exc.strerror or exc}") from None
+    except ValueError as exc:  # not hex text
+        raise fail(str(exc)) from None
     finally:
         if source is not None and source is not sys.stdin.buffer:
             source.close()
     if json_out:
-        print_json({"source": where, "frames_total": n_frames, "frames": [_frame_json(fr) for fr in shown],
+        print_json({"source": where, "frames_total": n_frames, "frames": [api.frame_json(fr) for fr in shown],
                     "counters": {**decoder.counters.as_dict(), "errors": decoder.counters.errors(),
                                  "pending": decoder.pending}})
         return

@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 from rich.table import Table
 
 from hil.cli._common import app, check_out_dir, console, fail, finite, note, print_json
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from hil.api import PlaybackResult
 
 
 @app.command()
@@ -44,7 +49,7 @@ def replay(  # noqa: PLR0917 (typer maps parameters to options)
 ) -> None:
     """Replay a session log through an estimator/controller offline and compare it with the logged one; or, with
     --to-emulator, play a capture's frames back at a board or the emulator and count what came back."""
-    from hil.link import is_capture  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     finite("--settle", settle)
     if out is not None:
@@ -59,7 +64,7 @@ def replay(  # noqa: PLR0917 (typer maps parameters to options)
         return
     if ports_file is not None or port or clock is not None or seed is not None:
         raise fail("--ports-file, --port, --clock and --seed go with --to-emulator (a capture)")
-    if source.is_dir() or is_capture(source):
+    if source.is_dir() or api.is_capture(source):
         raise fail(f"{source}: a capture; play it back with --to-emulator, or replay a session log (.h5)")
     _replay_log(source, controller, params, settle=settle, out=out, json_out=json_out)
 
@@ -70,14 +75,13 @@ def replay(  # noqa: PLR0917 (typer maps parameters to options)
 def _replay_log(log: Path, controller: str | None, params: str | None, *, settle: float, out: Path | None,
                 json_out: bool) -> None:
     from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.replay import write_outputs  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         result = api.replay_log(log, controller, params, settle_s=settle)
     except ValueError as exc:  # bad input, one line: ConfigError (hil.api), ReplayError, ControllerConfigError
         raise fail(str(exc)) from None
     try:
-        png, js = write_outputs(result, out if out is not None else log.parent)
+        png, js = api.write_replay_outputs(result, out if out is not None else log.parent)
     except OSError as exc:
         raise fail(f"{out if out is not None else log.parent}: cannot write the plot and JSON: "
                    f"{exc.strerror or exc}") from None
@@ -108,10 +112,10 @@ def _fmt(x: float) -> str:
 # --- a capture back at the boards (hil.api.replay_capture) ------------------------------------------------------
 
 
-def _replay_capture(source: Path, ports_file: Path | None, port: list[str], *, clock: str | None, seed: int | None,
-                    timing: str, out: Path | None, json_out: bool) -> None:
+def _replay_capture(source: Path, ports_file: Path | None, port: list[str], *,
+                    clock: Literal["lockstep", "realtime"] | None, seed: int | None,
+                    timing: Literal["samples", "clock"], out: Path | None, json_out: bool) -> None:
     from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.replay import write_playback_json  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
         result = api.replay_capture(source, ports=port, ports_file=ports_file, clock=clock, seed=seed,
@@ -120,7 +124,7 @@ def _replay_capture(source: Path, ports_file: Path | None, port: list[str], *, c
         raise fail(str(exc)) from None
     if out is not None:
         try:
-            write_playback_json(result, out)
+            api.write_playback_json(result, out)
         except OSError as exc:
             raise fail(f"{out}: cannot write the JSON: {exc.strerror or exc}") from None
     if json_out:  # the JSON alone on stdout
@@ -134,7 +138,7 @@ def _replay_capture(source: Path, ports_file: Path | None, port: list[str], *, c
         raise typer.Exit(1)
 
 
-def _print_playback(r: Any) -> None:
+def _print_playback(r: PlaybackResult) -> None:
     t = Table(title=f"{r.capture.name} played back ({r.timing} timing, {r.duration_s:.1f} s)")
     for col in ("link", "sent", "received", "in the capture (received)", "answered", "NACKs"):
         t.add_column(col)
@@ -158,5 +162,5 @@ def _print_playback(r: Any) -> None:
         console.print(line, highlight=False)
 
 
-def _counts(counter: Any) -> str:
+def _counts(counter: Mapping[str, int]) -> str:
     return ", ".join(f"{k} {v}" for k, v in sorted(counter.items())) or "-"

@@ -14,9 +14,8 @@ from hil.cli._bench import bench_for, run_on_bench
 from hil.cli._common import app, check_out_dir, console, err_console, fail, finite, no_progress, note, print_json
 
 if TYPE_CHECKING:
-    from hil.api import RunResult
-    from hil.config import SessionConfig
-    from hil.link._selftest import SelftestReport
+    from hil.api import RunResult, SelftestReport
+    from hil.config import SessionConfig, SweptSine
 
 ClockOption = Literal["realtime", "lockstep", "sim"]
 
@@ -30,7 +29,7 @@ def load_session_or_exit(path: Path) -> SessionConfig:
         raise fail(str(exc)) from None
 
 
-def run_and_print(config: SessionConfig, out: Path | None, loopback: bool, clock: str | None, json_out: bool, *,
+def run_and_print(config: SessionConfig, out: Path | None, loopback: bool, clock: ClockOption | None, json_out: bool, *,
                   capture: Path | None = None, show: bool = True) -> RunResult:
     """Run one session through hil.api with a progress bar, print its summary (``show``), return the api's
     RunResult."""
@@ -40,7 +39,7 @@ def run_and_print(config: SessionConfig, out: Path | None, loopback: bool, clock
     from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     try:
-        config, clock_name, out_dir = api.prepare_run(config, loopback=loopback, clock=clock, out=out)  # type: ignore[arg-type]
+        config, clock_name, out_dir = api.prepare_run(config, loopback=loopback, clock=clock, out=out)
     except ConfigError as exc:
         raise fail(str(exc)) from None
     total = round(config.duration_s * 1000)
@@ -245,7 +244,6 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
 
     from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
     from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.control.registry import K_M_DEFAULT  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     base = load_session_or_exit(session)
     url = bench_for(bench, loopback)
@@ -277,7 +275,7 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
                   transient=True, disable=no_progress(json_out)) as bar:
         task = bar.add_task("ident", total=None, sim=0.0, sweep="")
 
-        def on_pass(i: int, sweep: Any) -> None:
+        def on_pass(i: int, sweep: SweptSine) -> None:
             bar.update(task, completed=0, sweep=f"pass {i} (peak {sweep.amplitude_dps:.3g} deg/s, offset "
                        f"{sweep.offset_dps:+.3g} deg/s)")
 
@@ -306,7 +304,7 @@ def ident(  # noqa: PLR0917 (typer maps parameters to options)
                       f" the fit stops at half of it, {fit.f_range_hz[1]:.3g} Hz", highlight=False)
     console.print(f"[bold]{fit.describe()}[/]", highlight=False)
     console.print(f"k_m {fit.k_m_dps2_per_count:.5f} deg/s^2 per count: {done.report['k_m_vs_default_pct']:+.1f} % "
-                  f"vs the controllers' default {K_M_DEFAULT} (set b0_dps2_per_count to the fitted value if it "
+                  f"vs the controllers' default {api.K_M_DEFAULT} (set b0_dps2_per_count to the fitted value if it "
                   "differs)", highlight=False)
     console.print(f"bode: {done.bode_png}\nident: {done.json_path}", highlight=False)
 
@@ -326,13 +324,13 @@ def selftest(
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
-    from hil.link import main_sync  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     with Progress(TextColumn("[bold]selftest[/] GYRO_SAMPLE -> DRIVE_CMD"), BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), console=err_console, transient=True, disable=no_progress(json_out)) as bar:
         task = bar.add_task("frames", total=ticks)
-        report = main_sync(ticks=ticks, seed=seed, garbage_rate=garbage_rate, flip_rate=flip_rate,
-                           progress=lambda n: bar.update(task, completed=n))
+        report = api.selftest(ticks=ticks, seed=seed, garbage_rate=garbage_rate, flip_rate=flip_rate,
+                              progress=lambda n: bar.update(task, completed=n))
     if json_out:
         print_json(dataclasses.asdict(report) | {"passed": report.passed})
     else:

@@ -1,4 +1,4 @@
-"""`hil tune`: an Optuna study over a campaign's cells, through :func:`hil.tune.tune` (docs/tuning.md)."""
+"""`hil tune`: an Optuna study over a campaign's cells, through :func:`hil.api.tune` (docs/tuning.md)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import typer
 from hil.cli._common import Verbosity, app, console, err_console, fail, no_progress, note, print_json
 
 if TYPE_CHECKING:
-    from hil.tune import TrialInfo
+    from hil.api import TrialInfo
 
 
 @app.command()
@@ -66,8 +66,8 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
     steer the sampler. Writes OUT/NAME-tuned.yaml and the report. Exit 1 if no trial was feasible."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415  (the terminal UI: loaded only when it draws)
 
+    from hil import api  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
     from hil.config import ConfigError  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
-    from hil.tune import tune as run_tune  # noqa: PLC0415  (the API loads on first use: `hil --help` stays fast)
 
     if scheduler is not None and engine != "dask":
         raise fail("--scheduler: needs --engine dask")
@@ -86,7 +86,7 @@ def tune(  # noqa: PLR0917 (typer maps parameters to options)
             bar.update(task, advance=1, last=f"trial {t.number}: {what}")
 
         try:
-            result = run_tune(file, params, objective=objective or "miss_std_px", trials=trials, controller=controller,
+            result = api.tune(file, params, objective=objective or "miss_std_px", trials=trials, controller=controller,
                               constraints=constraint, engine=engine, scheduler=scheduler, shared_dir=shared_dir,
                               workers=workers, jobs=jobs,
                               storage=storage, study=study, resume=resume, out=out, write_profile=write_profile,
