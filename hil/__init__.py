@@ -39,7 +39,8 @@ if TYPE_CHECKING:
     from hil.config import ConfigError, SessionConfig, load_session
     from hil.service import Bench
 
-# hil.api.ident is not here: identification itself is hil.analysis (hil/analysis/_ident.py)
+# hil.api.ident and hil.api.tune are not here: hil.ident and hil.tune are packages, and a package's name would
+# hide a function of that name once imported (tests/api/test_api.py)
 _FROM = {"Bench": "hil.service", "CampaignRun": "hil.api", "IdentRun": "hil.api", "replay_capture": "hil.api",
          "replay_log": "hil.api",
          "RunResult": "hil.api", "check_file": "hil.api", "load_campaign": "hil.api",
