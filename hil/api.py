@@ -14,7 +14,6 @@ say: FitInputError, CaptureError) before anything reaches a board; the command l
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 import sys
 from collections.abc import Callable, Coroutine, Mapping, Sequence
@@ -28,9 +27,8 @@ from hil.config import (
     SweptSine,
     load_session,
     require_regular_file,
-    require_writable_dir,
 )
-from hil.control.registry import K_M_DEFAULT, ControllerConfigError, require_sim_clock
+from hil.control.registry import K_M_DEFAULT
 from hil.ident import IdentRun, run_ident
 from hil.link import (
     CaptureDecode,
@@ -57,7 +55,6 @@ from hil.session import (
     Progress,
     RunResult,
     check_hardware,
-    emulator_for_plant,
     prepare_run,
     read_log,
     run,
@@ -67,7 +64,7 @@ from hil.session import (
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from hil.campaign import METRICS, CampaignConfig, CampaignResult, CellResult
+    from hil.campaign import METRICS, CampaignConfig, CampaignResult, CampaignRun, CellResult
     from hil.campaign.engines import Engine, Interrupted
     from hil.campaign.report import format_values
     from hil.campaign.runner import CampaignInterrupted
@@ -167,6 +164,7 @@ __all__ = [
 # Names of the experiments, loaded on first use (`hil run` starts without them): name -> (module, its name there)
 _LAZY = {
     "CampaignConfig": ("hil.campaign", "CampaignConfig"),
+    "CampaignRun": ("hil.campaign", "CampaignRun"),
     "CampaignResult": ("hil.campaign", "CampaignResult"),
     "CellResult": ("hil.campaign", "CellResult"),
     "METRICS": ("hil.campaign", "METRICS"),
@@ -205,37 +203,11 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(__all__))
 
 
-@dataclasses.dataclass
-class CampaignRun:
-    """A campaign's outcome: ``result`` (every cell, the acceptance rules), ``out_dir``, ``report`` (the Markdown
-    and HTML files, when written). ``table()`` gives one row per cell and metric as a DataFrame."""
-
-    result: CampaignResult
-    out_dir: Path
-    report: ReportFiles | None = None
-
-    @property
-    def passed(self) -> bool:
-        return self.result.passed
-
-    def table(self) -> Any:
-        """Every cell's metrics, one row per cell: profile, controller, seed, status, then a column per metric."""
-        import pandas as pd  # noqa: PLC0415  (heavy: loaded only for DataFrames)
-
-        rows = [{"cell": c.cell_id, "profile": c.profile, "controller": c.controller, "seed": c.seed,
-                 "status": c.status, "passed": c.passed, **c.metrics} for c in self.result.cells]
-        return pd.DataFrame(rows)
-
-
 def load_campaign(path: str | Path) -> CampaignConfig:
     """A campaign YAML (profiles x controllers x seeds, metrics, thresholds, acceptance rules)."""
-    from hil.campaign import CampaignError  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
-    from hil.campaign import load_campaign as load  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
+    from hil.campaign import load_campaign_file  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
-    try:
-        return load(path)
-    except CampaignError as exc:
-        raise ConfigError(str(exc)) from None
+    return load_campaign_file(path)
 
 
 def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | None = None,
@@ -247,50 +219,10 @@ def prepare_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path |
     """Check a campaign without running it: (config, its directory, every cell's session). ConfigError otherwise.
     The engine options are checked as given (the scheduler is not contacted here: :func:`run_campaign` does).
     ``plant``: run every cell on this plant file (a fitted twin, docs/fit.md) instead of the sessions' own."""
-    from hil.campaign import CampaignError  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
-    from hil.campaign.engines import EngineError, check_options  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
-    from hil.campaign.runner import cell_sessions  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
+    from hil.campaign import prepare_campaign as prepare  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
-    source = str(campaign) if not hasattr(campaign, "cells") else "campaign"
-    config: CampaignConfig = campaign if hasattr(campaign, "cells") else load_campaign(campaign)  # type: ignore[assignment]
-    out_dir = Path(out) if out is not None else Path("runs") / "campaigns" / config.name
-    require_writable_dir(out_dir, "out")
-    if plant is not None:
-        config = _on_plant(config, Path(plant), out_dir)
-    if clock not in ("sim", "lockstep"):
-        raise ConfigError(f"clock={clock!r}: not sim or lockstep")
-    try:
-        check_options(engine, hardware=hardware, scheduler=scheduler, workers=workers, shared_dir=shared_dir)
-    except EngineError as exc:
-        raise ConfigError(str(exc)) from None
-
-    if (clock != "sim" or hardware) and (use := config.sim_only_metric()) is not None:
-        raise ConfigError(f"{source}: {use} is read from the plant's truth, which only the sim clock records "
-                          f"(not {'hardware' if hardware else clock}); run with clock='sim'")
-    for entry in config.controllers:  # the oracle needs the sim clock's true plant state
-        try:
-            require_sim_clock(entry.name, "hardware" if hardware else clock)
-        except ControllerConfigError as exc:
-            raise ConfigError(f"{source}: controllers[{entry.label}]: {exc}") from None
-    try:  # every cell, before anything is written
-        sessions = cell_sessions(config, out_dir, hardware, clock)
-    except CampaignError as exc:
-        raise ConfigError(f"{source}: {exc}") from None
-    return config, out_dir, sessions
-
-
-def _on_plant(config: CampaignConfig, plant: Path, out_dir: Path) -> CampaignConfig:
-    """The campaign with every cell's emulator on ``plant`` (an emulator file written into ``out_dir``)."""
-    from firmware_stub.plant import PlantConfigError, load_plant_config  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
-
-    try:
-        load_plant_config(plant)
-    except PlantConfigError as exc:
-        raise ConfigError(f"plant={str(plant)!r}: {exc}") from None
-    emulator = emulator_for_plant(plant, out_dir)
-    overrides = {**config.overrides, "emulator": {**(config.overrides.get("emulator") or {}),
-                                                  "config": str(emulator.resolve())}}
-    return config.model_copy(update={"overrides": overrides})
+    return prepare(campaign, out=out, hardware=hardware, clock=clock, engine=engine, scheduler=scheduler,
+                   workers=workers, shared_dir=shared_dir, plant=plant)
 
 
 def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | None = None, jobs: int = 1,
@@ -314,27 +246,11 @@ def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | Non
     A KeyboardInterrupt stops the cells running (each session the safe way) and raises
     :class:`hil.campaign.runner.CampaignInterrupted` (a KeyboardInterrupt) naming the cells done and cut short;
     the finished cells stay in ``out``, and ``resume=True`` runs the rest. No report is written then."""
-    from hil.campaign import CampaignError  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
-    from hil.campaign import run_campaign as run_cells  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
+    from hil.campaign import run_and_report  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
-    config, out_dir, sessions = prepare_campaign(campaign, out=out, hardware=hardware, clock=clock, engine=engine,
-                                                 scheduler=scheduler, workers=workers, shared_dir=shared_dir,
-                                                 plant=plant)
-    try:
-        result = run_cells(config, out_dir, jobs=jobs, resume=resume, hardware=hardware, on_cell=on_cell,
-                           sessions=sessions, engine=engine, scheduler=scheduler, workers=workers,
-                           shared_dir=shared_dir)
-    except CampaignError as exc:
-        raise ConfigError(str(exc)) from None
-    files = None
-    if write_report:
-        from hil.campaign.report import write_report as write  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
-
-        try:
-            files = write(out_dir)
-        except CampaignError as exc:
-            raise ConfigError(str(exc)) from None
-    return CampaignRun(result=result, out_dir=out_dir, report=files)
+    return run_and_report(campaign, out=out, jobs=jobs, resume=resume, hardware=hardware, clock=clock,
+                          write_report=write_report, on_cell=on_cell, engine=engine, scheduler=scheduler,
+                          workers=workers, shared_dir=shared_dir, plant=plant)
 
 
 def report(path: str | Path, *, settle_s: float = 1.0) -> dict[str, Any] | CampaignRun:
@@ -346,14 +262,9 @@ def report(path: str | Path, *, settle_s: float = 1.0) -> dict[str, Any] | Campa
 
 def report_campaign(path: str | Path) -> CampaignRun:
     """A campaign directory's report written again (Markdown, HTML and plots), with the campaign's results."""
-    from hil.campaign import CampaignError, load_results  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
-    from hil.campaign.report import write_report  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
+    from hil.campaign import report_campaign as report_again  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
-    path = Path(path)
-    try:
-        return CampaignRun(result=load_results(path), out_dir=path, report=write_report(path))
-    except CampaignError as exc:
-        raise ConfigError(str(exc)) from None
+    return report_again(path)
 
 
 def report_log(path: str | Path, *, settle_s: float = 1.0) -> dict[str, Any]:

@@ -551,7 +551,7 @@ def with_report(running: Running, done: dict[str, Any], log: Path | None, summar
     notes = [f"Service item {running.uid} ({running.kind}) ended {status}"
              + (f": {done['message']}" if done.get("message") else ".")]
     try:
-        files = write_session_report(log, report_dir(log), summary or api.report(log), notes=notes,
+        files = write_session_report(log, report_dir(log), summary or api.report_log(log), notes=notes,
                                      figures=figures or ())
     except Exception as exc:  # the item ran: whatever its report met, the item ends as it ended
         why = f"its report could not be written ({type(exc).__name__}: {' '.join(str(exc).split())})"

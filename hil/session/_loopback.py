@@ -24,8 +24,14 @@ def emulator_for_plant(plant: str | Path, out_dir: str | Path, *, base: str | Pa
     """An emulator YAML with ``base``'s settings (the shipped default unless given) and ``plant`` as its plant
     (``seed`` and ``links.wire_time`` too, if given), written into ``out_dir`` as ``emulator-BASE-PLANT.yaml``
     (``...-nowire.yaml`` without the wire's time); its path. Written whole and renamed into place, so processes
-    that share ``out_dir`` never read half a file."""
+    that share ``out_dir`` never read half a file. A plant file that does not load is a ConfigError naming it."""
     base, plant = Path(base), Path(plant)
+    from firmware_stub.plant import PlantConfigError, load_plant_config  # noqa: PLC0415  (the plant's numba kernel comes with it: loaded only when a plant is given)
+
+    try:
+        load_plant_config(plant)
+    except PlantConfigError as exc:
+        raise ConfigError(f"plant={str(plant)!r}: {exc}") from None
     try:
         data = read_yaml_mapping(base)
     except ValueError as exc:
