@@ -5,7 +5,8 @@ Creates `.venv` beside this file on first use (and again whenever pyproject.toml
 installs the project into it, then runs the command. Needs only python3 >= 3.11; no root.
 
     python3 dev.py demo            the loopback demo (README's main command)
-    python3 dev.py test [ARGS]     mosquitto and chromium, ruff, lint-imports, the whole test suite (ARGS: pytest's)
+    python3 dev.py test [ARGS]     mosquitto, chromium, ruff, lint-imports, mypy, then the whole suite (ARGS: pytest's)
+    python3 dev.py test --fast     the same checks and the fast lane: every test not marked slow or browser (minutes)
     python3 dev.py bench           the benchmarks in benchmarks/ (results: docs/performance.md)
     python3 dev.py hil ARGS        any `hil` command inside the environment
 """
@@ -120,15 +121,24 @@ def main(argv: list[str]) -> int:
             say(f"running {script.relative_to(ROOT)}")
             rc |= run([PY, script, *rest])
         return rc
+    fast = "--fast" in rest
+    rest = [a for a in rest if a != "--fast"]
     ensure_test_services()
     say("ruff check")
     if run([PY, "-m", "ruff", "check", "."]) != 0:
         say("ruff found problems (above); `.venv/bin/ruff check --fix .` fixes most")
         return 1
     say("lint-imports (the layers in pyproject.toml, docs/architecture.md)")
-    if run([BIN / "lint-imports"]) != 0:
+    if run([BIN / "lint-imports", "--no-cache"]) != 0:  # a cache left by files edited mid-run can be stale
         say("an import breaks the bench's layers (above): move the code to the layer it belongs to")
         return 1
+    say("mypy (the types of hil and firmware_stub)")
+    if run([PY, "-m", "mypy"]) != 0:
+        say("the type checker found problems (above)")
+        return 1
+    if fast:
+        say("the fast lane: tests not marked slow or browser (the whole suite: python3 dev.py test)")
+        return run([PY, "-m", "pytest", "-m", "not slow and not browser", *rest])
     return run([PY, "-m", "pytest", *rest])
 
 

@@ -1,4 +1,5 @@
-"""The one Optuna study driver that ``hil tune`` and ``hil fit --targets`` share (docs/tuning.md), below both.
+"""The one Optuna study driver that tuning (``hil tune``) and the fit to published targets share (docs/tuning.md),
+below both.
 
 A study is named (``check_study_name``), sized (``check_trials``), created or resumed (``start_study``) in an RDB
 storage (``storage_url``, ``rdb_storage``, ``open_study``: SQLite by default, any SQLAlchemy URL) and run
