@@ -31,7 +31,7 @@ import uuid
 from collections.abc import Callable, Collection, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from pathlib import Path
-from typing import Any, Protocol, TypeVar, runtime_checkable
+from typing import Any, Protocol, Self, TypeVar, runtime_checkable
 from urllib.parse import urlsplit
 
 _log = logging.getLogger("hil.campaign")
@@ -101,13 +101,13 @@ class _Base:
     remote = False
     shared_dir: Path | None = None
 
-    def open(self) -> Any:
+    def open(self) -> Self:
         return self
 
     def close(self) -> None:
         return None
 
-    def __enter__(self) -> Any:
+    def __enter__(self) -> Self:
         return self.open()
 
     def __exit__(self, *exc: object) -> None:

@@ -37,6 +37,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -453,7 +454,7 @@ class Worker:
         return {name: (self.lab.ports[name].model_dump(mode="json") if name in self.lab.ports else None)
                 for name in LINKS}
 
-    def _progress(self, running: Running) -> Any:
+    def _progress(self, running: Running) -> Callable[[int, int], None]:
         def progress(cycles: int, total: int) -> None:
             running.cycles, running.total = cycles, total
         return progress
