@@ -86,6 +86,7 @@ def small_campaign(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_run_campaign_and_report_inside_a_running_loop(tmp_path: Path) -> None:
     path = small_campaign(tmp_path)
     seen: list[str] = []

@@ -151,6 +151,7 @@ def on_the_slow_wire(name: str) -> dict[str, Any]:
         ),
     ],
 )
+@pytest.mark.slow
 def test_shipped_campaign_acceptance_on_a_short_lockstep_run(
     tmp_path: Path, name: str, duration_s: float, changes: dict[str, Any]
 ) -> None:
@@ -168,6 +169,7 @@ def test_shipped_campaign_acceptance_on_a_short_lockstep_run(
     assert "PASS" in proc.stdout
 
 
+@pytest.mark.slow
 def test_on_the_slow_wire_the_high_gain_loop_loses_its_lead(tmp_path: Path) -> None:
     """On the slow-wire lab (921 600 baud), Table 1's campaign keeps ESO+KF below ESO but the high-gain ESO+KF's rate
     error rises above ESO+KF's: its loop has no margin for the wire's 0.63 ms (docs/emulator.md, "What the wire costs

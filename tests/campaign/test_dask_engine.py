@@ -81,6 +81,7 @@ def assert_same_cells(out: Path, cells: list[CellResult], local_out: Path, local
         assert assert_same_channels(log_of(out, cell), log_of(local_out, ref), 2000) > 1900
 
 
+@pytest.mark.slow
 def test_the_dask_engine_on_its_own_local_cluster_gives_the_local_engines_cells(local_run: LocalRun,
                                                                                  tmp_path: Path) -> None:
     path, local_out, local = local_run

@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
 import yaml
 
 from hil.campaign import load_campaign
@@ -64,6 +65,7 @@ def files(folder: Path) -> dict[str, tuple[bytes, int]]:
     return {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(folder.iterdir()) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_sigint_names_the_cells_done_and_cut_short_and_the_printed_resume_runs_only_the_rest(tmp_path: Path) -> None:
     path = small_campaign(tmp_path)
     first, second, third = ids = [s.cell_id for s in load_campaign(path).cells()]

@@ -37,6 +37,7 @@ def session_file(tmp_path: Path, name: str = "s", **changes: object) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_warm_cells_give_the_metrics_and_logs_of_hil_run_processes(tmp_path: Path) -> None:
     config = short_campaign()
     warm = run_campaign(config, tmp_path / "warm", warm=True)
@@ -75,6 +76,7 @@ def test_a_worker_runs_cell_after_cell_and_a_bad_session_ends_only_its_cell(tmp_
     assert "duration_s" in (tmp_path / "b.txt").read_text()  # the cell's stderr, as `hil run` writes it
 
 
+@pytest.mark.slow
 def test_a_worker_killed_mid_cell_is_named_and_the_next_cell_gets_a_new_one(tmp_path: Path) -> None:
     long = session_file(tmp_path, duration_s=600.0)
     worker = WarmCell()

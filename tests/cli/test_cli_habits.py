@@ -94,6 +94,7 @@ def test_errors_go_to_stderr_and_results_to_stdout(tmp_path: Path) -> None:
     assert out.returncode != 0 and out.stdout.strip() == "" and "127.0.0.1" in out.stderr
 
 
+@pytest.mark.slow
 def test_run_json_is_one_document_and_lockstep_board_latency_is_na(tmp_path: Path) -> None:
     session = session_file(tmp_path, 1.0)
     out = hil("-q", "run", session, "--loopback", "--clock", "lockstep", "--out", tmp_path, "--json")
@@ -107,6 +108,7 @@ def test_run_json_is_one_document_and_lockstep_board_latency_is_na(tmp_path: Pat
     assert "n/a" in board_row and "lockstep" in board_row and "0 / 0" not in board_row
 
 
+@pytest.mark.slow
 def test_campaign_and_report_of_a_campaign_dir_speak_json_and_quiet_leaves_out_the_notes(tmp_path: Path) -> None:
     from tests.api.test_api import small_campaign
 
@@ -124,6 +126,7 @@ def test_campaign_and_report_of_a_campaign_dir_speak_json_and_quiet_leaves_out_t
     assert hil("-q", "report", tmp_path / "out").stdout == ""
 
 
+@pytest.mark.slow
 def test_verbose_logs_what_the_session_does_on_stderr_and_quiet_prints_only_results(tmp_path: Path) -> None:
     session = session_file(tmp_path, 0.5)
     loud = hil("-v", "run", session, "--loopback", "--clock", "sim", "--out", tmp_path)

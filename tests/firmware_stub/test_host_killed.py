@@ -35,6 +35,7 @@ def read_jsonl(path: Path) -> list[dict[str, Any]]:
     return records
 
 
+@pytest.mark.slow
 def test_boards_protect_themselves_after_the_host_is_sigkilled(tmp_path: Path) -> None:
     fault_log, sent_log, ports_file = tmp_path / "faults.jsonl", tmp_path / "sent.log", tmp_path / "ports.json"
     emulator = EmulatorProcess(clock="realtime", extra_args=["--fault-log", str(fault_log)])

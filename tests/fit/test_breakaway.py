@@ -49,6 +49,7 @@ def test_the_path_is_ordered_by_the_breakaway_impulse_and_stays_plausible() -> N
     assert sum(1 for r, _ in path if r == 1.28) == 5  # the ratio held while the rate spans its plausible range
 
 
+@pytest.mark.slow
 def test_the_matched_breakaway_gives_back_the_logged_rate_error(swing: dict) -> None:
     """The prior's breakaway (1.28, 0.5 deg/s) puts the twin's rate error more than 5 % off the log's; the matched
     one brings it within 3 %, with the breakaway's impulse within 40 % of the hidden one's."""
@@ -70,6 +71,7 @@ def test_the_matched_breakaway_gives_back_the_logged_rate_error(swing: dict) -> 
     assert abs(again) < 0.03, again
 
 
+@pytest.mark.slow
 def test_a_breakaway_the_rate_error_does_not_show_is_not_resolved(swing: dict) -> None:
     """With next to no Coulomb friction on azimuth there is no breakaway torque to shape: its rate error moves by
     less than MATCH_FLAT over the whole path, and the match says it is not resolved (the fit keeps the prior)."""

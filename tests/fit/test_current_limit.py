@@ -76,6 +76,7 @@ def test_the_drive_at_the_limit_is_the_one_whose_current_the_emulated_driver_hel
     assert none == 0 and np.array_equal(untouched, 0.4 * u_counts[k])
 
 
+@pytest.mark.slow
 def test_an_ident_sweep_that_met_the_current_limit_is_read_with_the_drive_the_plant_received(tmp_path: Path) -> None:
     """Hidden plant 54: the default levelled azimuth sweep holds the current at its 1.88 A limit on ~1200 of its ticks
     (15 %). Read with the commanded drive, k_m is -0.9 % off and the 262 Hz gyro pole reads 156 +- 15 Hz, the total

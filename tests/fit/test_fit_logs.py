@@ -29,6 +29,8 @@ from hil.fit.record import campaign_on_plant, record, record_platform_logs, reco
 from hil.fit.twin import fit_frequency_response, fit_logs, lab_wire_delay_s
 from tests.fit.helpers import SLOW_WIRE_BAUD
 
+pytestmark = pytest.mark.slow
+
 HIDDEN_SEED = 12  # a draw of hil.fit.ranges.draw_plant; benchmarks/fit_hidden_plants.py runs others
 SEEDS_1_3 = (1, 2, 3)  # the acceptance campaign's seeds: a limit-cycling cell's single seed is noisy
 

@@ -8,6 +8,8 @@ import copy
 import math
 from pathlib import Path
 
+import pytest
+
 from hil.fit.logs import load_fit_log
 from hil.fit.ranges import get_param
 from hil.fit.record import record, recording_plan, session_on_plant
@@ -19,6 +21,7 @@ def _total_delay_s(bandwidth_hz: float, delay_s: float) -> float:
     return 1.0 / (2.0 * math.pi * bandwidth_hz) + delay_s
 
 
+@pytest.mark.slow
 def test_a_heavily_damped_axis_gives_the_gyro_pole_and_the_loop_delay(tmp_path: Path) -> None:
     """Hidden plant 32: elevation b / J = 1.5 /s (viscous 0.077 N m s/rad on 0.053 kg m^2), the gyro's pole at
     160 Hz inside the sweep's coherent band (to ~250 Hz, above the 229 Hz structural mode). With the plant's own

@@ -50,6 +50,7 @@ def test_the_third_octaves_where_the_drive_clipped_or_the_axis_reversed_are_left
     assert list(got) == [False, False, False, True, False, False]
 
 
+@pytest.mark.slow
 def test_an_ident_log_without_a_linear_low_band_keeps_the_prior_and_says_what_to_record(tmp_path: Path) -> None:
     base = session_on_plant(DEFAULT_PLANT_CONFIG, tmp_path, name="clip", swing=None)
     log = record([r for r in recording_plan(base) if r.name == "fit-ident-el"], loopback=True, level=False)[0]
@@ -71,6 +72,7 @@ def test_an_ident_log_without_a_linear_low_band_keeps_the_prior_and_says_what_to
     assert mode is not None and mode.status == "prior" and "not linear" in mode.source
 
 
+@pytest.mark.slow
 def test_an_ident_sweep_the_eso_cannot_pass_linearly_is_recorded_again_with_pi_lpf(tmp_path: Path) -> None:
     """Hidden plant 15's azimuth (k_m 0.045, twice the ESO's b0): its ESO loop clips the drive through the sweep,
     so `hil fit --record` records that sweep again with PI + LPF, and the log it keeps gives k_m within 5 %."""

@@ -71,6 +71,7 @@ def test_the_white_noise_of_a_driven_axis_comes_from_the_bins_its_drive_leaves_a
     assert abs(quiet["gyro.noise_psd.std_dps"]) < 0.05 and abs(quiet["gyro.noise_psd.centre_hz"]) < 0.02
 
 
+@pytest.mark.slow
 def test_bins_where_friction_at_rest_moves_the_drive_response_are_left_out(static_stuck: dict) -> None:
     """A loop holding the gimbal creeps at the gyro's bias and reverses with its noise: P lies between friction
     sliding and stuck. With the sliding P alone, the bins just above the modes read the white noise low."""
@@ -98,6 +99,7 @@ def _synthetic_static(seed: int, white_dps: float, band: dict, lsb_dps: float, s
                   provenance={}, boards={}, dt_s=1.0 / fs, controller="eso")
 
 
+@pytest.mark.slow
 def test_the_white_noise_1_sigma_matches_its_spread_over_seeds() -> None:
     """Thirty 30 s logs of known noise: the errors' spread over the stated 1-sigma is 1 (measured 1.09; 1.54 when
     every Welch bin counted as independent), and their mean is 0 (measured -0.15 %, 1-sigma 0.1 %; +0.8 % when the

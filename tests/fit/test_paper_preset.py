@@ -17,6 +17,8 @@ import yaml
 
 from hil.fit.targets import TABLE_STDS, Measured, load_targets, measure, paper_figures
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[2]
 TARGETS = ROOT / "profiles" / "targets" / "seed-000.yaml"
 PRESET = ROOT / "profiles" / "plant" / "paper-000.yaml"

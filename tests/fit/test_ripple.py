@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from firmware_stub.plant import Plant, PlantConfig
 from hil.fit.logs import load_fit_log
@@ -60,6 +61,7 @@ def test_the_drive_with_ripple_moves_a_ripple_free_plant_as_the_ripple_moved_the
     assert received < 0.05 * commanded
 
 
+@pytest.mark.slow
 def test_the_ripple_taken_in_takes_its_bias_out_of_the_loop_delay(tmp_path: Path) -> None:
     """Hidden plant 54's default levelled elevation sweep (sim clock, session seed 1), fitted with the hidden plant
     itself as the prior, once with the ripple taken into the drive and once without (the prior's ripple removed).

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from hil.fit.logs import load_fit_log
 from hil.fit.ranges import dump_plant, k_m_of
@@ -29,6 +30,7 @@ def _linear(plant: dict) -> dict:
     return c
 
 
+@pytest.mark.slow
 def test_a_linear_noise_free_plant_is_fitted_exactly_once_the_estimators_reading_is_divided_out(
         tmp_path: Path) -> None:
     """Hidden plant 54 made linear and noise-free, its default levelled elevation sweep (a 190 Hz mode damped at

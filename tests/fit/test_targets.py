@@ -130,6 +130,7 @@ def test_the_paper_figures_come_from_the_targets_file(tmp_path: Path) -> None:
     assert premise_values(changed, v)["d"] == pytest.approx(15.60 / 12.04)
 
 
+@pytest.mark.slow
 def test_tiny_study_runs_and_resumes(tmp_path: Path) -> None:
     path = _tiny(tmp_path)
     lines: list[str] = []
@@ -184,6 +185,7 @@ def _two_cells(tmp_path: Path) -> Path:
     return _tiny(tmp_path, targets=targets)
 
 
+@pytest.mark.slow
 def test_a_trial_that_cannot_beat_the_best_stops_after_its_first_cell(tmp_path: Path) -> None:
     path = _two_cells(tmp_path)
     kwargs = {"out_dir": tmp_path / "fit", "seed": 5, "verify": False, "jobs": 1}

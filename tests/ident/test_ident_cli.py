@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from firmware_stub.config import load_emulator_config
 from hil.config import PROFILES
 from hil.control.registry import K_M_DEFAULT
@@ -15,6 +17,7 @@ from hil.control.registry import K_M_DEFAULT
 SESSION = PROFILES / "sessions" / "swing-1deg-1hz-eso.yaml"
 
 
+@pytest.mark.slow
 def test_ident_recovers_the_emulators_k_m_within_5_percent(tmp_path: Path) -> None:
     """`hil ident SESSION --loopback` with its defaults (a levelled sweep, lockstep)."""
     proc = subprocess.run([sys.executable, "-m", "hil", "ident", str(SESSION), "--loopback", "--out", str(tmp_path)],
@@ -45,6 +48,7 @@ def test_ident_refuses_an_elevation_sweep_that_would_reach_the_gimbals_singulari
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
 
 
+@pytest.mark.slow
 def test_ident_shows_a_structural_mode_as_a_resonance_at_its_frequency(tmp_path: Path) -> None:
     """A two-mass mode on the elevation axis (gyro on the load) appears in `hil ident`'s frequency response as a
     peak over the rigid fit near ``mode_hz``; the same sweep on the rigid plant has none (sim clock)."""

@@ -141,6 +141,7 @@ def test_the_check_sees_the_axis_reverse_without_an_offset(offset: float) -> Non
     assert np.all(check.drive_clipped[low] == 0.0) and np.all(check.drive_peak_counts[low] < LIMIT)
 
 
+@pytest.mark.slow
 def test_hil_ident_levels_itself_on_a_plant_the_first_sweep_does_not_suit(tmp_path: Path) -> None:
     """A plant drawn in the plausible ranges whose first sweep is coherent only from 3.6 Hz (the low band drowns in
     the loop's own disturbances): the levelling widens the band, keeps the widest pass without a reversal, and prints
@@ -186,6 +187,7 @@ def test_a_resonance_over_the_rigid_model_is_found_at_its_peak() -> None:
             assert found == pytest.approx(expected, rel=0.03)
 
 
+@pytest.mark.slow
 def test_hil_ident_says_when_the_loop_oscillates_by_itself(tmp_path: Path) -> None:
     """A plausible plant (azimuth k_m twice the controllers' b0) on which the shipped ESO limit-cycles behind the
     slow-wire lab's 0.67 ms (921 600 baud; on the default lab's 0.13 ms it keeps its margin): the drive clips where

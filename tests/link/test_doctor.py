@@ -127,6 +127,7 @@ def records(fault_log: Path, kind: str) -> list[dict]:  # type: ignore[type-arg]
     return [r for r in map(json.loads, lines) if r["kind"] == kind]
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 def test_every_board_answers_with_the_bench_s_fingerprint_and_the_stream_runs_near_1_khz(tmp_path: Path) -> None:
     fault_log = tmp_path / "emulator.jsonl"

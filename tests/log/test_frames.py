@@ -72,6 +72,7 @@ def test_read_log_frames_of_a_session_log(sim_log: Path) -> None:
     assert read_log_frames(sim_log, groups=["image"]).groups == ["image"]
 
 
+@pytest.mark.slow
 def test_read_log_frames_of_a_live_and_of_a_crashed_log(tmp_path: Path) -> None:
     p = tmp_path / "live.h5"
     log = make_log(p, flush_interval_s=10.0)  # only explicit flushes

@@ -372,6 +372,7 @@ def test_trim_drops_zero_rows_past_the_last_flush(tmp_path):
 # --- flush cadence ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_writer_flushes_while_rows_come_never_more_often_than_its_interval(tmp_path):
     # how far the file lags the appends is the machine's (the writer runs at nice 10): benchmarks/bench_log.py
     p = tmp_path / "cadence.h5"

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from hil.cli import app
@@ -60,6 +61,7 @@ def test_bad_hex_on_stdin_names_its_byte_offset() -> None:
     assert "stdin: not hex text: 'x' at byte 10" in result.output
 
 
+@pytest.mark.slow
 def test_a_50_mb_capture_decodes_in_bounded_memory(tmp_path: Path) -> None:
     block = b"".join(servo_frames(65536))  # one turn of the sequence number, 2.6 MB
     capture = tmp_path / "big.bin"

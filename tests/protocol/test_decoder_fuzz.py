@@ -153,6 +153,7 @@ def assert_exactly_the_placed_frames_come_out(
     assert decoder.pending == 0
 
 
+@pytest.mark.slow
 @settings(FUZZ, max_examples=300)
 @given(data=st.data())
 def test_frames_survive_interleaved_garbage_and_any_chunking(any_frame: Any, data: Any) -> None:
@@ -173,6 +174,7 @@ def test_frames_survive_interleaved_garbage_and_any_chunking(any_frame: Any, dat
     assert_exactly_the_placed_frames_come_out(stream, spans, expected, data.draw(chunk_sizes, label="chunk sizes"))
 
 
+@pytest.mark.slow
 @settings(FUZZ, max_examples=300)
 @given(data=st.data())
 def test_corrupted_frames_cost_only_themselves(any_frame: Any, data: Any) -> None:

@@ -50,6 +50,7 @@ def patient_emulator(tmp_path: Path) -> Path:
     return write_yaml(tmp_path / "emulator.yaml", data)
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 def test_a_second_bench_on_the_same_ports_is_refused_and_the_first_runs_undisturbed(tmp_path: Path) -> None:
     with EmulatorProcess(patient_emulator(tmp_path), clock="realtime") as emulator:

@@ -79,6 +79,7 @@ def test_a_lockstep_capture_played_to_a_fresh_emulator_is_answered_frame_for_fra
     assert CaptureReader(r.record).meta["replay_of"] == str(lockstep_run.capture)
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 def test_a_realtime_capture_played_to_a_realtime_emulator_answers_each_sample_with_its_drive(
         realtime_run: CapturedRun, tmp_path: Path) -> None:
@@ -141,6 +142,7 @@ def test_a_capture_cut_mid_run_is_played_then_the_replay_disarms(lockstep_run: C
     assert r.links["driver"].acked == 3  # IDENT, DRIVE_ENABLE and the replay's DRIVE_DISABLE
 
 
+@pytest.mark.slow
 def test_a_stream_that_never_starts_stops_the_replay_before_any_drive(lockstep_run: CapturedRun) -> None:
     # without the servo link nothing starts the stream: no sample comes, so no DRIVE_CMD may go
     r = play(lockstep_run.capture, links={"driver", "image", "hexapod"})

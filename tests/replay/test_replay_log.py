@@ -48,6 +48,7 @@ def test_the_logged_controller_replayed_on_its_lockstep_log_gives_its_drive_back
     assert_reproduces_the_log(lockstep_run.log)
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 def test_the_same_holds_on_a_realtime_log_written_by_the_loop_thread(realtime_run: CapturedRun) -> None:
     # eso_kf: the Kalman rate fed back. The loop thread reads a camera frame's queue while the event loop fills it,

@@ -56,6 +56,7 @@ def guarded(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untype
     svc.stop()
 
 
+@pytest.mark.slow
 def test_roles_viewers_watch_and_operators_act(guarded: Service, tmp_path: Path) -> None:
     with pytest.raises(BenchError) as err:
         guarded.bench(token="").status()

@@ -109,6 +109,7 @@ def lines_with(text: str, output: str) -> list[str]:
     return [line for line in output.splitlines() if text in line]
 
 
+@pytest.mark.slow
 def test_a_waiting_item_knows_its_place_who_runs_before_it_and_the_lease(service: Service, tmp_path: Path) -> None:
     bo, cy, ana = service.bench(user="bo"), service.bench(user="cy"), service.bench(user="ana")
     bo.stop_queue()
@@ -195,6 +196,7 @@ def test_ctrl_c_at_ident_and_campaign_while_waiting_takes_the_item_off_the_queue
         bench.start()
 
 
+@pytest.mark.slow
 def test_ctrl_c_while_it_runs_stops_it_and_the_log_comes_back(service: Service, tmp_path: Path,
                                                               clients: list[Client]) -> None:
     bench = service.bench()
@@ -234,6 +236,7 @@ def test_ctrl_c_while_it_runs_stops_it_and_the_log_comes_back(service: Service, 
     assert bench.wait(after["uid"])["status"] == "completed"  # a stop lets the queue go on
 
 
+@pytest.mark.slow
 def test_a_second_ctrl_c_aborts_it_and_the_client_still_brings_the_log_back(service: Service, tmp_path: Path,
                                                                            clients: list[Client]) -> None:
     bench = service.bench()
@@ -262,6 +265,7 @@ def test_a_second_ctrl_c_aborts_it_and_the_client_still_brings_the_log_back(serv
         bench.start()
 
 
+@pytest.mark.slow
 def test_a_third_ctrl_c_leaves_at_once_and_the_item_goes_on_without_it(service: Service, tmp_path: Path,
                                                                        clients: list[Client]) -> None:
     bench = service.bench()
@@ -286,6 +290,7 @@ def test_a_third_ctrl_c_leaves_at_once_and_the_item_goes_on_without_it(service: 
         bench.start()
 
 
+@pytest.mark.slow
 def test_bench_run_in_a_notebook_stops_its_item_on_keyboard_interrupt(service: Service, tmp_path: Path,
                                                                        capsys: pytest.CaptureFixture[str]) -> None:
     bench = service.bench(user="nb")
@@ -305,6 +310,7 @@ def test_bench_run_in_a_notebook_stops_its_item_on_keyboard_interrupt(service: S
     assert len(said) == 1 and said[0].startswith("notebook.yaml: Ctrl-C: stopping item ")
 
 
+@pytest.mark.slow
 def test_a_uid_is_taken_by_its_first_characters(service: Service, tmp_path: Path) -> None:
     bench = service.bench(user=getpass.getuser())  # the items are the command line's user's own to move and remove
 

@@ -54,6 +54,7 @@ def fill(directory: Path) -> Path:
     return filler
 
 
+@pytest.mark.slow
 def test_a_full_state_disk_never_wedges_the_manager(small_fs: Path, tmp_path: Path) -> None:
     svc = Service(small_fs).start()  # the state directory is the small file system (the service's own log is not)
     try:

@@ -181,6 +181,7 @@ FUZZ_SETTINGS = settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=T
                          stateful_step_count=STATEFUL_STEPS)
 
 
+@pytest.mark.slow
 @FUZZ_SETTINGS
 @pytest.mark.usefixtures("node_nodeid")
 @schema.parametrize()
@@ -313,6 +314,7 @@ def test_an_unknown_route_or_method_is_one_line_of_json(api_schema: schemathesis
         assert documented <= {m.strip() for m in response.headers["allow"].split(",")}, response.headers
 
 
+@pytest.mark.slow
 def test_an_item_ran_while_the_api_was_fuzzed_and_the_service_still_serves(api_schema: schemathesis.BaseSchema,
                                                                             http: requests.Session, service: Service,
                                                                             load: Load, tmp_path: Path) -> None:

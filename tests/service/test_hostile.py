@@ -53,6 +53,7 @@ def item_body(tmp_path: Path, **fields: object) -> bytes:
     return json.dumps({"kind": "session", "file_name": "hostile.yaml", "body": text, **fields}).encode()
 
 
+@pytest.mark.slow
 def test_another_sites_page_can_neither_submit_start_abort_nor_watch(svc: Service, tmp_path: Path) -> None:
     bench = svc.bench()
     bench.stop_queue()
@@ -181,6 +182,7 @@ def test_nothing_the_hostile_calls_did_reached_the_queue_or_the_log(svc: Service
     assert os.path.exists(svc.state_dir / "service.sqlite3")
 
 
+@pytest.mark.slow
 def test_a_client_polling_in_a_tight_loop_is_told_to_wait_and_others_are_not(tmp_path: Path) -> None:
     """A token bucket per client (hil.service._limits; here `--max-rate 2`, bursts of 4, so that any machine, however
     loaded, asks faster than that): past it 429 with Retry-After and one line, another client answered meanwhile."""

@@ -24,6 +24,7 @@ def hil(*args: str, timeout: float = 900) -> subprocess.CompletedProcess[str]:
                           cwd=REPO, check=False)
 
 
+@pytest.mark.slow
 def test_ident_on_the_bench_fits_the_plant_and_brings_the_log_back(service: Service, tmp_path: Path) -> None:
     run = hil("ident", str(short_session(tmp_path)), "--bench", service.url, "--axis", "el", "--sweep-s", "10",
               "--f-start-hz", "2", "--f-stop-hz", "40", "--amplitude-dps", "4", "--offset-dps", "5",
@@ -42,6 +43,7 @@ def test_ident_on_the_bench_fits_the_plant_and_brings_the_log_back(service: Serv
     assert record["host_stalls"] > 0 or record["late_cycles"] > 0, run.stdout[-3000:]
 
 
+@pytest.mark.slow
 def test_a_campaign_runs_as_one_item_and_links_its_report(service: Service, tmp_path: Path) -> None:
     run = hil("campaign", str(REPO / "profiles/campaigns/static-gyro-noise.yaml"), "--bench", service.url, "--json")
     record = json.loads(run.stdout)
@@ -67,6 +69,7 @@ def test_a_campaign_that_leans_on_files_it_does_not_carry_is_refused_naming_the_
     assert err.value.status == 422 and "outside the submitted item" in str(err.value), err.value
 
 
+@pytest.mark.slow
 def test_a_campaign_carries_its_own_files_and_runs_when_the_client_s_are_gone(service: Service,
                                                                               tmp_path: Path) -> None:
     campaign = yaml.safe_load((REPO / "profiles/campaigns/static-gyro-noise.yaml").read_text())

@@ -19,6 +19,7 @@ from tests.factories import short_session
 from tests.service.conftest import Service, wait_for
 
 
+@pytest.mark.slow
 def test_another_operators_items_are_theirs_until_the_lease_says_otherwise(service: Service, tmp_path: Path) -> None:
     ana, kim = service.bench(user="ana"), service.bench(user="kim")
     ana.stop_queue()
@@ -44,6 +45,7 @@ def test_another_operators_items_are_theirs_until_the_lease_says_otherwise(servi
         ana.start()
 
 
+@pytest.mark.slow
 def test_a_stop_is_the_lease_holders_an_abort_anyones_and_both_say_who_and_why(service: Service,
                                                                             tmp_path: Path) -> None:
     ana, kim = service.bench(user="ana"), service.bench(user="kim")
@@ -65,6 +67,7 @@ def test_a_stop_is_the_lease_holders_an_abort_anyones_and_both_say_who_and_why(s
     ana.start()
 
 
+@pytest.mark.slow
 def test_a_token_in_the_url_is_refused_and_said_why(tmp_path: Path) -> None:
     tokens = tmp_path / "tokens.yaml"
     secret = "a-long-operator-token-0123456789"

@@ -126,6 +126,7 @@ return rows;
 """
 
 
+@pytest.mark.slow
 def test_the_page_shows_the_boards_as_the_status_says_without_a_console_error(service: Service,
                                                                              browser: webdriver.Chrome) -> None:
     status = service.bench().status()
@@ -155,6 +156,7 @@ def test_the_page_shows_the_boards_as_the_status_says_without_a_console_error(se
     assert severe(browser) == []
 
 
+@pytest.mark.slow
 def test_the_running_items_points_are_plotted_as_they_come(service: Service, browser: webdriver.Chrome,
                                                            tmp_path: Path) -> None:
     bench = service.bench(user="ana")
@@ -190,6 +192,7 @@ def test_the_running_items_points_are_plotted_as_they_come(service: Service, bro
     assert severe(browser) == []
 
 
+@pytest.mark.slow
 def test_stop_on_the_page_ends_the_session_the_normal_way(service: Service, browser: webdriver.Chrome,
                                                           tmp_path: Path) -> None:
     bench = service.bench(user="ana")

@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import pytest
 from selenium import webdriver
 from selenium.webdriver.common.by import By
 from selenium.webdriver.support.ui import WebDriverWait
@@ -58,6 +59,7 @@ def check_charts(shown: dict[str, Any], series: list[dict[str, Any]], items: int
         assert chart["points"] > 0 and all(n > 0 for n in chart["values"][:2]), (name, chart["values"])
 
 
+@pytest.mark.slow
 def test_a_clicked_item_opens_with_its_plots_and_two_ticked_items_compare(service: Service,
                                                                          browser: webdriver.Chrome,  # noqa: F811
                                                                          tmp_path: Path) -> None:

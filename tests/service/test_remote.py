@@ -104,6 +104,7 @@ REMOTE = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.slow
 @pytest.mark.browser
 @pytest.mark.realtime
 def test_a_client_and_a_browser_on_another_host_see_the_same_queue_live_run_and_history(

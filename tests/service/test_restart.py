@@ -20,6 +20,7 @@ from tests.factories import short_session
 from tests.service.conftest import Service, free_port, wait_for
 
 
+@pytest.mark.slow
 def test_a_manager_killed_mid_run_leaves_the_boards_safe_and_a_restart_keeps_queue_and_history(
         tmp_path: Path) -> None:
     state = tmp_path / "state"
@@ -66,6 +67,7 @@ def test_a_manager_killed_mid_run_leaves_the_boards_safe_and_a_restart_keeps_que
         again.stop()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("attempt", range(3))
 def test_a_restarted_service_runs_nothing_until_an_operator_starts_the_queue(tmp_path: Path, attempt: int) -> None:
     """The manager SIGKILLed while an item runs and items wait, then the same `hil serve` again: the queue is
@@ -100,6 +102,7 @@ def test_a_restarted_service_runs_nothing_until_an_operator_starts_the_queue(tmp
         again.stop()
 
 
+@pytest.mark.slow
 def test_a_killed_worker_s_item_is_a_fault_with_exit_code_1_and_its_log_linked(tmp_path: Path) -> None:
     """The worker SIGKILLed mid-item: the item is recorded fault, exit code 1, with the log it left on disk linked
     (it used to be recorded with neither), a new worker takes the lab and the queue goes on."""
@@ -139,6 +142,7 @@ def hold_ports(ports: dict[str, str], session: str, seconds: float) -> subproces
     return proc
 
 
+@pytest.mark.slow
 def test_a_lab_service_waits_for_a_dead_services_worker_and_refuses_a_live_bench(tmp_path: Path) -> None:
     """`hil serve --lab` started again at once after its manager was SIGKILLed finds the ports still held by the
     old worker (aborting its item): a holder named for a service whose manager is gone is waited for. A holder

@@ -52,6 +52,7 @@ def session_item(service: Service, tmp_path_factory: pytest.TempPathFactory) -> 
     return record, tmp / "out"
 
 
+@pytest.mark.slow
 def test_a_sessions_files_are_listed_served_and_brought_back(service: Service,
                                                             session_item: tuple[dict[str, Any], Path]) -> None:
     record, out = session_item
@@ -129,6 +130,7 @@ def test_nothing_outside_the_items_directory_is_served(service: Service, tmp_pat
             (run_dir / name).unlink()
 
 
+@pytest.mark.slow
 def test_ident_out_brings_back_every_pass_log_the_bode_plot_and_the_fit(service: Service, tmp_path: Path) -> None:
     out = tmp_path / "ident"
     run = hil("ident", str(short_session(tmp_path, name="ident-out")), "--bench", service.url, "--axis", "el",
@@ -150,6 +152,7 @@ def test_ident_out_brings_back_every_pass_log_the_bode_plot_and_the_fit(service:
         assert run.returncode == 1 and record["status"] == "fault", run.stdout[-2000:]
 
 
+@pytest.mark.slow
 def test_campaign_out_brings_back_its_cells_and_its_report(service: Service, tmp_path: Path) -> None:
     campaign = yaml.safe_load((REPO / "profiles/campaigns/static-gyro-noise.yaml").read_text())
     campaign.update(session=str(REPO / "profiles/sessions/swing-1deg-1hz-eso.yaml"), seeds=[1], duration_s=3.0,

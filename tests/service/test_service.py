@@ -27,6 +27,7 @@ def hil(*args: str, env: dict[str, str] | None = None, timeout: float = 300) -> 
                           cwd=REPO, env=env, check=False)
 
 
+@pytest.mark.slow
 def test_a_session_runs_through_the_service_and_comes_back_as_a_run_result(service: Service,
                                                                           tmp_path: Path) -> None:
     bench = service.bench(user="ana")
@@ -88,6 +89,7 @@ def test_a_bad_item_is_refused_when_submitted_with_the_loaders_one_line(service:
     assert bench.queue()["items"] == []
 
 
+@pytest.mark.slow
 def test_stop_winds_down_normally_and_abort_disables_first(service: Service, tmp_path: Path) -> None:
     bench = service.bench(user="ben")
     for how, status, code in (("stop", "stopped", 3), ("abort", "aborted", 130)):
@@ -113,6 +115,7 @@ def test_stop_winds_down_normally_and_abort_disables_first(service: Service, tmp
         assert ("signal" in events) == (how == "abort")  # abort: the SIGINT path, the driver disabled first
 
 
+@pytest.mark.slow
 def test_two_users_submitting_at_once_both_run_one_after_the_other(service: Service, tmp_path: Path) -> None:
     results: dict[str, object] = {}
 
@@ -131,6 +134,7 @@ def test_two_users_submitting_at_once_both_run_one_after_the_other(service: Serv
     assert first["ended_at"] <= second["started_at"]  # one after the other
 
 
+@pytest.mark.slow
 def test_while_a_lease_is_held_only_its_holders_items_run(service: Service, tmp_path: Path) -> None:
     eve, fay = service.bench(user="eve"), service.bench(user="fay")
     eve.lease(ttl_s=60)
@@ -151,6 +155,7 @@ def test_while_a_lease_is_held_only_its_holders_items_run(service: Service, tmp_
     assert events[0]["event"] == "broken" and events[0]["by"] == "fay" and events[0]["reason"] == "eve is at lunch"
 
 
+@pytest.mark.slow
 def test_queue_operations(service: Service, tmp_path: Path) -> None:
     bench = service.bench(user="gil")
     bench.stop_queue()
@@ -226,6 +231,7 @@ with Bench(sys.argv[1], user="ci-job").leased(ttl_s=5):
 """
 
 
+@pytest.mark.slow
 def test_a_lease_held_by_a_client_that_dies_lapses_by_itself(service: Service) -> None:
     holder = subprocess.Popen([sys.executable, "-c", HOLD_LEASE, service.url], stdout=subprocess.PIPE, text=True,
                               cwd=REPO)

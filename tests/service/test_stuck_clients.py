@@ -10,6 +10,7 @@ import socket
 import time
 from pathlib import Path
 
+import pytest
 import websockets
 
 from tests.factories import short_session
@@ -25,6 +26,7 @@ async def stuck_pages(url: str, n: int, hold_s: float) -> int:
     return len(sockets)
 
 
+@pytest.mark.slow
 def test_pages_that_never_read_and_a_half_sent_request_do_not_stall_the_session(service: Service,
                                                                                tmp_path: Path) -> None:
     half = socket.create_connection(("127.0.0.1", service.port), timeout=30)

@@ -79,6 +79,7 @@ def test_sigint_from_the_cli_exits_130(tmp_path: Path) -> None:
         pass
 
 
+@pytest.mark.slow
 def test_sigkill_mid_session_then_recover(tmp_path: Path) -> None:
     # the bench, its log writer and the emulator all die at once, as in a power cut
     long_run = tmp_path / "long.yaml"  # lockstep (no wall-clock watchdog), long enough to be killed mid-run
@@ -147,6 +148,7 @@ def test_missing_ports_and_missing_file_are_exit_2(tmp_path: Path) -> None:
     assert res.returncode == 2 and "no such file" in res.stderr
 
 
+@pytest.mark.slow
 def test_a_lockstep_session_needs_no_wall_clock_margin(tmp_path: Path) -> None:
     """Bounds that hold on a loaded machine (the speed itself is in benchmarks/): every tick of a lockstep
     run is answered and none is late in simulated time."""

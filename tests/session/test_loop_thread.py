@@ -44,6 +44,7 @@ async def wait_armed(session: Session, timeout_s: float = 10.0) -> None:
     raise TimeoutError("the session did not re-arm")
 
 
+@pytest.mark.slow
 def test_five_watchdog_trips_are_five_recoveries_each_with_a_new_loop_thread(tmp_path) -> None:
     threads: list[object] = []
 
@@ -64,8 +65,12 @@ def test_five_watchdog_trips_are_five_recoveries_each_with_a_new_loop_thread(tmp
                       during=stall_five_times)
     assert run.result.status in ("completed", "stopped"), run.result.message
     faults = run.result.stats.faults
-    assert sum("watchdog" in f for f in faults) >= 5 and run.result.stats.recoveries >= 5, faults
-    assert len({id(t) for t in threads}) == 6  # each recovery ran a loop thread of its own
+    trips = sum("watchdog" in f for f in faults)
+    # each 60 ms stall trips the 20 ms watchdog, unless a loaded host descheduled the bench during it: then the
+    # silence is the host's (a host_stall event), never tripped on; every trip is recovered
+    assert trips >= 1 and trips + run.result.stats.host_stalls >= 5, (faults, run.result.stats.host_stalls)
+    assert run.result.stats.recoveries == trips, faults
+    assert len({id(t) for t in threads}) == trips + 1  # each recovery ran a loop thread of its own
     assert not any(t.alive for t in threads)  # type: ignore[attr-defined]
     kinds = [k for k, _ in logged_events(run.result.log_path)]
     assert kinds.count("recovered") == run.result.stats.recoveries
@@ -112,6 +117,7 @@ def _freeze_emulator(times: int, ms: float):  # type: ignore[no-untyped-def]
     return during
 
 
+@pytest.mark.slow
 def test_with_a_grace_an_emulator_the_host_did_not_run_is_a_stall_not_a_fault(tmp_path) -> None:
     safety = {"watchdog_ms": 5, "on_fault": "stop", "emulator_stall_grace_ms": 500}
     run = run_session(session_config(duration_s=2.0, safety=safety), tmp_path, clock="realtime",

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from hil.analysis import summarize_log
 from hil.log import LogError, read_log
@@ -38,6 +39,7 @@ def profile_time_logged(log_path: Path) -> float:
     return float(t.max()) if t.size else 0.0
 
 
+@pytest.mark.slow
 def test_a_bench_frozen_past_the_host_timeout_resumes_the_swing_at_the_profile_s_time(tmp_path: Path) -> None:
     logs = tmp_path / "logs"
     session = write_yaml(tmp_path / "s.yaml", session_data(

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from firmware_stub.config import load_emulator_config
 from firmware_stub.emulator import Emulator
 from hil.protocol import MissDistance
 from tests.factories import run_session, session_config
 
 
+@pytest.mark.slow
 def test_the_bench_follows_the_documented_session_sequence(tmp_path: Path) -> None:
     run = run_session(session_config(duration_s=0.5, seed=2), tmp_path)
     assert run.result.status == "completed", run.result.message

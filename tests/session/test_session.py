@@ -80,6 +80,7 @@ def test_lockstep_sessions_are_reproducible(lockstep_session, tmp_path) -> None:
         np.testing.assert_array_equal(a[channel][:n], b[channel][:n], err_msg=channel)
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 def test_watchdog_zeroes_the_drive_within_5_ms_of_a_stall(tmp_path) -> None:
     async def stall(emu: EmulatorProcess, session: Session) -> None:
@@ -109,6 +110,7 @@ def test_watchdog_zeroes_the_drive_within_5_ms_of_a_stall(tmp_path) -> None:
     assert reasons == run.result.stats.faults and any(r.startswith("watchdog: no GYRO_SAMPLE for") for r in reasons)
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 def test_a_bench_the_host_stopped_while_the_board_was_stopped_too_does_not_trip(tmp_path) -> None:
     """A VM's vCPU taken away from the bench and an emulator that share it: both freeze; the bench comes
@@ -146,6 +148,7 @@ def test_a_bench_the_host_stopped_while_the_board_was_stopped_too_does_not_trip(
     assert 60.0 <= summary["host_stall_max_ms"] < 1000.0
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 def test_disconnect_mid_session_is_recovered(tmp_path) -> None:
     async def unplug(emu: EmulatorProcess, session: Session) -> None:

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import aiomqtt
+import pytest
 
 from hil.telemetry import MqttConfig
 from tests.factories import run_session, session_config
@@ -49,6 +50,7 @@ def mqtt_session(broker: MqttBroker, duration_s: float):  # type: ignore[no-unty
     return session_config(duration_s=duration_s, mqtt=mqtt.model_dump())
 
 
+@pytest.mark.slow
 def test_session_publishes_telemetry_state_and_status(mqtt_broker: MqttBroker, tmp_path: Path) -> None:
     sub = Subscriber(mqtt_broker)
     run = run_session(mqtt_session(mqtt_broker, 3.0), tmp_path)

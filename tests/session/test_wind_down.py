@@ -37,6 +37,7 @@ def emulator_with_stall(tmp: Path, at_s: float) -> Path:
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stall_at_s", STALL_STARTS_S)
 def test_a_stall_during_the_last_300_ms_never_leaves_a_board_moving(tmp_path: Path, stall_at_s: float) -> None:
     config = session_config(

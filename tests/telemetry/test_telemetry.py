@@ -187,6 +187,7 @@ def test_sample_decimation_and_awkward_inputs_without_broker() -> None:
 # --- telemetry stream -------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_telemetry_50hz_from_1khz_calls_values_and_units(mqtt_broker: MqttBroker) -> None:
     async def main() -> None:
         tm = Telemetry(config(mqtt_broker), "s-rate", units=UNITS)
@@ -252,6 +253,7 @@ asyncio.run(main())
 """
 
 
+@pytest.mark.slow
 def test_status_online_offline_state_and_last_will(mqtt_broker: MqttBroker) -> None:
     async def main() -> None:
         tm = Telemetry(config(mqtt_broker, bench_id="rig-status"), "s-status")
@@ -321,6 +323,7 @@ def test_no_broker_never_blocks_or_raises() -> None:
     run(main())
 
 
+@pytest.mark.slow
 def test_broker_killed_then_restarted(mqtt_broker: MqttBroker) -> None:
     async def main() -> None:
         tm = Telemetry(config(mqtt_broker, bench_id="rig-loss", reconnect_min_s=0.1, reconnect_max_s=0.5), "s-loss")

@@ -12,6 +12,7 @@ from hil.tune import tune
 from tests.tune.test_study import SPACE, tiny_campaign
 
 
+@pytest.mark.slow
 def test_the_tuned_gains_are_compared_on_held_out_seeds(tmp_path: Path) -> None:
     out = tmp_path / "s"
     result = tune(tiny_campaign(tmp_path), SPACE, trials=2, out=out, heldout_seeds=2, heldout_duration_s=1.5)

@@ -32,6 +32,7 @@ def test_the_front_keeps_the_feasible_trials_nothing_beats_everywhere() -> None:
     assert choose_on_front([], ["minimize"]) is None
 
 
+@pytest.mark.slow
 def test_a_study_of_miss_against_ripple_writes_its_front_and_its_chosen_point(tmp_path: Path) -> None:
     out = tmp_path / "s"
     result = tune(tiny_campaign(tmp_path), SPACE, objective=["miss_std_px", "drive_ripple_el_counts"], trials=5,

@@ -66,6 +66,7 @@ def test_an_infeasible_trial_is_not_the_reference_and_maximising_turns_the_rule_
     assert first_cell(up, 2.9) and not first_cell(up, 3.1)  # 4.0 x 0.75 = 3.0
 
 
+@pytest.mark.slow
 def test_a_hopeless_trial_stops_after_its_first_cell_and_the_shipped_gains_come_first(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(_prune, "PRUNE_STARTUP_TRIALS", 1)

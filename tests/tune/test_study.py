@@ -41,6 +41,7 @@ def stored_constraints(storage: str, number: int) -> dict[str, float]:
     return dict(optuna.load_study(study_name="tiny-tune", storage=storage).trials[number].constraints)
 
 
+@pytest.mark.slow
 def test_a_study_writes_its_database_controller_and_report_and_resumes(tmp_path: Path) -> None:
     campaign, out = tiny_campaign(tmp_path), tmp_path / "study"
     seen: list[int] = []
@@ -86,6 +87,7 @@ def test_a_study_writes_its_database_controller_and_report_and_resumes(tmp_path:
     assert tune(campaign, SPACE, trials=5, out=out, resume=True, write_report=False).trials_run == 0
 
 
+@pytest.mark.slow
 def test_a_failing_trial_is_failed_and_the_study_goes_on(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     real = runner.run_campaign
 
@@ -134,6 +136,7 @@ def test_the_command_line_refuses_a_bad_space_in_one_line(tmp_path: Path) -> Non
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_the_command_line_with_an_infeasible_constraint(tmp_path: Path) -> None:
     out = hil("-q", "tune", tiny_campaign(tmp_path), "--params", SPACE, "--trials", "2", "--out", tmp_path / "o",
               "--constraint", "miss_std_px<=0.0001", "--json", "--no-report")
@@ -143,6 +146,7 @@ def test_the_command_line_with_an_infeasible_constraint(tmp_path: Path) -> None:
     assert data["constraints"] == ["miss_std_px<=0.0001"] and data["yaml"] is None
 
 
+@pytest.mark.slow
 def test_a_study_on_the_dask_engine_scores_each_trial_as_the_local_engine_does(tmp_path: Path) -> None:
     """`hil tune --engine dask` with no scheduler: a LocalCluster of two worker processes runs the trials' cells;
     each trial's value is the one the local engine gives for the same parameters (same seeds, sim clock)."""
