@@ -136,10 +136,21 @@ def main(argv: list[str]) -> int:
     if run([PY, "-m", "mypy"]) != 0:
         say("the type checker found problems (above)")
         return 1
+    # the tests run on parallel workers (pytest-xdist), a test file to a worker: its fixtures are made once
+    parallel = ["-n", str(test_workers()), "--dist", "loadfile"]
     if fast:
         say("the fast lane: tests not marked slow or browser (the whole suite: python3 dev.py test)")
-        return run([PY, "-m", "pytest", "-m", "not slow and not browser", *rest])
-    return run([PY, "-m", "pytest", *rest])
+        return run([PY, "-m", "pytest", *parallel, "-m", "not slow and not browser", *rest])
+    return run([PY, "-m", "pytest", *parallel, *rest])
+
+
+def test_workers() -> int:
+    """How many test workers: ``HIL_TEST_WORKERS`` if set, else one per CPU this process may use, 2 to 4 (on two
+    cores a third worker gained 9 % and crowded the realtime tests into failing; docs/architecture.md)."""
+    if env := os.environ.get("HIL_TEST_WORKERS"):
+        return max(1, int(env))
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 2)
+    return max(2, min(4, cpus))
 
 
 if __name__ == "__main__":
