@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from firmware_stub.config import read_yaml_mapping
 from firmware_stub.plant import PlantConfig
+from hil.config import read_yaml_mapping
 
 AXES = ("az", "el")
 GYRO_AXES = ("x", "y", "z")
@@ -263,7 +263,7 @@ def validate_plant(cfg: Mapping[str, Any]) -> PlantConfig:
 def load_plant_dict(path: str | Path) -> dict[str, Any]:
     """A plant YAML as a dict, validated."""
 
-    # the emulator's reader, then the validated model's plain dump (YAML 1.1 reads ``2.0e4`` as text; pydantic
+    # the bench's bounded reader, then the validated model's plain dump (YAML 1.1 reads ``2.0e4`` as text; pydantic
     # reads it as the number it is): every value typed, mechanisms that are off left out
     return validate_plant(read_yaml_mapping(path)).model_dump(mode="json", exclude_none=True)
 
