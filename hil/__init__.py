@@ -17,14 +17,17 @@ from typing import TYPE_CHECKING, Any
 
 from hil._version import __version__
 
-__all__ = ["Bench", "CampaignRun", "ConfigError", "IdentRun", "RunResult", "SessionConfig", "__version__", "check_file",
-           "load_campaign", "load_session", "read_log", "replay_capture", "replay_log", "report", "run", "run_async",
-           "run_campaign"]
+__all__ = ["LABS", "Bench", "BenchLab", "CampaignRun", "ConfigError", "IdentRun", "Lab", "RunResult", "SessionConfig",
+           "__version__", "check_file", "load_campaign", "load_session", "read_log", "replay_capture", "replay_log",
+           "report", "run", "run_async", "run_campaign"]
 
 if TYPE_CHECKING:
     from hil.api import (
+        LABS,
+        BenchLab,
         CampaignRun,
         IdentRun,
+        Lab,
         RunResult,
         check_file,
         load_campaign,
@@ -41,7 +44,8 @@ if TYPE_CHECKING:
 
 # hil.api.ident and hil.api.tune are not here: hil.ident and hil.tune are packages, and a package's name would
 # hide a function of that name once imported (tests/api/test_api.py)
-_FROM = {"Bench": "hil.service", "CampaignRun": "hil.api", "IdentRun": "hil.api", "replay_capture": "hil.api",
+_FROM = {"Bench": "hil.service", "LABS": "hil.api", "BenchLab": "hil.api", "Lab": "hil.api", "CampaignRun": "hil.api",
+         "IdentRun": "hil.api", "replay_capture": "hil.api",
          "replay_log": "hil.api",
          "RunResult": "hil.api", "check_file": "hil.api", "load_campaign": "hil.api",
          "read_log": "hil.api", "report": "hil.api", "run": "hil.api", "run_async": "hil.api",
