@@ -145,13 +145,12 @@ def main(argv: list[str]) -> int:
 
 
 def test_workers() -> int:
-    """How many test workers: ``HIL_TEST_WORKERS`` if set, else one more than the CPUs this process may use, 2 to
-    4: two fifths of the suite's time is the service's tests, which wait on wall time (sessions paced at 1 kHz, a
-    service starting), so a worker more than the cores keeps them busy (docs/architecture.md, "Tests in lanes")."""
+    """How many test workers: ``HIL_TEST_WORKERS`` if set, else one per CPU this process may use, 2 to 4 (on two
+    cores a third worker gained 9 % and crowded the realtime tests into failing; docs/architecture.md)."""
     if env := os.environ.get("HIL_TEST_WORKERS"):
         return max(1, int(env))
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 2)
-    return max(2, min(4, cpus + 1))
+    return max(2, min(4, cpus))
 
 
 if __name__ == "__main__":
