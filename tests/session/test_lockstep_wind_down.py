@@ -45,7 +45,11 @@ def _events(log: Any) -> list[tuple[int, str, dict[str, Any]]]:
     ev = log.groups["events"]
     out = []
     for tick, kind, detail in zip(ev["tick"], ev["kind"], ev["detail"], strict=True):
-        d = json.loads(detail.decode() if isinstance(detail, bytes) else str(detail))
+        text = detail.decode() if isinstance(detail, bytes) else str(detail)
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError:  # a detail cut at the log's detail length: compared as its text
+            d = {"text": text}
         k = kind.decode() if isinstance(kind, bytes) else str(kind)
         if k == "summary":
             d = {key: v for key, v in d.items() if key not in SUMMARY_WALL_CLOCK}
