@@ -231,21 +231,8 @@ def run_campaign(campaign: CampaignConfig | str | Path, *, out: str | Path | Non
                  engine: Literal["local", "dask"] | Engine = "local", scheduler: str | None = None,
                  workers: int | None = None, shared_dir: str | Path | None = None,
                  plant: str | Path | None = None) -> CampaignRun:
-    """Run (or with ``resume`` finish) a swing campaign: every cell a session with its own log, then the
-    acceptance verdict and (``write_report``) the report. ``out`` defaults to ``runs/campaigns/NAME``.
-    Cells run ``jobs`` at a time on the ``sim`` clock (or ``lockstep``), or on the lab's ports (``hardware``).
-
-    ``engine="dask"`` runs the cells on a dask.distributed cluster: ``scheduler`` (``"tcp://HOST:8786"``) an
-    existing one's, else a LocalCluster of ``workers`` (default ``jobs``) processes started here and closed at the
-    end; with a scheduler, ``workers`` waits for that many workers. The cells' files come back to ``out`` as bytes,
-    or through ``shared_dir``, a directory every worker sees at the same path. An open
-    :class:`hil.campaign.engines.Engine` may be given instead (its owner closes it). An unreachable scheduler is
-    a ConfigError naming the scheduler, raised before anything is written. ``plant``: every cell on this plant
-    file (a fitted twin) instead of the one its session's emulator names.
-    Blocking; inside a running event loop it runs the cells in worker threads, which is what it does anyway.
-    A KeyboardInterrupt stops the cells running (each session the safe way) and raises
-    :class:`hil.campaign.runner.CampaignInterrupted` (a KeyboardInterrupt) naming the cells done and cut short;
-    the finished cells stay in ``out``, and ``resume=True`` runs the rest. No report is written then."""
+    """Run (or with ``resume`` finish) a swing campaign, its verdict and report (`hil campaign`); the
+    parameters, the dask engine and Ctrl-C are :func:`hil.campaign.run_and_report`'s."""
     from hil.campaign import run_and_report  # noqa: PLC0415  (loaded by the call that needs it: `hil run` starts without the experiments)
 
     return run_and_report(campaign, out=out, jobs=jobs, resume=resume, hardware=hardware, clock=clock,
@@ -289,17 +276,8 @@ def ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] = "e
           amplitude_dps: float = IDENT_SWEEP.amplitude_dps, offset_dps: float = IDENT_SWEEP.offset_dps,
           level: bool = True, progress: Progress | None = None,
           on_pass: Callable[[int, SweptSine], None] | None = None, lab: Lab | None = None) -> IdentRun:
-    """Frequency-sweep identification (seed 000 Figs. 8-9, docs/ident.md): a swept sine on one axis's rate command
-    of the closed rate loop (``session``'s controller, tracking off, no swing), the plant's frequency response from
-    the log, a Bode plot and the fit of k_m, the gyro's bandwidth and the delay.
-
-    With ``level`` (the default) the sweep levels itself (docs/ident.md "Levelling"): ``amplitude_dps`` and
-    ``offset_dps`` are where it starts; up to three more sweeps raise the amplitude where the coherence fails and
-    the drive has headroom, lower it where the drive saturates, raise the offset while the axis reverses (at most
-    60 deg of travel), each pass turning the axis back. The fit is made on the widest coherent band only, and
-    ``band_hz`` reports it. ``on_pass(i, sweep)`` announces each pass. ``lab``: the lab to run on
-    (:class:`hil.session.Lab`), whatever ``loopback`` and ``clock`` say. ValueError (ConfigError) for bad input; a
-    fit that cannot be made raises ValueError naming the log."""
+    """Frequency-sweep identification (`hil ident`, seed 000 Figs. 8-9, docs/ident.md): the levelled sweeps,
+    the Bode plot and the fit; the parameters are :func:`hil.ident.run_ident`'s."""
     return run_ident(session, axis=axis, loopback=loopback, clock=clock, out=out, f_start_hz=f_start_hz,
                      f_stop_hz=f_stop_hz, sweep_s=sweep_s, amplitude_dps=amplitude_dps, offset_dps=offset_dps,
                      level=level, progress=progress, on_pass=on_pass, lab=lab)
@@ -463,14 +441,6 @@ def check_file(path: str | Path, kind: str | None = None) -> dict[str, Any]:
 
 def doctor(session: SessionConfig | str | Path | None = None, *, sysfs: str | Path = "/sys", boards: bool = True,
            listen_s: float = 2.0) -> list[Finding]:
-    """Is the hardware ready (`hil doctor`, docs/service.md)? Every check of every port: ``session``'s ports, or
-    with none every serial adapter in /dev/serial/by-id/ at the default line rate (hil.protocol.LINE_RATE_BAUD).
-    ConfigError for a session without ports. With a session, also what the wire adds to every cycle at its rates
-    (hil.link.wire_delay: a warning over ``ports.wire_delay_budget_us``).
-
-    With a session and ``boards`` (the default), the boards are asked too (hil.boards.check_boards), on each port
-    whose own checks passed: an ``ident`` finding per link the session opens (the board's IDENT and its catalogue
-    fingerprint against this bench's), and a ``servo stream`` finding: the stream started, listened to ``listen_s``
-    and stopped, its rate and jitter against 1 kHz and the session's ``safety.watchdog_ms``. The motor driver is
-    never enabled and the hexapod never moved. ``boards=False`` checks the ports alone, without a byte sent."""
+    """Is the hardware ready (`hil doctor`, docs/service.md)? Every check of every port, and with a session
+    and ``boards`` the boards asked too; the parameters are :func:`hil.session.check_hardware`'s."""
     return check_hardware(session, sysfs=sysfs, boards=boards, listen_s=listen_s)

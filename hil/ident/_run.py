@@ -50,7 +50,7 @@ def run_ident(session: SessionConfig | str | Path, *, axis: Literal["el", "az"] 
     the log, a Bode plot and the fit of k_m, the gyro's bandwidth and the delay.
 
     With ``level`` (the default) the sweep levels itself (docs/ident.md "Levelling"): ``amplitude_dps`` and
-    ``offset_dps`` are where it starts; up to three more sweeps raise the amplitude where the coherence fails and
+    ``offset_dps`` are where it starts; up to five more sweeps raise the amplitude where the coherence fails and
     the drive has headroom, lower it where the drive saturates, raise the offset while the axis reverses (at most
     60 deg of travel), each pass turning the axis back. The fit is made on the widest coherent band only, and
     ``band_hz`` reports it. ``on_pass(i, sweep)`` announces each pass. ``lab``: the lab to run on
